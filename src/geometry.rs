@@ -1,0 +1,146 @@
+//! The contract's geometry convention, in one place.
+//!
+//! A [`Similarity`] says where reference content appears in the frame:
+//! `p_frame = s · R(θ) · (p_ref − c) + c + (dx, dy)`, with `c` the centre of the
+//! reference array `((W−1)/2, (H−1)/2)` and `R(θ)` counter-clockwise in the
+//! (x right, y up) plane, i.e. `[[cos, −sin], [sin, cos]]` acting on (x, y) pixel
+//! coordinates (x = column = FITS axis 1, y = row = FITS axis 2, 0-based).
+
+use serde::{Deserialize, Serialize};
+
+pub const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
+
+/// A 4-parameter similarity transform about a fixed centre.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Similarity {
+    pub scale: f64,
+    /// θ in radians (counter-clockwise, x right / y up).
+    pub rotation_rad: f64,
+    pub dx: f64,
+    pub dy: f64,
+    /// The centre `c` about which scale and rotation act (reference array centre).
+    pub center: [f64; 2],
+}
+
+impl Similarity {
+    pub fn identity(center: [f64; 2]) -> Self {
+        Similarity {
+            scale: 1.0,
+            rotation_rad: 0.0,
+            dx: 0.0,
+            dy: 0.0,
+            center,
+        }
+    }
+
+    /// Centre of an array of `width × height` pixels, `((W−1)/2, (H−1)/2)`.
+    pub fn array_center(width: usize, height: usize) -> [f64; 2] {
+        [(width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0]
+    }
+
+    /// Linear part `a = s cos θ`, `b = s sin θ`.
+    pub fn ab(&self) -> (f64, f64) {
+        (
+            self.scale * self.rotation_rad.cos(),
+            self.scale * self.rotation_rad.sin(),
+        )
+    }
+
+    /// Map a reference-grid point to the frame grid.
+    pub fn apply(&self, p: [f64; 2]) -> [f64; 2] {
+        let (a, b) = self.ab();
+        let (x, y) = (p[0] - self.center[0], p[1] - self.center[1]);
+        [
+            a * x - b * y + self.center[0] + self.dx,
+            b * x + a * y + self.center[1] + self.dy,
+        ]
+    }
+
+    /// The inverse mapping (frame grid to reference grid), expressed about the same centre.
+    pub fn inverse(&self) -> Self {
+        // p_ref - c = (1/s) R(-θ) (p_frame - c - d)
+        let inv_s = 1.0 / self.scale;
+        let (c, s) = (self.rotation_rad.cos(), self.rotation_rad.sin());
+        // translation term: -(1/s) R(-θ) d
+        let tx = -inv_s * (c * self.dx + s * self.dy);
+        let ty = -inv_s * (-s * self.dx + c * self.dy);
+        Similarity {
+            scale: inv_s,
+            rotation_rad: -self.rotation_rad,
+            dx: tx,
+            dy: ty,
+            center: self.center,
+        }
+    }
+
+    /// `self ∘ first`: apply `first`, then `self`. The result uses `first`'s centre.
+    pub fn after(&self, first: &Similarity) -> Self {
+        let c = first.center;
+        let scale = self.scale * first.scale;
+        let rotation_rad = self.rotation_rad + first.rotation_rad;
+        // Translation: where the centre goes, minus the centre.
+        let q = self.apply(first.apply(c));
+        Similarity {
+            scale,
+            rotation_rad,
+            dx: q[0] - c[0],
+            dy: q[1] - c[1],
+            center: c,
+        }
+    }
+
+    /// The same mapping expressed about another centre.
+    pub fn recentered(&self, center: [f64; 2]) -> Self {
+        let q = self.apply(center);
+        Similarity {
+            dx: q[0] - center[0],
+            dy: q[1] - center[1],
+            center,
+            ..*self
+        }
+    }
+
+    pub fn rotation_arcsec(&self) -> f64 {
+        self.rotation_rad * ARCSEC_PER_RAD
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: [f64; 2], b: [f64; 2]) -> bool {
+        (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9
+    }
+
+    #[test]
+    fn quarter_turn_is_counter_clockwise_in_x_right_y_up() {
+        // +x axis rotated by +90° counter-clockwise lands on +y.
+        let t = Similarity {
+            scale: 1.0,
+            rotation_rad: std::f64::consts::FRAC_PI_2,
+            dx: 0.0,
+            dy: 0.0,
+            center: [0.0, 0.0],
+        };
+        assert!(close(t.apply([1.0, 0.0]), [0.0, 1.0]));
+    }
+
+    #[test]
+    fn inverse_and_composition_round_trip() {
+        let t = Similarity {
+            scale: 1.003,
+            rotation_rad: 0.007,
+            dx: 2.5,
+            dy: -1.25,
+            center: [511.5, 511.5],
+        };
+        let p = [100.0, 900.0];
+        assert!(close(t.inverse().apply(t.apply(p)), p));
+        let id = t.inverse().after(&t);
+        assert!((id.scale - 1.0).abs() < 1e-12 && id.rotation_rad.abs() < 1e-12);
+        assert!(id.dx.abs() < 1e-9 && id.dy.abs() < 1e-9);
+        let moved = t.recentered([0.0, 0.0]);
+        assert!(close(moved.apply(p), t.apply(p)));
+    }
+}

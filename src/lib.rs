@@ -1,0 +1,47 @@
+//! sunjitter: pointing-jitter monitor for solar telescopes.
+//!
+//! The modules follow the pipeline a frame goes through:
+//!
+//! FITS ingestion ([`fits`], [`header`]) → header metadata ([`meta`], [`time`]) →
+//! coarse alignment ([`coarse`], [`resample`], [`preprocess`]) → dense flow ([`flow`]) →
+//! sampling ([`sampling`]) → fit and covariance ([`fit`]) → one alignment ([`engine`]) →
+//! reference policy ([`reference`]) → sinks ([`sink`]) → daemon and replay ([`pipeline`],
+//! [`daemon`]) → inspection ([`inspect`]). [`synth`] and [`simulate`] make ground truth.
+//!
+//! Numerics (flow, sampling, fit, resample, preprocess) do no I/O.
+
+pub mod error;
+pub mod geometry;
+pub mod record;
+
+pub mod fits;
+pub mod header;
+pub mod meta;
+pub mod time;
+
+pub mod coarse;
+pub mod preprocess;
+pub mod resample;
+
+pub mod fit;
+pub mod flow;
+pub mod sampling;
+
+pub mod engine;
+pub mod simulate;
+
+pub mod config;
+pub mod daemon;
+pub mod pipeline;
+pub mod reference;
+pub mod sink;
+
+pub mod inspect;
+pub mod synth;
+
+pub mod commands;
+
+pub use error::{Error, Result};
+pub use geometry::Similarity;
+pub use meta::FrameMeta;
+pub use record::{AlignResult, FrameAlignment, Status};

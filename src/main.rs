@@ -1,0 +1,64 @@
+//! Thin binary: parse the command line, run the library, map errors to exit codes.
+
+use clap::{Parser, Subcommand};
+use sunjitter::commands;
+
+#[derive(Debug, Parser)]
+#[command(name = "sunjitter", version, about = "Pointing-jitter monitor for solar telescopes")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Print the normalised header metadata of FITS files.
+    Info(commands::info::Args),
+    /// Align one frame to one reference.
+    Align(commands::align::Args),
+    /// Watch a directory and log every new frame's alignment to MCAP.
+    Watch(commands::watch::Args),
+    /// Run the same pipeline over archived files, directories, globs or cubes.
+    Replay(commands::replay::Args),
+    /// Summarise MCAP logs: statistics, spectrum, CSV, plots.
+    Inspect(commands::inspect::Args),
+    /// The paper's Monte Carlo accuracy test on one image.
+    Simulate(commands::simulate::Args),
+    /// Write a synthetic FITS sequence with known jitter.
+    Synth(commands::synth::Args),
+}
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = e.print();
+            std::process::exit(code);
+        }
+    };
+    let outcome = match &cli.command {
+        Command::Info(a) => commands::info::run(a),
+        Command::Align(a) => commands::align::run(a),
+        Command::Watch(a) => commands::watch::run(a),
+        Command::Replay(a) => commands::replay::run(a),
+        Command::Inspect(a) => commands::inspect::run(a),
+        Command::Simulate(a) => commands::simulate::run(a),
+        Command::Synth(a) => commands::synth::run(a),
+    };
+    match outcome {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("sunjitter: {e}");
+            std::process::exit(e.exit_code());
+        }
+    }
+}
