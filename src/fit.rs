@@ -65,6 +65,11 @@ impl Default for RansacParams {
     }
 }
 
+/// `v > 0`, false for NaN.
+fn is_positive(v: f64) -> bool {
+    v > 0.0
+}
+
 /// Parameter order of every covariance matrix here.
 pub const PARAMS: [&str; 4] = ["scale", "rotation_rad", "dx", "dy"];
 
@@ -165,7 +170,7 @@ pub fn least_squares(
         }
     }
     // Points spread over less than a micro-pixel fix no rotation or scale.
-    if !(sqq / sw > 1e-12) {
+    if !is_positive(sqq / sw - 1e-12) {
         return Err(FitFailure::Degenerate("all points coincide".into()));
     }
     let am1 = sdot / sqq;
@@ -298,7 +303,7 @@ pub fn fit_similarity(
     if n < need {
         return Err(FitFailure::TooFewPoints { have: n, need });
     }
-    if !(params.threshold_px > 0.0) {
+    if !is_positive(params.threshold_px) {
         return Err(FitFailure::Degenerate(
             "RANSAC threshold must be positive".into(),
         ));
@@ -375,7 +380,6 @@ pub fn fit_similarity(
         vpts.iter().map(|p| residual_len2(p, t) <= thr2).collect()
     };
     let mut set = classify(&best);
-    let mut model = best;
     for _ in 0..50 {
         let inl: Vec<Correspondence> = vpts
             .iter()
@@ -386,8 +390,7 @@ pub fn fit_similarity(
         if inl.len() < need {
             break;
         }
-        model = least_squares(&inl, None, center)?;
-        let next = classify(&model);
+        let next = classify(&least_squares(&inl, None, center)?);
         if next == set {
             break;
         }
@@ -406,8 +409,8 @@ pub fn fit_similarity(
             need,
         });
     }
-    // The model must be the least-squares fit of exactly the reported inliers.
-    model = least_squares(&inl, None, center)?;
+    // The model is the least-squares fit of exactly the reported inliers.
+    let model = least_squares(&inl, None, center)?;
     let u = uabjm_detail(&inl, &model)?;
     let mut inliers = vec![false; points.len()];
     for (k, &i) in valid.iter().enumerate() {
@@ -509,7 +512,7 @@ pub fn block_jackknife_covariance(
 /// Multiply a UABJM covariance by this factor (σ by its square root).
 pub fn ess_inflation_factor(n_points: usize, area_px2: f64, correlation_length_px: f64) -> f64 {
     let n = n_points as f64;
-    if n_points == 0 || !(area_px2 > 0.0) || !(correlation_length_px > 0.0) {
+    if n_points == 0 || !is_positive(area_px2) || !is_positive(correlation_length_px) {
         return 1.0;
     }
     let n_eff = (area_px2 / (correlation_length_px * correlation_length_px)).clamp(1.0, n);
@@ -590,7 +593,7 @@ pub fn correlated_covariance(
     }
     let s: f64 = pts.iter().map(|p| residual_len2(p, transform)).sum();
     let dof = 2.0 * n as f64 - (inv * meat).trace();
-    if !(dof > 0.0) {
+    if !is_positive(dof) {
         return Err(FitFailure::TooFewPoints { have: n, need: 3 });
     }
     let sigma2 = s / dof;
@@ -942,24 +945,21 @@ mod tests {
             jack.f1()
         );
         eprintln!("iid 3σ: uabjm {:?} jackknife {:?}", plain.f3(), jack.f3());
-        for k in 0..4 {
+        for (k, name) in PARAMS.iter().enumerate() {
             let (u1, j1, p1) = (plain.f1()[k], jack.f1()[k], paper.f1()[k]);
             assert!(
                 (0.62..=0.75).contains(&u1),
-                "UABJM 1σ coverage of {}: {u1}",
-                PARAMS[k]
+                "UABJM 1σ coverage of {name}: {u1}"
             );
             assert!(
                 (0.62..=0.75).contains(&j1),
-                "jackknife 1σ coverage of {}: {j1}",
-                PARAMS[k]
+                "jackknife 1σ coverage of {name}: {j1}"
             );
             assert!(plain.f3()[k] >= 0.98 && jack.f3()[k] >= 0.98);
             // σ² = S/(n − 4) makes σ √2 too large: 84 % within 1σ.
             assert!(
                 (0.79..=0.89).contains(&p1),
-                "point-convention coverage of {}: {p1}",
-                PARAMS[k]
+                "point-convention coverage of {name}: {p1}"
             );
         }
     }
@@ -1031,8 +1031,7 @@ mod tests {
             sand.f3(),
             infl.f3()
         );
-        for k in 0..4 {
-            let name = PARAMS[k];
+        for (k, name) in PARAMS.iter().enumerate() {
             let (p1, j1, s1, i1) = (plain.f1()[k], jack.f1()[k], sand.f1()[k], infl.f1()[k]);
             assert!(p1 < 0.45, "UABJM should under-cover {name}: {p1}");
             assert!(
