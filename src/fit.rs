@@ -337,14 +337,29 @@ pub fn fit_similarity(
         (count, sse)
     };
 
+    let conf = params.confidence.clamp(0.0, 1.0 - 1e-12);
+    // Trials needed to draw one all-inlier pair with probability `conf` at inlier ratio w.
+    let trials_needed = |count: usize| -> usize {
+        let w = count as f64 / n as f64;
+        let p_good = w * w;
+        if p_good >= 1.0 {
+            0
+        } else {
+            let t = ((1.0 - conf).ln() / (1.0 - p_good).ln()).ceil();
+            if t.is_finite() && t > 0.0 {
+                t.min(usize::MAX as f64) as usize
+            } else {
+                usize::MAX
+            }
+        }
+    };
     let mut rng = SplitMix64::new(params.seed);
     // Start from the all-points fit: it wins whenever there are no outliers.
     let mut best = all_fit;
     let (mut best_count, mut best_sse) = score(&all_fit);
-    let mut needed = params.max_trials;
+    let mut needed = trials_needed(best_count);
     let mut trials = 0;
     let mut draws = 0;
-    let conf = params.confidence.clamp(0.0, 1.0 - 1e-12);
     while trials < needed.min(params.max_trials) && draws < 20 * params.max_trials.max(1) {
         draws += 1;
         let i = rng.below(n);
@@ -365,13 +380,7 @@ pub fn fit_similarity(
             best = model;
             best_count = count;
             best_sse = sse;
-            let w = best_count as f64 / n as f64;
-            let p_good = w * w;
-            needed = if p_good >= 1.0 {
-                0
-            } else {
-                ((1.0 - conf).ln() / (1.0 - p_good).ln()).ceil().max(0.0) as usize
-            };
+            needed = trials_needed(best_count);
         }
     }
 
@@ -667,6 +676,8 @@ mod tests {
         let cs = corr(&pts, &t, &zero, &zero);
         let fit = fit_similarity(&cs, c, &RansacParams::default()).unwrap();
         assert_eq!(fit.n_inliers, pts.len());
+        // Every point agrees with the all-points fit, so the adaptive stop needs no trial.
+        assert_eq!(fit.trials, 0);
         for e in errors(&fit.transform, &t) {
             assert!(e.abs() < 1e-9, "{e}");
         }
@@ -676,6 +687,101 @@ mod tests {
         let ls = least_squares(&cs, Some(&w), c).unwrap();
         for e in errors(&ls, &t) {
             assert!(e.abs() < 1e-9, "{e}");
+        }
+    }
+
+    #[test]
+    fn uabjm_matches_scipy_curve_fit() {
+        // Oracle (numpy/scipy, Python 3.11): c = [50, 40]; pts, uv as below; frame = pts + uv.
+        // Parameters: numpy.linalg.lstsq on the linear form (a, b, dx, dy), s = hypot(a, b),
+        // θ = atan2(b, a). Covariance: scipy.optimize.curve_fit started there, with
+        //   model(_, s, th, dx, dy) = (s·(pts − c)·R(th)ᵀ + c + [dx, dy]).ravel(),
+        //   ftol = xtol = gtol = 1e-15; its pcov is (JᵀJ)⁻¹·S/(2n − 4) (2n residuals).
+        let c = [50.0, 40.0];
+        let pts = [
+            [3., 5.],
+            [90., 12.],
+            [47., 77.],
+            [20., 60.],
+            [71., 33.],
+            [88., 79.],
+            [10., 30.],
+            [55., 5.],
+        ];
+        let uv = [
+            [1.21, -0.48],
+            [1.63, 0.02],
+            [0.71, -0.10],
+            [0.85, -0.61],
+            [1.42, -0.22],
+            [1.19, 0.33],
+            [1.02, -0.71],
+            [1.55, -0.47],
+        ];
+        let cs: Vec<Correspondence> = pts
+            .iter()
+            .zip(&uv)
+            .map(|(p, d)| Correspondence {
+                x: p[0],
+                y: p[1],
+                u: d[0],
+                v: d[1],
+            })
+            .collect();
+        let want_params = [
+            1.0050813014022288,
+            0.00814801108270881,
+            1.188146233693959,
+            -0.25163250162322776,
+        ];
+        let want_cov: [[f64; 4]; 4] = [
+            [
+                1.3888039523763013e-06,
+                2.4820506580493934e-13,
+                2.7506502536177742e-06,
+                3.3209176965630271e-06,
+            ],
+            [
+                2.4820506580493934e-13,
+                1.3747958701496135e-06,
+                -3.3041746682029238e-06,
+                2.7367459210784738e-06,
+            ],
+            [
+                2.7506502536177742e-06,
+                -3.3041746682029238e-06,
+                2.5868221781759192e-03,
+                -1.0126779646528051e-10,
+            ],
+            [
+                3.3209176965630271e-06,
+                2.7367459210784738e-06,
+                -1.0126779646528051e-10,
+                2.5868194174376263e-03,
+            ],
+        ];
+        let t = least_squares(&cs, None, c).unwrap();
+        let got = [t.scale, t.rotation_rad, t.dx, t.dy];
+        for k in 0..4 {
+            assert!(
+                (got[k] - want_params[k]).abs() < 1e-12,
+                "param {k}: {} vs {}",
+                got[k],
+                want_params[k]
+            );
+        }
+        let (cov, _) = uabjm(&cs, &t).unwrap();
+        for i in 0..4 {
+            for j in 0..4 {
+                // curve_fit's pcov moves by ~1e-6 relative between runs from other starts.
+                let scale = (want_cov[i][i] * want_cov[j][j]).sqrt();
+                assert!(
+                    (cov[i][j] - want_cov[i][j]).abs() < 1e-5 * scale,
+                    "cov[{i}][{j}]: {} vs {}",
+                    cov[i][j],
+                    want_cov[i][j]
+                );
+            }
         }
     }
 
@@ -730,6 +836,9 @@ mod tests {
         let fit = fit_similarity(&cs, c, &params).unwrap();
         let expected_inliers: Vec<bool> = is_outlier.iter().map(|o| !o).collect();
         assert_eq!(fit.inliers, expected_inliers);
+        // Inlier ratio 0.7: ln(1 − 0.9999)/ln(1 − 0.49) = 13.7, so 14 trials after the best
+        // model is found (if found on trial k, at most k + 14 in all).
+        assert!(fit.trials < 100, "{} trials", fit.trials);
         let sig = sigmas(&fit.covariance);
         let err = errors(&fit.transform, &t);
         for k in 0..4 {
