@@ -41,6 +41,12 @@ pub enum FitFailure {
     },
 }
 
+impl From<FitFailure> for crate::Error {
+    fn from(f: FitFailure) -> Self {
+        crate::Error::AlignmentFailed(f.to_string())
+    }
+}
+
 /// RANSAC settings. `threshold_px` is the largest 2-D residual `|f(p) − p_frame|` of an inlier.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RansacParams {
@@ -736,28 +742,28 @@ mod tests {
         ];
         let want_cov: [[f64; 4]; 4] = [
             [
-                1.3888039523763013e-06,
-                2.4820506580493934e-13,
-                2.7506502536177742e-06,
-                3.3209176965630271e-06,
+                1.3888039524e-06,
+                2.4820506580e-13,
+                2.7506502536e-06,
+                3.3209176966e-06,
             ],
             [
-                2.4820506580493934e-13,
-                1.3747958701496135e-06,
-                -3.3041746682029238e-06,
-                2.7367459210784738e-06,
+                2.4820506580e-13,
+                1.3747958701e-06,
+                -3.3041746682e-06,
+                2.7367459211e-06,
             ],
             [
-                2.7506502536177742e-06,
-                -3.3041746682029238e-06,
-                2.5868221781759192e-03,
-                -1.0126779646528051e-10,
+                2.7506502536e-06,
+                -3.3041746682e-06,
+                2.5868221782e-03,
+                -1.0126779647e-10,
             ],
             [
-                3.3209176965630271e-06,
-                2.7367459210784738e-06,
-                -1.0126779646528051e-10,
-                2.5868194174376263e-03,
+                3.3209176966e-06,
+                2.7367459211e-06,
+                -1.0126779647e-10,
+                2.5868194174e-03,
             ],
         ];
         let t = least_squares(&cs, None, c).unwrap();
@@ -971,6 +977,16 @@ mod tests {
         assert!(block_jackknife_covariance(&random, c, 1e4).is_err());
         let bad_model = CorrelationModel::Gaussian { sigma_px: 0.0 };
         assert!(correlated_covariance(&random, &Similarity::identity(c), bad_model).is_err());
+    }
+
+    #[test]
+    fn failures_become_alignment_failed_with_exit_code_1() {
+        let e: crate::Error = FitFailure::TooFewPoints { have: 1, need: 6 }.into();
+        assert_eq!(e.exit_code(), 1);
+        assert_eq!(
+            e.to_string(),
+            "alignment failed: too few usable correspondences: 1 (need at least 6)"
+        );
     }
 
     #[test]
