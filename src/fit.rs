@@ -406,7 +406,8 @@ pub fn fit_similarity(
             break;
         }
         let next = classify(&least_squares(&inl, None, center)?);
-        if next == set {
+        // Keep the last set that was large enough rather than collapse below the minimum.
+        if next == set || next.iter().filter(|&&k| k).count() < need {
             break;
         }
         set = next;
