@@ -6,6 +6,7 @@
 //! by the caller-supplied `warp` (a float-coordinate spline, never a grid-quantised warp).
 
 use crate::geometry::{Similarity, ARCSEC_PER_RAD};
+use crate::stats::SplitMix64;
 use serde::{Deserialize, Serialize};
 
 /// Ranges of the random transforms (the paper's defaults).
@@ -26,42 +27,15 @@ impl Default for TrialRanges {
     }
 }
 
-/// SplitMix64: tiny, seedable, good enough to draw trial parameters and noise.
-#[derive(Debug, Clone)]
-pub struct SplitMix64(pub u64);
-
-impl SplitMix64 {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    pub fn range(&mut self, (lo, hi): (f64, f64)) -> f64 {
-        lo + (hi - lo) * self.uniform()
-    }
-    /// Standard normal (Box–Muller).
-    pub fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(f64::MIN_POSITIVE);
-        let u2 = self.uniform();
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-}
-
 /// Draw `n` truths about `center`, deterministically from `seed`.
 pub fn draw_truths(n: usize, seed: u64, ranges: &TrialRanges, center: [f64; 2]) -> Vec<Similarity> {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     (0..n)
         .map(|_| Similarity {
-            scale: rng.range(ranges.scale),
-            rotation_rad: rng.range(ranges.rotation_rad),
-            dx: rng.range(ranges.shift_px),
-            dy: rng.range(ranges.shift_px),
+            scale: rng.uniform(ranges.scale.0, ranges.scale.1),
+            rotation_rad: rng.uniform(ranges.rotation_rad.0, ranges.rotation_rad.1),
+            dx: rng.uniform(ranges.shift_px.0, ranges.shift_px.1),
+            dy: rng.uniform(ranges.shift_px.0, ranges.shift_px.1),
             center,
         })
         .collect()
