@@ -321,14 +321,14 @@ fn starts_like_a_header(bytes: &[u8], is_primary: bool) -> bool {
     bytes.len() >= key.len() && &bytes[..key.len()] == key
 }
 
-/// "not a FITS file (it starts with "<!DOCTYPE HTML…")".
+/// `not a FITS file (it starts with '<!DOCTYPE HTML…', not 'SIMPLE =')`.
 fn not_fits_reason(bytes: &[u8]) -> String {
     let start: String = bytes
         .iter()
         .take(24)
         .map(|&b| if (b' '..=b'~').contains(&b) { b as char } else { '.' })
         .collect();
-    format!("not a FITS file (it starts with {:?}, not SIMPLE =)", start.trim_end())
+    format!("not a FITS file (it starts with '{}', not 'SIMPLE =')", start.trim_end())
 }
 
 /// Pixel scaling of an uncompressed integer or float image.
