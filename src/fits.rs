@@ -143,7 +143,10 @@ pub fn read_image_header(path: &Path) -> Result<(usize, Header)> {
 fn resolve_frame(path: &Path, g: &ImageGeometry, asked: Option<usize>) -> Result<Option<usize>> {
     match (g.is_cube(), asked) {
         (false, None) | (false, Some(0)) => Ok(None),
-        (false, Some(n)) => Err(Error::bad_input(path, format!("is a 2-D image; it has no frame {n}"))),
+        (false, Some(n)) => Err(Error::bad_input(
+            path,
+            format!("is a 2-D image; it has no frame {n}"),
+        )),
         (true, None) if g.frames() == 1 => Ok(Some(0)),
         (true, None) => Err(Error::bad_input(
             path,
@@ -152,7 +155,10 @@ fn resolve_frame(path: &Path, g: &ImageGeometry, asked: Option<usize>) -> Result
         (true, Some(n)) if n < g.frames() => Ok(Some(n)),
         (true, Some(n)) => Err(Error::bad_input(
             path,
-            format!("frame {n} does not exist (the cube has frames 0 to {})", g.frames() - 1),
+            format!(
+                "frame {n} does not exist (the cube has frames 0 to {})",
+                g.frames() - 1
+            ),
         )),
     }
 }
@@ -195,7 +201,10 @@ impl Layout {
             .ok_or_else(|| Error::bad_input(path, "no image data in any HDU"))?;
         if let Some(problem) = header::mandatory_order_problem(&hdu.header) {
             if !hdu.geometry().compressed {
-                tracing::warn!("{}: {problem}; read with a tolerant header parser", path.display());
+                tracing::warn!(
+                    "{}: {problem}; read with a tolerant header parser",
+                    path.display()
+                );
             }
         }
         Ok(hdu)
@@ -225,20 +234,25 @@ impl Layout {
             height: g.height(),
             bitpix: g.bitpix,
         };
-        meta::from_header(&self.merged_header(hdu), place).map_err(|reason| Error::bad_header(path, reason))
+        meta::from_header(&self.merged_header(hdu), place)
+            .map_err(|reason| Error::bad_header(path, reason))
     }
 }
 
 /// The path as UTF-8 (cfitsio and the contract's JSON need text).
 fn utf8_path(path: &Path) -> Result<&str> {
-    path.to_str().ok_or_else(|| Error::bad_input(path, "the path is not valid UTF-8"))
+    path.to_str()
+        .ok_or_else(|| Error::bad_input(path, "the path is not valid UTF-8"))
 }
 
 /// Walk every HDU header, checking the file's structure and sizes without reading pixel data.
 fn scan(path: &Path) -> Result<Layout> {
     utf8_path(path)?;
     let mut file = open(path)?;
-    let file_len = file.metadata().map_err(|e| Error::bad_input(path, format!("cannot stat: {e}")))?.len();
+    let file_len = file
+        .metadata()
+        .map_err(|e| Error::bad_input(path, format!("cannot stat: {e}")))?
+        .len();
     if file_len == 0 {
         return Err(Error::bad_input(path, "empty file (0 bytes)"));
     }
@@ -246,19 +260,34 @@ fn scan(path: &Path) -> Result<Layout> {
     let mut offset = 0u64;
     while offset < file_len && hdus.len() < MAX_HDUS {
         let is_primary = hdus.is_empty();
-        let Some((header, header_len)) = read_header(&mut file, path, offset, file_len, is_primary)? else {
+        let Some((header, header_len)) =
+            read_header(&mut file, path, offset, file_len, is_primary)?
+        else {
             break;
         };
         let kind = match header::hdu_kind(&header, is_primary) {
             Ok(kind) => kind,
             Err(e) if is_primary => return Err(Error::bad_input(path, e)),
             Err(_) => {
-                tracing::debug!("{}: ignoring {} bytes after the last HDU", path.display(), file_len - offset);
+                tracing::debug!(
+                    "{}: ignoring {} bytes after the last HDU",
+                    path.display(),
+                    file_len - offset
+                );
                 break;
             }
         };
         let index = hdus.len();
-        let context = |e: String| Error::bad_input(path, if index == 0 { e } else { format!("HDU {index}: {e}") });
+        let context = |e: String| {
+            Error::bad_input(
+                path,
+                if index == 0 {
+                    e
+                } else {
+                    format!("HDU {index}: {e}")
+                },
+            )
+        };
         let image = header::image_geometry(&header, &kind).map_err(context)?;
         let data_len = header::data_size_bytes(&header).map_err(context)?;
         let data_offset = offset + header_len;
@@ -289,7 +318,13 @@ fn open(path: &Path) -> Result<File> {
 
 /// Read one header starting at `offset`. `None` when an extension area holds no header
 /// (trailing bytes that are not an HDU are ignored, as astropy does).
-fn read_header(file: &mut File, path: &Path, offset: u64, file_len: u64, is_primary: bool) -> Result<Option<(Header, u64)>> {
+fn read_header(
+    file: &mut File,
+    path: &Path,
+    offset: u64,
+    file_len: u64,
+    is_primary: bool,
+) -> Result<Option<(Header, u64)>> {
     let io = |e: std::io::Error| Error::bad_input(path, format!("read error: {e}"));
     file.seek(SeekFrom::Start(offset)).map_err(io)?;
     let mut header = Header::new();
@@ -309,15 +344,29 @@ fn read_header(file: &mut File, path: &Path, offset: u64, file_len: u64, is_prim
             return Ok(Some((header, blocks as u64 * BLOCK as u64)));
         }
         if n < BLOCK {
-            let what = if is_primary { "header" } else { "extension header" };
-            return Err(Error::bad_input(path, format!("truncated: the {what} ends without an END card")));
+            let what = if is_primary {
+                "header"
+            } else {
+                "extension header"
+            };
+            return Err(Error::bad_input(
+                path,
+                format!("truncated: the {what} ends without an END card"),
+            ));
         }
     }
-    Err(Error::bad_input(path, format!("no END card in the first {MAX_HEADER_BLOCKS} header blocks")))
+    Err(Error::bad_input(
+        path,
+        format!("no END card in the first {MAX_HEADER_BLOCKS} header blocks"),
+    ))
 }
 
 fn starts_like_a_header(bytes: &[u8], is_primary: bool) -> bool {
-    let key: &[u8] = if is_primary { b"SIMPLE  =" } else { b"XTENSION=" };
+    let key: &[u8] = if is_primary {
+        b"SIMPLE  ="
+    } else {
+        b"XTENSION="
+    };
     bytes.len() >= key.len() && &bytes[..key.len()] == key
 }
 
@@ -326,9 +375,18 @@ fn not_fits_reason(bytes: &[u8]) -> String {
     let start: String = bytes
         .iter()
         .take(24)
-        .map(|&b| if (b' '..=b'~').contains(&b) { b as char } else { '.' })
+        .map(|&b| {
+            if (b' '..=b'~').contains(&b) {
+                b as char
+            } else {
+                '.'
+            }
+        })
         .collect();
-    format!("not a FITS file (it starts with '{}', not 'SIMPLE =')", start.trim_end())
+    format!(
+        "not a FITS file (it starts with '{}', not 'SIMPLE =')",
+        start.trim_end()
+    )
 }
 
 /// Pixel scaling of an uncompressed integer or float image.
@@ -346,7 +404,11 @@ impl Scaling {
             scale: header.f64("BSCALE").unwrap_or(1.0),
             zero: header.f64("BZERO").unwrap_or(0.0),
             // BLANK means nothing for float data (NaN is the null there); AIA/HMI carry one anyway.
-            blank: if bitpix > 0 { header.i64("BLANK") } else { None },
+            blank: if bitpix > 0 {
+                header.i64("BLANK")
+            } else {
+                None
+            },
         }
     }
 }
@@ -368,13 +430,17 @@ fn read_uncompressed(path: &Path, hdu: &Hdu, frame: usize) -> Result<Vec<f32>> {
     let g = hdu.geometry();
     let frame_bytes = (g.pixels_per_frame() * g.bytes_per_pixel()) as u64;
     let mut file = open(path)?;
-    file.seek(SeekFrom::Start(hdu.data_offset + frame as u64 * frame_bytes))
-        .map_err(|e| Error::bad_input(path, format!("read error: {e}")))?;
+    file.seek(SeekFrom::Start(
+        hdu.data_offset + frame as u64 * frame_bytes,
+    ))
+    .map_err(|e| Error::bad_input(path, format!("read error: {e}")))?;
     let mut bytes = vec![0u8; frame_bytes as usize];
     file.read_exact(&mut bytes)
         .map_err(|e| Error::bad_input(path, format!("truncated while reading pixels: {e}")))?;
     let mut out = Vec::with_capacity(g.pixels_per_frame());
-    decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| out.push(v as f32));
+    decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| {
+        out.push(v as f32)
+    });
     Ok(out)
 }
 
@@ -389,18 +455,23 @@ fn decode_samples(bytes: &[u8], bitpix: i32, s: Scaling, mut emit: impl FnMut(f6
     };
     match bitpix {
         8 => bytes.iter().for_each(|&b| int(i64::from(b), &mut emit)),
-        16 => bytes.chunks_exact(2).for_each(|c| int(i64::from(i16::from_be_bytes([c[0], c[1]])), &mut emit)),
-        32 => bytes
-            .chunks_exact(4)
-            .for_each(|c| int(i64::from(i32::from_be_bytes([c[0], c[1], c[2], c[3]])), &mut emit)),
+        16 => bytes
+            .chunks_exact(2)
+            .for_each(|c| int(i64::from(i16::from_be_bytes([c[0], c[1]])), &mut emit)),
+        32 => bytes.chunks_exact(4).for_each(|c| {
+            int(
+                i64::from(i32::from_be_bytes([c[0], c[1], c[2], c[3]])),
+                &mut emit,
+            )
+        }),
         64 => bytes.chunks_exact(8).for_each(|c| {
             let mut a = [0u8; 8];
             a.copy_from_slice(c);
             int(i64::from_be_bytes(a), &mut emit)
         }),
-        -32 => bytes
-            .chunks_exact(4)
-            .for_each(|c| emit(s.zero + s.scale * f64::from(f32::from_be_bytes([c[0], c[1], c[2], c[3]])))),
+        -32 => bytes.chunks_exact(4).for_each(|c| {
+            emit(s.zero + s.scale * f64::from(f32::from_be_bytes([c[0], c[1], c[2], c[3]])))
+        }),
         _ => bytes.chunks_exact(8).for_each(|c| {
             let mut a = [0u8; 8];
             a.copy_from_slice(c);
@@ -417,16 +488,31 @@ fn cfitsio_error(status: i32) -> String {
     let mut buf = [0 as std::os::raw::c_char; 32];
     // SAFETY: ffgerr writes at most 31 characters plus NUL into a 31+ byte buffer.
     unsafe { fitsio::sys::ffgerr(status, buf.as_mut_ptr()) };
-    let bytes: Vec<u8> = buf.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
-    format!("cfitsio: {} (status {status})", String::from_utf8_lossy(&bytes))
+    let bytes: Vec<u8> = buf
+        .iter()
+        .take_while(|&&c| c != 0)
+        .map(|&c| c as u8)
+        .collect();
+    format!(
+        "cfitsio: {} (status {status})",
+        String::from_utf8_lossy(&bytes)
+    )
 }
 
 /// Decompress one frame of a tile-compressed image with cfitsio, blanks as NaN.
-fn read_compressed(path: &Path, hdu_index: usize, g: &ImageGeometry, frame: usize) -> Result<Vec<f32>> {
-    let cpath = CString::new(utf8_path(path)?).map_err(|_| Error::bad_input(path, "the path contains a NUL byte"))?;
+fn read_compressed(
+    path: &Path,
+    hdu_index: usize,
+    g: &ImageGeometry,
+    frame: usize,
+) -> Result<Vec<f32>> {
+    let cpath = CString::new(utf8_path(path)?)
+        .map_err(|_| Error::bad_input(path, "the path contains a NUL byte"))?;
     let n = g.pixels_per_frame();
     let mut out = vec![0f32; n];
-    let _guard = CFITSIO.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let _guard = CFITSIO
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
     let mut status = 0;
     let mut fptr: *mut fitsio::sys::fitsfile = std::ptr::null_mut();
     // SAFETY: plain cfitsio calls on a pointer it returned; `out` holds exactly `n` floats and
@@ -441,7 +527,16 @@ fn read_compressed(path: &Path, hdu_index: usize, g: &ImageGeometry, frame: usiz
         if status == 0 {
             let mut any_null = 0;
             let first = (frame * n + 1) as i64;
-            fitsio::sys::ffgpve(fptr, 1, first, n as i64, f32::NAN, out.as_mut_ptr(), &mut any_null, &mut status);
+            fitsio::sys::ffgpve(
+                fptr,
+                1,
+                first,
+                n as i64,
+                f32::NAN,
+                out.as_mut_ptr(),
+                &mut any_null,
+                &mut status,
+            );
         }
         let read_status = status;
         if !fptr.is_null() {
@@ -449,7 +544,10 @@ fn read_compressed(path: &Path, hdu_index: usize, g: &ImageGeometry, frame: usiz
             fitsio::sys::ffclos(fptr, &mut close_status);
         }
         if read_status != 0 {
-            return Err(Error::bad_input(path, format!("compressed image: {}", cfitsio_error(read_status))));
+            return Err(Error::bad_input(
+                path,
+                format!("compressed image: {}", cfitsio_error(read_status)),
+            ));
         }
     }
     Ok(out)
@@ -470,14 +568,27 @@ impl FrameClock {
     /// Find an auxiliary array HDU whose header names a `TIME` column (IRIS level 2).
     fn of(layout: &Layout, image: &Hdu, path: &Path) -> FrameClock {
         let start_ns = meta::time_reference_ns(&layout.merged_header(image));
-        for hdu in layout.hdus.iter().filter(|h| h.index != image.index && h.kind == HduKind::Image) {
+        for hdu in layout
+            .hdus
+            .iter()
+            .filter(|h| h.index != image.index && h.kind == HduKind::Image)
+        {
             let Some(table) = &hdu.image else { continue };
-            let Some(col) = hdu.header.i64("TIME") else { continue };
+            let Some(col) = hdu.header.i64("TIME") else {
+                continue;
+            };
             let (ncols, nrows) = (table.width(), table.height());
             if col < 0 || col as usize >= ncols || table.axes.len() != 2 {
                 continue;
             }
-            match read_table_columns(path, hdu, &[Some(col as usize), hdu.header.i64("EXPTIMES").map(|c| c as usize)]) {
+            match read_table_columns(
+                path,
+                hdu,
+                &[
+                    Some(col as usize),
+                    hdu.header.i64("EXPTIMES").map(|c| c as usize),
+                ],
+            ) {
                 Ok(mut cols) => {
                     let exposures = cols.pop().unwrap_or_default();
                     let seconds = cols.pop().unwrap_or_default();
@@ -489,7 +600,11 @@ impl FrameClock {
                         };
                     }
                 }
-                Err(e) => tracing::warn!("{}: per-frame table in HDU {} unreadable: {e}", path.display(), hdu.index),
+                Err(e) => tracing::warn!(
+                    "{}: per-frame table in HDU {} unreadable: {e}",
+                    path.display(),
+                    hdu.index
+                ),
             }
         }
         FrameClock::default()
@@ -521,7 +636,10 @@ impl FrameClock {
             }
             return;
         }
-        if let (Some(t), Some(reference)) = (meta::time_axis_seconds(header, i), meta::time_reference_ns(header)) {
+        if let (Some(t), Some(reference)) = (
+            meta::time_axis_seconds(header, i),
+            meta::time_reference_ns(header),
+        ) {
             meta.obs_time_ns = Some(reference + (t * 1e9).round() as i64);
         }
     }
@@ -557,7 +675,9 @@ fn read_table_columns(path: &Path, hdu: &Hdu, columns: &[Option<usize>]) -> Resu
     file.read_exact(&mut bytes)
         .map_err(|e| Error::bad_input(path, format!("truncated table: {e}")))?;
     let mut all = Vec::with_capacity(g.pixels_per_frame());
-    decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| all.push(v));
+    decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| {
+        all.push(v)
+    });
     let ncols = g.width();
     Ok(columns
         .iter()
@@ -570,11 +690,13 @@ fn read_table_columns(path: &Path, hdu: &Hdu, columns: &[Option<usize>]) -> Resu
 
 /// Cards `write_image` sets itself (structure and scaling of the f32 array it writes).
 const STRUCTURAL_KEYS: [&str; 11] = [
-    "SIMPLE", "BITPIX", "NAXIS", "EXTEND", "BSCALE", "BZERO", "BLANK", "XTENSION", "PCOUNT", "GCOUNT", "END",
+    "SIMPLE", "BITPIX", "NAXIS", "EXTEND", "BSCALE", "BZERO", "BLANK", "XTENSION", "PCOUNT",
+    "GCOUNT", "END",
 ];
 
 fn is_structural(key: &str) -> bool {
-    STRUCTURAL_KEYS.contains(&key) || (key.starts_with("NAXIS") && key[5..].bytes().all(|b| b.is_ascii_digit()))
+    STRUCTURAL_KEYS.contains(&key)
+        || (key.starts_with("NAXIS") && key[5..].bytes().all(|b| b.is_ascii_digit()))
 }
 
 /// Write a 2-D f32 image (shape `(height, width)`) as a FITS primary HDU with header cards.
@@ -583,14 +705,26 @@ fn is_structural(key: &str) -> bool {
 /// f32 values as given. Keys must be standard FITS keywords (≤ 8 characters). The file is
 /// written under a temporary name and renamed into place, so a directory watcher never sees a
 /// half-written file.
-pub fn write_image(path: &Path, data: ArrayView2<f32>, cards: &[(String, HeaderValue)]) -> Result<()> {
+pub fn write_image(
+    path: &Path,
+    data: ArrayView2<f32>,
+    cards: &[(String, HeaderValue)],
+) -> Result<()> {
     let out_err = |reason: String| Error::output(path, reason);
-    let file_name = path.file_name().and_then(|n| n.to_str()).ok_or_else(|| out_err("not a UTF-8 file name".into()))?;
+    let file_name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .ok_or_else(|| out_err("not a UTF-8 file name".into()))?;
     let tmp = path.with_file_name(format!(".{file_name}.{}.tmp", std::process::id()));
     let ctmp = CString::new(utf8_path(&tmp).map_err(|_| out_err("not a UTF-8 path".into()))?)
         .map_err(|_| out_err("the path contains a NUL byte".into()))?;
     for (key, _) in cards {
-        if key.is_empty() || key.len() > 8 || !key.bytes().all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_' || b == b'-') {
+        if key.is_empty()
+            || key.len() > 8
+            || !key
+                .bytes()
+                .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_' || b == b'-')
+        {
             return Err(out_err(format!("{key:?} is not a FITS keyword")));
         }
     }
@@ -598,7 +732,9 @@ pub fn write_image(path: &Path, data: ArrayView2<f32>, cards: &[(String, HeaderV
     let (height, width) = data.dim();
     let _ = std::fs::remove_file(&tmp);
     {
-        let _guard = CFITSIO.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        let _guard = CFITSIO
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
         write_with_cfitsio(&ctmp, width, height, pixels, cards).map_err(out_err)?;
     }
     std::fs::rename(&tmp, path).map_err(|e| {
@@ -625,7 +761,10 @@ fn write_with_cfitsio(
         if status != 0 {
             return Err(cfitsio_error(status));
         }
-        let mut naxes = [width as std::os::raw::c_long, height as std::os::raw::c_long];
+        let mut naxes = [
+            width as std::os::raw::c_long,
+            height as std::os::raw::c_long,
+        ];
         sys::ffcrim(fptr, -32, 2, naxes.as_mut_ptr(), &mut status);
         for (key, value) in cards.iter().filter(|(k, _)| !is_structural(k)) {
             if status != 0 {
@@ -634,20 +773,46 @@ fn write_with_cfitsio(
             let ckey = CString::new(key.as_str()).unwrap_or_default();
             let empty = CString::default();
             match value {
-                HeaderValue::Bool(b) => sys::ffpkyl(fptr, ckey.as_ptr(), i32::from(*b), empty.as_ptr(), &mut status),
-                HeaderValue::Int(i) => sys::ffpkyj(fptr, ckey.as_ptr(), *i, empty.as_ptr(), &mut status),
+                HeaderValue::Bool(b) => sys::ffpkyl(
+                    fptr,
+                    ckey.as_ptr(),
+                    i32::from(*b),
+                    empty.as_ptr(),
+                    &mut status,
+                ),
+                HeaderValue::Int(i) => {
+                    sys::ffpkyj(fptr, ckey.as_ptr(), *i, empty.as_ptr(), &mut status)
+                }
                 // G format, 15 significant digits.
-                HeaderValue::Float(f) if f.is_finite() => sys::ffpkyd(fptr, ckey.as_ptr(), *f, -15, empty.as_ptr(), &mut status),
+                HeaderValue::Float(f) if f.is_finite() => {
+                    sys::ffpkyd(fptr, ckey.as_ptr(), *f, -15, empty.as_ptr(), &mut status)
+                }
                 HeaderValue::Float(_) => 0,
                 HeaderValue::Str(s) => {
-                    let printable: String = s.chars().map(|c| if (' '..='~').contains(&c) { c } else { '?' }).collect();
+                    let printable: String = s
+                        .chars()
+                        .map(|c| if (' '..='~').contains(&c) { c } else { '?' })
+                        .collect();
                     let cval = CString::new(printable).unwrap_or_default();
-                    sys::ffpkls(fptr, ckey.as_ptr(), cval.as_ptr(), empty.as_ptr(), &mut status)
+                    sys::ffpkls(
+                        fptr,
+                        ckey.as_ptr(),
+                        cval.as_ptr(),
+                        empty.as_ptr(),
+                        &mut status,
+                    )
                 }
             };
         }
         if status == 0 {
-            sys::ffppre(fptr, 1, 1, pixels.len() as i64, pixels.as_mut_ptr(), &mut status);
+            sys::ffppre(
+                fptr,
+                1,
+                1,
+                pixels.len() as i64,
+                pixels.as_mut_ptr(),
+                &mut status,
+            );
         }
         let write_status = status;
         let mut close_status = 0;
@@ -659,6 +824,79 @@ fn write_with_cfitsio(
     }
 }
 
+/// Header cards for frame `meta` of a cube written as a 2-D image: the cube's cards minus
+/// structure, the third (time) axis and per-cube time keys, plus the frame's own `DATE-OBS`
+/// (UTC), `EXPTIME`, and where it came from (`SRCFILE`, `SRCFRAME`). Keys that are not
+/// standard 8-character keywords (HIERARCH) are dropped.
+pub fn frame_header_cards(cube_header: &Header, meta: &FrameMeta) -> Vec<(String, HeaderValue)> {
+    let mut cards: Vec<(String, HeaderValue)> = cube_header
+        .cards()
+        .iter()
+        .filter(|c| {
+            is_standard_keyword(&c.key) && !is_structural(&c.key) && !is_per_cube_key(&c.key)
+        })
+        .filter_map(|c| Some((c.key.clone(), c.value.clone()?)))
+        .collect();
+    cards.retain(|(k, _)| {
+        !matches!(
+            k.as_str(),
+            "DATE-OBS" | "EXPTIME" | "TIMESYS" | "SRCFILE" | "SRCFRAME"
+        )
+    });
+    if let Some(t) = meta.obs_time_iso() {
+        cards.push((
+            "DATE-OBS".into(),
+            HeaderValue::Str(t.trim_end_matches('Z').to_string()),
+        ));
+        cards.push(("TIMESYS".into(), HeaderValue::Str("UTC".into())));
+    }
+    if let Some(e) = meta.exptime_s {
+        cards.push(("EXPTIME".into(), HeaderValue::Float(e)));
+    }
+    cards.push((
+        "SRCFILE".into(),
+        HeaderValue::Str(meta.file.display().to_string()),
+    ));
+    if let Some(f) = meta.frame {
+        cards.push(("SRCFRAME".into(), HeaderValue::Int(f as i64)));
+    }
+    cards
+}
+
+/// 1–8 characters of `A–Z 0–9 _ -`.
+fn is_standard_keyword(key: &str) -> bool {
+    !key.is_empty()
+        && key.len() <= 8
+        && key
+            .bytes()
+            .all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'_' || b == b'-')
+}
+
+/// Keys that describe the cube as a whole and would mislead on a single frame: the third WCS
+/// axis (`CTYPE3`, `PC3_1`, `PC1_3`…), and the times that outrank `DATE-OBS` (`T_OBS`, `DATE_OBS`).
+fn is_per_cube_key(key: &str) -> bool {
+    const AXIS_KEYS: [&str; 9] = [
+        "CTYPE", "CUNIT", "CRPIX", "CRVAL", "CDELT", "CROTA", "CNAME", "CRDER", "CSYSER",
+    ];
+    let third_axis = AXIS_KEYS.iter().any(|p| {
+        key.strip_prefix(p)
+            .is_some_and(|n| n.parse::<u32>().is_ok_and(|n| n >= 3))
+    });
+    let matrix = ["PC", "CD"].iter().any(|p| {
+        key.strip_prefix(p)
+            .and_then(|ij| ij.split_once('_'))
+            .is_some_and(|(i, j)| {
+                i.parse::<u32>().is_ok_and(|i| i >= 3) || j.parse::<u32>().is_ok_and(|j| j >= 3)
+            })
+    });
+    third_axis
+        || matrix
+        || matches!(
+            key,
+            "T_OBS" | "DATE_OBS" | "TIME-OBS" | "TIME_OBS" | "DATE_END" | "DATEREF" | "MJDREF"
+        )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -667,17 +905,29 @@ mod tests {
 
     #[test]
     fn frame_spec_parsing() {
-        assert_eq!(FrameSpec::parse("cube.fits[3]"), FrameSpec::cube_frame("cube.fits", 3));
-        assert_eq!(FrameSpec::parse("a b/c[1].fits"), FrameSpec::file("a b/c[1].fits"));
+        assert_eq!(
+            FrameSpec::parse("cube.fits[3]"),
+            FrameSpec::cube_frame("cube.fits", 3)
+        );
+        assert_eq!(
+            FrameSpec::parse("a b/c[1].fits"),
+            FrameSpec::file("a b/c[1].fits")
+        );
         assert_eq!(FrameSpec::parse("x.fits[]"), FrameSpec::file("x.fits[]"));
-        assert_eq!(FrameSpec::parse("x.fits[-1]"), FrameSpec::file("x.fits[-1]"));
+        assert_eq!(
+            FrameSpec::parse("x.fits[-1]"),
+            FrameSpec::file("x.fits[-1]")
+        );
         assert_eq!(FrameSpec::parse("[2]"), FrameSpec::file("[2]"));
         assert_eq!(FrameSpec::cube_frame("c.fits", 7).to_string(), "c.fits[7]");
         // An existing file whose name ends in [N] is a plain path.
         let dir = tempfile::tempdir().unwrap();
         let odd = dir.path().join("frame[2]");
         std::fs::write(&odd, b"x").unwrap();
-        assert_eq!(FrameSpec::parse(odd.to_str().unwrap()), FrameSpec::file(&odd));
+        assert_eq!(
+            FrameSpec::parse(odd.to_str().unwrap()),
+            FrameSpec::file(&odd)
+        );
     }
 
     #[test]
@@ -695,10 +945,23 @@ mod tests {
     /// → 85 344 93 153957404.0
     #[test]
     fn trace_int16_pixels_match_astropy() {
-        let img = read_frame(&FrameSpec::file(format!("{REAL}trace_171_19980519T222143_1024.fits"))).unwrap();
+        let img = read_frame(&FrameSpec::file(format!(
+            "{REAL}trace_171_19980519T222143_1024.fits"
+        )))
+        .unwrap();
         assert_eq!(img.data.dim(), (1024, 1024));
-        assert_eq!((img.data[[0, 0]], img.data[[500, 600]], img.data[[1023, 1023]]), (85.0, 344.0, 93.0));
-        assert_eq!(img.data.iter().map(|&v| f64::from(v)).sum::<f64>(), 153_957_404.0);
+        assert_eq!(
+            (
+                img.data[[0, 0]],
+                img.data[[500, 600]],
+                img.data[[1023, 1023]]
+            ),
+            (85.0, 344.0, 93.0)
+        );
+        assert_eq!(
+            img.data.iter().map(|&v| f64::from(v)).sum::<f64>(),
+            153_957_404.0
+        );
     }
 
     /// python3 -c "from astropy.io import fits; d=fits.getdata('data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits'); print(d[7,50,60], d[53,60,40], d[53,108,109])"
@@ -713,8 +976,14 @@ mod tests {
         assert_eq!(img.data[[50, 60]], 173.60815);
         assert_eq!(last.data[[60, 40]], 22.341318);
         assert_eq!(last.data[[108, 109]], -200.0);
-        assert!(read_frame(&FrameSpec::cube_frame(&path, 54)).unwrap_err().to_string().contains("frames 0 to 53"));
-        assert!(read_frame(&FrameSpec::file(&path)).unwrap_err().to_string().contains("54 frames"));
+        assert!(read_frame(&FrameSpec::cube_frame(&path, 54))
+            .unwrap_err()
+            .to_string()
+            .contains("frames 0 to 53"));
+        assert!(read_frame(&FrameSpec::file(&path))
+            .unwrap_err()
+            .to_string()
+            .contains("54 frames"));
     }
 
     /// FITS standard §5.3: physical = BZERO + BSCALE·raw; raw == BLANK is undefined (NaN).
@@ -726,13 +995,24 @@ mod tests {
             blank: Some(-1),
         };
         let mut out = Vec::new();
-        decode_samples(&[0x00, 0x05, 0xFF, 0xFF, 0x80, 0x00], 16, s, |v| out.push(v));
+        decode_samples(&[0x00, 0x05, 0xFF, 0xFF, 0x80, 0x00], 16, s, |v| {
+            out.push(v)
+        });
         assert_eq!(out[0], 20.0);
         assert!(out[1].is_nan());
         assert_eq!(out[2], 10.0 + 2.0 * -32768.0);
         out.clear();
         // Unsigned 16-bit convention: BZERO = 32768.
-        decode_samples(&[0x80, 0x00, 0x7F, 0xFF], 16, Scaling { scale: 1.0, zero: 32768.0, blank: None }, |v| out.push(v));
+        decode_samples(
+            &[0x80, 0x00, 0x7F, 0xFF],
+            16,
+            Scaling {
+                scale: 1.0,
+                zero: 32768.0,
+                blank: None,
+            },
+            |v| out.push(v),
+        );
         assert_eq!(out, vec![0.0, 65535.0]);
     }
 
@@ -746,11 +1026,17 @@ mod tests {
         write_rice_i16(&packed, &original.data);
         let layout = scan(&packed).unwrap();
         let hdu = layout.image_hdu(&packed).unwrap();
-        assert!(hdu.geometry().compressed && hdu.index == 1 && hdu.header.str("ZCMPTYPE") == Some("RICE_1"));
+        assert!(
+            hdu.geometry().compressed
+                && hdu.index == 1
+                && hdu.header.str("ZCMPTYPE") == Some("RICE_1")
+        );
         let round = read_frame(&FrameSpec::file(&packed)).unwrap();
         assert_eq!(round.data, original.data);
         assert_eq!(round.meta.bitpix, 16);
-        assert!(std::fs::metadata(&packed).unwrap().len() < std::fs::metadata(&source).unwrap().len());
+        assert!(
+            std::fs::metadata(&packed).unwrap().len() < std::fs::metadata(&source).unwrap().len()
+        );
     }
 
     /// Write `data` (integral values) as a Rice-compressed int16 image via cfitsio's
@@ -766,17 +1052,62 @@ mod tests {
             dimensions: &[data.nrows(), data.ncols()],
         };
         let hdu = f.create_image("RICE", &desc).unwrap();
-        for (k, v) in [("CDELT1", 0.5), ("CDELT2", 0.5), ("CRPIX1", -331.555), ("CRPIX2", -289.793), ("CRVAL1", 0.0), ("CRVAL2", 0.0)] {
+        for (k, v) in [
+            ("CDELT1", 0.5),
+            ("CDELT2", 0.5),
+            ("CRPIX1", -331.555),
+            ("CRPIX2", -289.793),
+            ("CRVAL1", 0.0),
+            ("CRVAL2", 0.0),
+        ] {
             hdu.write_key(&mut f, k, v).unwrap();
         }
         hdu.write_image(&mut f, &values).unwrap();
+    }
+
+    /// A cube frame written as a 2-D file with `frame_header_cards` reads back with the same
+    /// metadata as the frame had in the cube (truth: the cube's values, checked against sunpy
+    /// in tests/info.rs).
+    #[test]
+    fn cube_frame_round_trips_through_a_2d_file() {
+        let cube = format!("{REAL}iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits");
+        let frame = read_frame(&FrameSpec::cube_frame(&cube, 27)).unwrap();
+        let (_, header) = read_image_header(Path::new(&cube)).unwrap();
+        let cards = frame_header_cards(&header, &frame.meta);
+        assert!(!cards
+            .iter()
+            .any(|(k, _)| k == "CTYPE3" || k == "PC3_1" || k == "NAXIS3" || k == "DATE_OBS"));
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("f27.fits");
+        write_image(&out, frame.data.view(), &cards).unwrap();
+        let back = read_frame(&FrameSpec::file(&out)).unwrap();
+        assert_eq!(back.data, frame.data);
+        let m = &back.meta;
+        assert_eq!((m.frame, m.bitpix, m.hdu), (None, -32, 0));
+        assert_eq!(m.obs_time_iso(), frame.meta.obs_time_iso());
+        assert_eq!(
+            (m.channel.as_str(), m.instrument.as_deref(), m.wavelength),
+            ("SJI_1400", Some("SJI"), Some(1400.0))
+        );
+        assert_eq!(m.plate_scale_arcsec, frame.meta.plate_scale_arcsec);
+        for k in 0..2 {
+            assert!((m.sun_center_px[k] - frame.meta.sun_center_px[k]).abs() < 1e-9);
+        }
+        assert!((m.rotation_deg - frame.meta.rotation_deg).abs() < 1e-12);
+        assert!((m.exptime_s.unwrap() - frame.meta.exptime_s.unwrap()).abs() < 1e-12);
     }
 
     #[test]
     fn write_image_round_trips_values_and_cards() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("out [1].fits");
-        let data = Array2::from_shape_fn((3, 4), |(y, x)| if (y, x) == (1, 2) { f32::NAN } else { (y * 10 + x) as f32 + 0.25 });
+        let data = Array2::from_shape_fn((3, 4), |(y, x)| {
+            if (y, x) == (1, 2) {
+                f32::NAN
+            } else {
+                (y * 10 + x) as f32 + 0.25
+            }
+        });
         let cards = vec![
             ("CDELT1".to_string(), HeaderValue::Float(0.6)),
             ("CDELT2".to_string(), HeaderValue::Float(0.6)),
@@ -784,7 +1115,10 @@ mod tests {
             ("CRPIX2".to_string(), HeaderValue::Float(2.0)),
             ("BITPIX".to_string(), HeaderValue::Int(16)),
             ("BZERO".to_string(), HeaderValue::Float(32768.0)),
-            ("DATE-OBS".to_string(), HeaderValue::Str("2020-01-02T03:04:05.678".into())),
+            (
+                "DATE-OBS".to_string(),
+                HeaderValue::Str("2020-01-02T03:04:05.678".into()),
+            ),
             ("INSTRUME".to_string(), HeaderValue::Str("SYNTH".into())),
             ("WAVELNTH".to_string(), HeaderValue::Int(171)),
         ];
@@ -795,7 +1129,10 @@ mod tests {
         assert_eq!(back.data[[2, 3]], 23.25);
         assert_eq!(back.meta.bitpix, -32);
         assert_eq!(back.meta.channel, "SYNTH_171");
-        assert_eq!(back.meta.obs_time_iso().unwrap(), "2020-01-02T03:04:05.678Z");
+        assert_eq!(
+            back.meta.obs_time_iso().unwrap(),
+            "2020-01-02T03:04:05.678Z"
+        );
         assert_eq!(back.meta.sun_center_px, [1.5, 1.0]);
         assert!(write_image(&path, data.view(), &[("lower".into(), HeaderValue::Int(1))]).is_err());
         // No temporary file left behind.

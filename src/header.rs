@@ -183,7 +183,10 @@ impl Header {
 
     /// The value of the first card with this keyword that has one.
     pub fn get(&self, key: &str) -> Option<&HeaderValue> {
-        self.cards.iter().find(|c| c.key == key).and_then(|c| c.value.as_ref())
+        self.cards
+            .iter()
+            .find(|c| c.key == key)
+            .and_then(|c| c.value.as_ref())
     }
 
     pub fn contains(&self, key: &str) -> bool {
@@ -215,8 +218,16 @@ impl Header {
 
 /// Parse one 80-byte card (shorter input is treated as blank-padded).
 pub fn parse_card(raw: &[u8]) -> Card {
-    let text: String = raw.iter().take(CARD).map(|&b| if b.is_ascii() { b as char } else { '?' }).collect();
-    let key = text.get(..8.min(text.len())).unwrap_or("").trim_end().to_string();
+    let text: String = raw
+        .iter()
+        .take(CARD)
+        .map(|&b| if b.is_ascii() { b as char } else { '?' })
+        .collect();
+    let key = text
+        .get(..8.min(text.len()))
+        .unwrap_or("")
+        .trim_end()
+        .to_string();
     let rest = text.get(8..).unwrap_or("");
     if key == "HIERARCH" {
         if let Some((name, field)) = rest.split_once('=') {
@@ -235,7 +246,11 @@ pub fn parse_card(raw: &[u8]) -> Card {
     } else {
         (None, rest.trim_end().to_string())
     };
-    Card { key, value, comment }
+    Card {
+        key,
+        value,
+        comment,
+    }
 }
 
 /// Parse the value/comment field after the value indicator.
@@ -243,7 +258,10 @@ fn parse_value_field(field: &str) -> (Option<HeaderValue>, String) {
     let field = field.trim_start();
     if let Some(quoted) = field.strip_prefix('\'') {
         let (s, after) = parse_quoted(quoted);
-        let comment = after.split_once('/').map(|(_, c)| c.trim().to_string()).unwrap_or_default();
+        let comment = after
+            .split_once('/')
+            .map(|(_, c)| c.trim().to_string())
+            .unwrap_or_default();
         return (Some(HeaderValue::Str(s)), comment);
     }
     let (token, comment) = match field.split_once('/') {
@@ -286,7 +304,9 @@ fn parse_scalar(token: &str) -> Option<HeaderValue> {
                 }
             }
             let normalised = token.replace(['D', 'd'], "E");
-            let looks_numeric = normalised.bytes().all(|b| b.is_ascii_digit() || b"+-.eE".contains(&b));
+            let looks_numeric = normalised
+                .bytes()
+                .all(|b| b.is_ascii_digit() || b"+-.eE".contains(&b));
             if looks_numeric {
                 normalised.parse::<f64>().ok().map(HeaderValue::Float)
             } else {
@@ -375,7 +395,9 @@ fn valid_bitpix(bitpix: i64) -> bool {
 
 /// Axis lengths `{prefix}1..{prefix}n` with `n = {prefix}` (e.g. `NAXIS`, `ZNAXIS`).
 fn axes(header: &Header, prefix: &str) -> Result<Vec<u64>, String> {
-    let n = header.i64(prefix).ok_or_else(|| format!("{prefix} is missing"))?;
+    let n = header
+        .i64(prefix)
+        .ok_or_else(|| format!("{prefix} is missing"))?;
     if !(0..=999).contains(&n) {
         return Err(format!("{prefix} = {n} is not between 0 and 999"));
     }
@@ -403,7 +425,11 @@ pub fn data_size_bytes(header: &Header) -> Result<u64, String> {
         return Ok(0);
     }
     // Random groups (NAXIS1 = 0 with GROUPS = T) count the axes after the first.
-    let counted = if axes[0] == 0 && header.bool("GROUPS") == Some(true) { &axes[1..] } else { &axes[..] };
+    let counted = if axes[0] == 0 && header.bool("GROUPS") == Some(true) {
+        &axes[1..]
+    } else {
+        &axes[..]
+    };
     let too_big = || format!("header claims an absurd data size (NAXISn = {axes:?})");
     let mut elements: u64 = 1;
     for &a in counted {
@@ -427,7 +453,9 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
         HduKind::BinTable if header.bool("ZIMAGE") == Some(true) => ("ZBITPIX", "ZNAXIS", true),
         _ => return Ok(None),
     };
-    let bitpix = header.i64(bitpix_key).ok_or_else(|| format!("{bitpix_key} is missing"))?;
+    let bitpix = header
+        .i64(bitpix_key)
+        .ok_or_else(|| format!("{bitpix_key} is missing"))?;
     if !valid_bitpix(bitpix) {
         return Err(format!("{bitpix_key} = {bitpix} is not a FITS pixel type"));
     }
@@ -446,12 +474,18 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
 /// Refuse axes or frames too large to be a real image.
 fn check_sizes(axes: &[u64], prefix: &str) -> Result<(), String> {
     if let Some((i, &a)) = axes.iter().enumerate().find(|(_, &a)| a > MAX_AXIS) {
-        return Err(format!("absurd image size: {prefix}{} = {a} (limit {MAX_AXIS})", i + 1));
+        return Err(format!(
+            "absurd image size: {prefix}{} = {a} (limit {MAX_AXIS})",
+            i + 1
+        ));
     }
     let frame = axes[0].saturating_mul(axes.get(1).copied().unwrap_or(1));
     if frame > MAX_FRAME_PIXELS {
         let dims: Vec<String> = axes.iter().map(u64::to_string).collect();
-        return Err(format!("absurd image size {} (a frame over {MAX_FRAME_PIXELS} pixels)", dims.join(" × ")));
+        return Err(format!(
+            "absurd image size {} (a frame over {MAX_FRAME_PIXELS} pixels)",
+            dims.join(" × ")
+        ));
     }
     Ok(())
 }
@@ -471,7 +505,8 @@ pub fn mandatory_order_problem(header: &Header) -> Option<String> {
             None => Some(format!("{key} is missing")),
         })
         .collect();
-    (!misplaced.is_empty()).then(|| format!("mandatory cards out of order: {}", misplaced.join(", ")))
+    (!misplaced.is_empty())
+        .then(|| format!("mandatory cards out of order: {}", misplaced.join(", ")))
 }
 
 #[cfg(test)]
@@ -518,22 +553,42 @@ mod tests {
 
     #[test]
     fn merges_continue_cards() {
-        let h = header(&["SOURCE  = 'hmi.lev1[:#158263685,&'", "CONTINUE  '#158&'", "CONTINUE  'end'"]);
+        let h = header(&[
+            "SOURCE  = 'hmi.lev1[:#158263685,&'",
+            "CONTINUE  '#158&'",
+            "CONTINUE  'end'",
+        ]);
         assert_eq!(h.str("SOURCE"), Some("hmi.lev1[:#158263685,#158end"));
     }
 
     #[test]
     fn data_size_and_geometry() {
-        let h = header(&["SIMPLE  = T", "BITPIX  = 16", "NAXIS   = 3", "NAXIS1  = 110", "NAXIS2  = 109", "NAXIS3  = 54"]);
+        let h = header(&[
+            "SIMPLE  = T",
+            "BITPIX  = 16",
+            "NAXIS   = 3",
+            "NAXIS1  = 110",
+            "NAXIS2  = 109",
+            "NAXIS3  = 54",
+        ]);
         assert_eq!(data_size_bytes(&h).unwrap(), 2 * 110 * 109 * 54);
         let g = image_geometry(&h, &HduKind::Primary).unwrap().unwrap();
-        assert_eq!((g.width(), g.height(), g.frames(), g.is_cube()), (110, 109, 54, true));
+        assert_eq!(
+            (g.width(), g.height(), g.frames(), g.is_cube()),
+            (110, 109, 54, true)
+        );
         assert_eq!(mandatory_order_problem(&h), None);
     }
 
     #[test]
     fn refuses_absurd_sizes_without_overflow() {
-        let h = header(&["SIMPLE  = T", "BITPIX  = 16", "NAXIS   = 2", "NAXIS1  = 2000000000", "NAXIS2  = 1"]);
+        let h = header(&[
+            "SIMPLE  = T",
+            "BITPIX  = 16",
+            "NAXIS   = 2",
+            "NAXIS1  = 2000000000",
+            "NAXIS2  = 1",
+        ]);
         let e = image_geometry(&h, &HduKind::Primary).unwrap_err();
         assert!(e.contains("NAXIS1 = 2000000000"), "{e}");
         let huge = header(&[
@@ -549,11 +604,25 @@ mod tests {
 
     #[test]
     fn reports_out_of_order_naxis_cards() {
-        let h = header(&["SIMPLE  = T", "BITPIX  = 16", "NAXIS   = 2", "DATE    = 'x'", "NAXIS1  = 4", "NAXIS2  = 4"]);
+        let h = header(&[
+            "SIMPLE  = T",
+            "BITPIX  = 16",
+            "NAXIS   = 2",
+            "DATE    = 'x'",
+            "NAXIS1  = 4",
+            "NAXIS2  = 4",
+        ]);
         let p = mandatory_order_problem(&h).unwrap();
-        assert!(p.contains("NAXIS1 is card 5 (should be 4)") && p.contains("NAXIS2 is card 6 (should be 5)"), "{p}");
+        assert!(
+            p.contains("NAXIS1 is card 5 (should be 4)")
+                && p.contains("NAXIS2 is card 6 (should be 5)"),
+            "{p}"
+        );
         // The values are still readable.
-        assert_eq!(image_geometry(&h, &HduKind::Primary).unwrap().unwrap().axes, vec![4, 4]);
+        assert_eq!(
+            image_geometry(&h, &HduKind::Primary).unwrap().unwrap().axes,
+            vec![4, 4]
+        );
     }
 
     #[test]

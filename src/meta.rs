@@ -117,14 +117,25 @@ impl CelestialWcs {
     /// Read `CRPIX`/`CRVAL`/`CDELT`/`CUNIT` and the rotation (`PCi_j`, `CDi_j`, `CROTA2`, or
     /// `SC_ROLL` for raw SOHO files that carry none of those).
     pub fn from_header(h: &Header) -> Result<Self, String> {
-        let unit = [angle_unit_arcsec(h.str("CUNIT1"))?, angle_unit_arcsec(h.str("CUNIT2"))?];
+        let unit = [
+            angle_unit_arcsec(h.str("CUNIT1"))?,
+            angle_unit_arcsec(h.str("CUNIT2"))?,
+        ];
         let crpix = [
-            h.f64("CRPIX1").ok_or("CRPIX1 is missing: no reference pixel")?,
-            h.f64("CRPIX2").ok_or("CRPIX2 is missing: no reference pixel")?,
+            h.f64("CRPIX1")
+                .ok_or("CRPIX1 is missing: no reference pixel")?,
+            h.f64("CRPIX2")
+                .ok_or("CRPIX2 is missing: no reference pixel")?,
         ];
         // FITS default for a missing CRVAL is 0.
-        let crval_arcsec = [h.f64("CRVAL1").unwrap_or(0.0) * unit[0], h.f64("CRVAL2").unwrap_or(0.0) * unit[1]];
-        let tan = ["CTYPE1", "CTYPE2"].iter().all(|k| h.str(k).is_some_and(|t| t.to_ascii_uppercase().ends_with("-TAN")));
+        let crval_arcsec = [
+            h.f64("CRVAL1").unwrap_or(0.0) * unit[0],
+            h.f64("CRVAL2").unwrap_or(0.0) * unit[1],
+        ];
+        let tan = ["CTYPE1", "CTYPE2"].iter().all(|k| {
+            h.str(k)
+                .is_some_and(|t| t.to_ascii_uppercase().ends_with("-TAN"))
+        });
         let (cdelt_arcsec, matrix, rotation_deg) = match cd_matrix(h) {
             Some(cd) => from_cd(cd, unit)?,
             None => from_cdelt_and_rotation(h, unit)?,
@@ -191,7 +202,10 @@ type LinearPart = ([f64; 2], [[f64; 2]; 2], f64);
 
 /// From a `CD` matrix: scales are the column norms, roll from the matrix (CDELT > 0 assumed).
 fn from_cd(cd: [[f64; 2]; 2], unit: [f64; 2]) -> Result<LinearPart, String> {
-    let m = [[cd[0][0] * unit[0], cd[0][1] * unit[0]], [cd[1][0] * unit[1], cd[1][1] * unit[1]]];
+    let m = [
+        [cd[0][0] * unit[0], cd[0][1] * unit[0]],
+        [cd[1][0] * unit[1], cd[1][1] * unit[1]],
+    ];
     let scale = [m[0][0].hypot(m[1][0]), m[0][1].hypot(m[1][1])];
     if scale[0] == 0.0 || scale[1] == 0.0 {
         return Err("the CD matrix is singular".into());
@@ -208,13 +222,21 @@ fn from_cdelt_and_rotation(h: &Header, unit: [f64; 2]) -> Result<LinearPart, Str
     if cdelt[0] == 0.0 || cdelt[1] == 0.0 {
         return Err("CDELT1/CDELT2 is zero".into());
     }
-    let crota = h.f64("CROTA2").or_else(|| h.f64("CROTA1")).or_else(|| h.f64("CROTA"));
+    let crota = h
+        .f64("CROTA2")
+        .or_else(|| h.f64("CROTA1"))
+        .or_else(|| h.f64("CROTA"));
     if let Some(pc) = pc_matrix(h) {
-        let m = [[cdelt[0] * pc[0][0], cdelt[0] * pc[0][1]], [cdelt[1] * pc[1][0], cdelt[1] * pc[1][1]]];
+        let m = [
+            [cdelt[0] * pc[0][0], cdelt[0] * pc[0][1]],
+            [cdelt[1] * pc[1][0], cdelt[1] * pc[1][1]],
+        ];
         let roll = roll_from_matrix(m, cdelt);
         if let Some(c) = crota {
             if angle_difference_deg(c, roll).abs() > 0.01 {
-                return Err(format!("CROTA2 = {c}° disagrees with the PCi_j matrix ({roll:.4}°)"));
+                return Err(format!(
+                    "CROTA2 = {c}° disagrees with the PCi_j matrix ({roll:.4}°)"
+                ));
             }
         }
         return Ok((cdelt, m, roll));
@@ -230,7 +252,10 @@ fn from_cdelt_and_rotation(h: &Header, unit: [f64; 2]) -> Result<LinearPart, Str
 
 /// `PCi_j` (or the older `PC00i00j`) if any element is present; missing ones default to identity.
 fn pc_matrix(h: &Header) -> Option<[[f64; 2]; 2]> {
-    let get = |i: usize, j: usize| h.f64(&format!("PC{i}_{j}")).or_else(|| h.f64(&format!("PC{i:03}{j:03}")));
+    let get = |i: usize, j: usize| {
+        h.f64(&format!("PC{i}_{j}"))
+            .or_else(|| h.f64(&format!("PC{i:03}{j:03}")))
+    };
     let present = (1..=2).any(|i| (1..=2).any(|j| get(i, j).is_some()));
     if !present {
         return None;
@@ -246,7 +271,9 @@ fn roll_from_matrix(m: [[f64; 2]; 2], cdelt: [f64; 2]) -> f64 {
     let (s2, c2) = (-m[0][1] / cdelt[1], m[1][1] / cdelt[1]);
     let r1 = s1.atan2(c1);
     let r2 = s2.atan2(c2);
-    (r1.sin() + r2.sin()).atan2(r1.cos() + r2.cos()).to_degrees()
+    (r1.sin() + r2.sin())
+        .atan2(r1.cos() + r2.cos())
+        .to_degrees()
 }
 
 /// a − b wrapped into (−180°, 180°].
@@ -293,7 +320,10 @@ fn is_date_only(text: &str) -> bool {
 pub fn time_reference_ns(h: &Header) -> Option<i64> {
     ["DATEREF", "STARTOBS"]
         .iter()
-        .find_map(|k| h.str(k).and_then(|t| time::parse_fits_time(t, TimeScale::Utc).ok()))
+        .find_map(|k| {
+            h.str(k)
+                .and_then(|t| time::parse_fits_time(t, TimeScale::Utc).ok())
+        })
         .or_else(|| obs_time_ns(h))
 }
 
@@ -307,7 +337,12 @@ pub fn time_axis_seconds(h: &Header, frame: usize) -> Option<f64> {
         if !(ctype.starts_with("TIME") || ctype == "UTC") {
             return None;
         }
-        let unit_s = match h.str(&format!("CUNIT{k}")).unwrap_or("s").to_ascii_lowercase().as_str() {
+        let unit_s = match h
+            .str(&format!("CUNIT{k}"))
+            .unwrap_or("s")
+            .to_ascii_lowercase()
+            .as_str()
+        {
             "s" | "sec" | "secs" | "second" | "seconds" => 1.0,
             "min" => 60.0,
             "h" | "hr" | "hour" | "hours" => 3600.0,
@@ -323,7 +358,9 @@ pub fn time_axis_seconds(h: &Header, frame: usize) -> Option<f64> {
 
 /// Exposure time in seconds: `EXPTIME`, `EXPOSURE`, else TRACE's measured `SHT_MDUR`.
 pub fn exptime_s(h: &Header) -> Option<f64> {
-    ["EXPTIME", "EXPOSURE", "SHT_MDUR"].iter().find_map(|k| h.f64(k))
+    ["EXPTIME", "EXPOSURE", "SHT_MDUR"]
+        .iter()
+        .find_map(|k| h.f64(k))
 }
 
 /// Apparent solar radius in arcsec: `RSUN_OBS`; else `SOLAR_R`·|CDELT1| (SOLAR_R is in pixels,
@@ -353,7 +390,9 @@ pub fn instrument(h: &Header) -> Option<String> {
 
 /// Wavelength in the header's unit: `WAVELNTH`, IRIS's `TWAVE1`, TRACE's `WAVE_LEN`.
 pub fn wavelength(h: &Header) -> Option<f64> {
-    ["WAVELNTH", "TWAVE1", "WAVE_LEN"].iter().find_map(|k| h.f64(k))
+    ["WAVELNTH", "TWAVE1", "WAVE_LEN"]
+        .iter()
+        .find_map(|k| h.f64(k))
 }
 
 /// Channel name: IRIS's `TDESC1` (`SJI_1400`), else instrument + wavelength (`AIA_171`),
@@ -364,7 +403,10 @@ pub fn channel(h: &Header, instrument: Option<&str>, wavelength: Option<f64>) ->
     }
     let label = match wavelength {
         Some(w) => Some(format!("{}", w.round() as i64)),
-        None => ["WAVELNTH", "WAVE_LEN"].iter().find_map(|k| h.str(k)).map(sanitise),
+        None => ["WAVELNTH", "WAVE_LEN"]
+            .iter()
+            .find_map(|k| h.str(k))
+            .map(sanitise),
     };
     match (instrument, label) {
         (Some(i), Some(l)) => format!("{i}_{l}"),
@@ -378,7 +420,13 @@ pub fn channel(h: &Header, instrument: Option<&str>, wavelength: Option<f64>) ->
 fn sanitise(text: &str) -> String {
     text.trim()
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '-' { c.to_ascii_uppercase() } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c.to_ascii_uppercase()
+            } else {
+                '_'
+            }
+        })
         .collect()
 }
 
@@ -407,69 +455,144 @@ mod tests {
     fn crota2_and_equivalent_pc_give_the_same_geometry() {
         // A 30° roll written both ways (PC from CROTA2 by Calabretta & Greisen eq. 189).
         let (sn, cs) = 30f64.to_radians().sin_cos();
-        let base = [("CRPIX1", f(10.0)), ("CRPIX2", f(20.0)), ("CRVAL1", f(100.0)), ("CRVAL2", f(-50.0)), ("CDELT1", f(2.0)), ("CDELT2", f(1.0))];
+        let base = [
+            ("CRPIX1", f(10.0)),
+            ("CRPIX2", f(20.0)),
+            ("CRVAL1", f(100.0)),
+            ("CRVAL2", f(-50.0)),
+            ("CDELT1", f(2.0)),
+            ("CDELT2", f(1.0)),
+        ];
         let mut a = header(&base);
         a.push("CROTA2", f(30.0));
         let mut b = header(&base);
-        for (k, v) in [("PC1_1", cs), ("PC1_2", -sn * 1.0 / 2.0), ("PC2_1", sn * 2.0 / 1.0), ("PC2_2", cs)] {
+        for (k, v) in [
+            ("PC1_1", cs),
+            ("PC1_2", -sn * 1.0 / 2.0),
+            ("PC2_1", sn * 2.0 / 1.0),
+            ("PC2_2", cs),
+        ] {
             b.push(k, f(v));
         }
-        let (wa, wb) = (CelestialWcs::from_header(&a).unwrap(), CelestialWcs::from_header(&b).unwrap());
+        let (wa, wb) = (
+            CelestialWcs::from_header(&a).unwrap(),
+            CelestialWcs::from_header(&b).unwrap(),
+        );
         assert!((wb.rotation_deg - 30.0).abs() < 1e-12);
         let (ca, cb) = (wa.sun_center_px().unwrap(), wb.sun_center_px().unwrap());
         assert!((ca[0] - cb[0]).abs() < 1e-9 && (ca[1] - cb[1]).abs() < 1e-9);
         // Hand computation, linear axes: offset = R(−30°)·(−100/2, 50/1) in pixels… via M⁻¹.
         // M = [[2c, −s],[2s, c]], det = 2; M⁻¹·(−100, 50) = ((c·−100 + s·50)/2, (−2s·−100 + 2c·50)/2).
-        let expect = [9.0 + (cs * -100.0 + sn * 50.0) / 2.0, 19.0 + (200.0 * sn + 100.0 * cs) / 2.0];
-        assert!((ca[0] - expect[0]).abs() < 1e-9 && (ca[1] - expect[1]).abs() < 1e-9, "{ca:?} vs {expect:?}");
+        let expect = [
+            9.0 + (cs * -100.0 + sn * 50.0) / 2.0,
+            19.0 + (200.0 * sn + 100.0 * cs) / 2.0,
+        ];
+        assert!(
+            (ca[0] - expect[0]).abs() < 1e-9 && (ca[1] - expect[1]).abs() < 1e-9,
+            "{ca:?} vs {expect:?}"
+        );
         // Both present and agreeing is fine; disagreeing is a bad header.
         let mut agreeing = b.clone();
         agreeing.push("CROTA2", f(30.0));
         assert!(CelestialWcs::from_header(&agreeing).is_ok());
         let mut contradicting = b;
         contradicting.push("CROTA2", f(31.0));
-        assert!(CelestialWcs::from_header(&contradicting).unwrap_err().contains("disagrees"));
+        assert!(CelestialWcs::from_header(&contradicting)
+            .unwrap_err()
+            .contains("disagrees"));
     }
 
     #[test]
     fn sc_roll_is_used_only_without_crota_or_pc() {
-        let base = [("CRPIX1", f(64.5)), ("CRPIX2", f(64.5)), ("CDELT1", f(2.63)), ("CDELT2", f(2.63)), ("SC_ROLL", f(180.0))];
+        let base = [
+            ("CRPIX1", f(64.5)),
+            ("CRPIX2", f(64.5)),
+            ("CDELT1", f(2.63)),
+            ("CDELT2", f(2.63)),
+            ("SC_ROLL", f(180.0)),
+        ];
         let w = CelestialWcs::from_header(&header(&base)).unwrap();
         assert_eq!(w.rotation_deg, 180.0);
         let mut with_crota = header(&base);
         with_crota.push("CROTA2", f(0.5));
-        assert_eq!(CelestialWcs::from_header(&with_crota).unwrap().rotation_deg, 0.5);
+        assert_eq!(
+            CelestialWcs::from_header(&with_crota).unwrap().rotation_deg,
+            0.5
+        );
     }
 
     #[test]
     fn units_and_missing_keys() {
-        let h = header(&[("CRPIX1", f(1.0)), ("CRPIX2", f(1.0)), ("CDELT1", f(1.0 / 3600.0)), ("CDELT2", f(1.0 / 3600.0)), ("CUNIT1", s("deg")), ("CUNIT2", s("deg"))]);
+        let h = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CDELT1", f(1.0 / 3600.0)),
+            ("CDELT2", f(1.0 / 3600.0)),
+            ("CUNIT1", s("deg")),
+            ("CUNIT2", s("deg")),
+        ]);
         let w = CelestialWcs::from_header(&h).unwrap();
         assert!((w.cdelt_arcsec[0] - 1.0).abs() < 1e-12);
-        let bad = header(&[("CRPIX1", f(1.0)), ("CRPIX2", f(1.0)), ("CDELT1", f(1.0)), ("CDELT2", f(1.0)), ("CUNIT1", s("m"))]);
-        assert!(CelestialWcs::from_header(&bad).unwrap_err().contains("CUNIT"));
+        let bad = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CDELT1", f(1.0)),
+            ("CDELT2", f(1.0)),
+            ("CUNIT1", s("m")),
+        ]);
+        assert!(CelestialWcs::from_header(&bad)
+            .unwrap_err()
+            .contains("CUNIT"));
         let none = header(&[("CRPIX1", f(1.0)), ("CRPIX2", f(1.0))]);
-        assert!(CelestialWcs::from_header(&none).unwrap_err().contains("CDELT1 is missing"));
+        assert!(CelestialWcs::from_header(&none)
+            .unwrap_err()
+            .contains("CDELT1 is missing"));
     }
 
     #[test]
     fn rsun_from_reference_radius_and_distance() {
         // sunpy.coordinates.sun._angular_radius(696000 km, 1 AU) = 959.645″.
-        let h = header(&[("RSUN_REF", f(696_000_000.0)), ("DSUN_OBS", f(149_597_870_700.0))]);
+        let h = header(&[
+            ("RSUN_REF", f(696_000_000.0)),
+            ("DSUN_OBS", f(149_597_870_700.0)),
+        ]);
         let r = rsun_arcsec(&h, 1.0).unwrap();
         assert!((r - 959.645).abs() < 0.001, "{r}");
-        assert_eq!(rsun_arcsec(&header(&[("SOLAR_R", f(372.27))]), 2.63), Some(372.27 * 2.63));
+        assert_eq!(
+            rsun_arcsec(&header(&[("SOLAR_R", f(372.27))]), 2.63),
+            Some(372.27 * 2.63)
+        );
         assert_eq!(rsun_arcsec(&header(&[("DSUN_OBS", f(1.5e11))]), 1.0), None);
     }
 
     #[test]
     fn channel_names() {
-        let aia = header(&[("INSTRUME", s("AIA_3")), ("WAVELNTH", HeaderValue::Int(171))]);
-        assert_eq!(channel(&aia, instrument(&aia).as_deref(), wavelength(&aia)), "AIA_171");
+        let aia = header(&[
+            ("INSTRUME", s("AIA_3")),
+            ("WAVELNTH", HeaderValue::Int(171)),
+        ]);
+        assert_eq!(
+            channel(&aia, instrument(&aia).as_deref(), wavelength(&aia)),
+            "AIA_171"
+        );
         let trace_wl = header(&[("INSTRUME", s("TRACE")), ("WAVE_LEN", s("WL"))]);
-        assert_eq!(channel(&trace_wl, instrument(&trace_wl).as_deref(), wavelength(&trace_wl)), "TRACE_WL");
-        let iris = header(&[("INSTRUME", s("SJI")), ("TDESC1", s("SJI_1400")), ("TWAVE1", f(1400.0))]);
-        assert_eq!(channel(&iris, instrument(&iris).as_deref(), wavelength(&iris)), "SJI_1400");
+        assert_eq!(
+            channel(
+                &trace_wl,
+                instrument(&trace_wl).as_deref(),
+                wavelength(&trace_wl)
+            ),
+            "TRACE_WL"
+        );
+        let iris = header(&[
+            ("INSTRUME", s("SJI")),
+            ("TDESC1", s("SJI_1400")),
+            ("TWAVE1", f(1400.0)),
+        ]);
+        assert_eq!(
+            channel(&iris, instrument(&iris).as_deref(), wavelength(&iris)),
+            "SJI_1400"
+        );
         let tel = header(&[("TELESCOP", s("SDO/HMI"))]);
         assert_eq!(instrument(&tel).as_deref(), Some("HMI"));
         assert_eq!(channel(&Header::new(), None, None), "UNKNOWN");
@@ -477,13 +600,35 @@ mod tests {
 
     #[test]
     fn time_preference_and_time_axis() {
-        let h = header(&[("DATE-OBS", s("2014-03-01T00:00:27.90")), ("T_OBS", s("2014.03.01_00:01:25_TAI"))]);
-        assert_eq!(time::format_iso_utc(obs_time_ns(&h).unwrap()), "2014-03-01T00:00:50.000Z");
+        let h = header(&[
+            ("DATE-OBS", s("2014-03-01T00:00:27.90")),
+            ("T_OBS", s("2014.03.01_00:01:25_TAI")),
+        ]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&h).unwrap()),
+            "2014-03-01T00:00:50.000Z"
+        );
         let split = header(&[("DATE-OBS", s("2004-03-01")), ("TIME-OBS", s("00:00:10"))]);
-        assert_eq!(time::format_iso_utc(obs_time_ns(&split).unwrap()), "2004-03-01T00:00:10.000Z");
-        let garbled = header(&[("T_OBS", s("soon")), ("DATE_OBS", s("1998-05-19T22:21:43.000"))]);
-        assert_eq!(time::format_iso_utc(obs_time_ns(&garbled).unwrap()), "1998-05-19T22:21:43.000Z");
-        let cube = header(&[("NAXIS", HeaderValue::Int(3)), ("CTYPE3", s("Time")), ("CUNIT3", s("seconds")), ("CRPIX3", f(27.0)), ("CRVAL3", f(6726.79)), ("CDELT3", f(21.4087))]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&split).unwrap()),
+            "2004-03-01T00:00:10.000Z"
+        );
+        let garbled = header(&[
+            ("T_OBS", s("soon")),
+            ("DATE_OBS", s("1998-05-19T22:21:43.000")),
+        ]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&garbled).unwrap()),
+            "1998-05-19T22:21:43.000Z"
+        );
+        let cube = header(&[
+            ("NAXIS", HeaderValue::Int(3)),
+            ("CTYPE3", s("Time")),
+            ("CUNIT3", s("seconds")),
+            ("CRPIX3", f(27.0)),
+            ("CRVAL3", f(6726.79)),
+            ("CDELT3", f(21.4087)),
+        ]);
         assert!((time_axis_seconds(&cube, 26).unwrap() - 6726.79).abs() < 1e-9);
         assert!((time_axis_seconds(&cube, 0).unwrap() - (6726.79 - 26.0 * 21.4087)).abs() < 1e-9);
     }

@@ -168,7 +168,11 @@ fn parse_labelled(text: &str) -> Result<(i64, Option<TimeScale>), String> {
 /// Strip a trailing time-scale marker (`Z`, `_TAI`, ` UTC`…) and report the scale.
 fn split_scale_suffix(text: &str) -> (&str, Option<TimeScale>) {
     let upper = text.to_ascii_uppercase();
-    for (suffix, scale) in [("TAI", TimeScale::Tai), ("UTC", TimeScale::Utc), ("UT", TimeScale::Utc)] {
+    for (suffix, scale) in [
+        ("TAI", TimeScale::Tai),
+        ("UTC", TimeScale::Utc),
+        ("UT", TimeScale::Utc),
+    ] {
         if upper.ends_with(suffix) {
             let body = text[..text.len() - suffix.len()].trim_end_matches(['_', ' ']);
             return (body, Some(scale));
@@ -183,14 +187,26 @@ fn split_scale_suffix(text: &str) -> (&str, Option<TimeScale>) {
 /// Days since the epoch of `YYYY-MM-DD`, `YYYY.MM.DD`, `YYYY/MM/DD` or old-style `DD/MM/YY`.
 fn parse_date(text: &str) -> Option<i64> {
     let parts: Vec<&str> = text.split(['-', '.', '/']).collect();
-    if parts.len() != 3 || parts.iter().any(|p| p.is_empty() || !p.bytes().all(|b| b.is_ascii_digit())) {
+    if parts.len() != 3
+        || parts
+            .iter()
+            .any(|p| p.is_empty() || !p.bytes().all(|b| b.is_ascii_digit()))
+    {
         return None;
     }
     let (year, month, day) = if parts[0].len() == 4 {
-        (parts[0].parse().ok()?, parts[1].parse().ok()?, parts[2].parse().ok()?)
+        (
+            parts[0].parse().ok()?,
+            parts[1].parse().ok()?,
+            parts[2].parse().ok()?,
+        )
     } else if text.contains('/') && parts[2].len() == 2 {
         // Pre-2000 FITS form 'DD/MM/YY', defined for 1900–1999 only.
-        (1900 + parts[2].parse::<i64>().ok()?, parts[1].parse().ok()?, parts[0].parse().ok()?)
+        (
+            1900 + parts[2].parse::<i64>().ok()?,
+            parts[1].parse().ok()?,
+            parts[0].parse().ok()?,
+        )
     } else {
         return None;
     };
@@ -280,7 +296,10 @@ mod tests {
         // representable), TAI 00:00:37 = UTC 2017-01-01T00:00:00 (astropy agrees).
         assert_eq!(iso("2017-01-01T00:00:37_TAI"), "2017-01-01T00:00:00.000Z");
         assert_eq!(iso("2017-01-01T00:00:35_TAI"), "2016-12-31T23:59:59.000Z");
-        assert_eq!(tai_minus_utc_s(days_from_civil(1998, 5, 19) * NS_PER_DAY), 31);
+        assert_eq!(
+            tai_minus_utc_s(days_from_civil(1998, 5, 19) * NS_PER_DAY),
+            31
+        );
         // Default scale TAI applies only without an explicit suffix.
         let t = parse_fits_time("2014-03-01T00:01:25", TimeScale::Tai).unwrap();
         assert_eq!(format_iso_utc(t), "2014-03-01T00:00:50.000Z");
@@ -303,7 +322,16 @@ mod tests {
 
     #[test]
     fn rejects_garbage_without_panicking() {
-        for bad in ["", "Z", "2011-13-01", "2011-02-30", "2011-02-15T25:00", "yesterday", "2011-02-15T00:00:xx", "98/05/19, 22:21:43.000"] {
+        for bad in [
+            "",
+            "Z",
+            "2011-13-01",
+            "2011-02-30",
+            "2011-02-15T25:00",
+            "yesterday",
+            "2011-02-15T00:00:xx",
+            "98/05/19, 22:21:43.000",
+        ] {
             assert!(parse_fits_time(bad, TimeScale::Utc).is_err(), "{bad}");
         }
     }

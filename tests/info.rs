@@ -119,22 +119,97 @@ const TRUTH: &[Truth] = &[
     },
 ];
 
-/// IRIS cube frames: (file, frame, sun centre, roll, time, exposure). All 110×109, BITPIX −32,
-/// plate scale 0.16635″ (the header's; the test cubes were rebinned 10× without updating it).
-const IRIS: &[(&str, u64, (f64, f64), f64, &str, f64)] = &[
-    (SJI_1400, 0, (-2964.8161731086875, -1662.8686007811825), -0.6459544553476199, "2014-03-29T14:09:38.930Z", 8.000057220458984),
-    (SJI_1400, 1, (-2964.8161731086875, -1662.8686007811825), -0.6459544553476199, "2014-03-29T14:14:04.344Z", 8.000052272148853),
-    (SJI_1400, 27, (-2964.8161731086875, -1662.8686007811825), -0.6459544553476199, "2014-03-29T16:04:07.679Z", 3.456562582051979),
-    (SJI_1400, 53, (-2964.8161731086875, -1662.8686007811825), -0.6459544553476199, "2014-03-29T17:54:08.106Z", 1.8078919649124146),
-    (SJI_2796, 0, (-2964.827871566866, -1662.9451040223641), -0.6459244448721853, "2014-03-29T14:09:48.490Z", 8.000052452087402),
-    (SJI_2796, 35, (-2964.827871566866, -1662.9451040223641), -0.6459244448721853, "2014-03-29T16:00:25.047Z", 8.000021195747482),
-    (SJI_2796, 71, (-2964.827871566866, -1662.9451040223641), -0.6459244448721853, "2014-03-29T17:54:11.310Z", 8.00007438659668),
-    (SJI_2832, 0, (-2964.137551869601, -1662.6064252184203), -0.6458950118711072, "2014-03-29T14:09:57.930Z", 8.000049591064503),
-    (SJI_2832, 17, (-2964.137551869601, -1662.6064252184203), -0.6458950118711072, "2014-03-29T17:53:24.770Z", 8.000077247619705),
+/// One IRIS cube frame's truth. All are 110×109, BITPIX −32, plate scale 0.16635″ (the
+/// header's; the test cubes were rebinned 10× without updating it).
+struct IrisFrame {
+    file: &'static str,
+    frame: u64,
+    sun_center_px: (f64, f64),
+    rotation_deg: f64,
+    obs_time: &'static str,
+    exptime_s: f64,
+}
+
+const IRIS: &[IrisFrame] = &[
+    IrisFrame {
+        file: SJI_1400,
+        frame: 0,
+        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        rotation_deg: -0.6459544553476199,
+        obs_time: "2014-03-29T14:09:38.930Z",
+        exptime_s: 8.000057220458984,
+    },
+    IrisFrame {
+        file: SJI_1400,
+        frame: 1,
+        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        rotation_deg: -0.6459544553476199,
+        obs_time: "2014-03-29T14:14:04.344Z",
+        exptime_s: 8.000052272148853,
+    },
+    IrisFrame {
+        file: SJI_1400,
+        frame: 27,
+        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        rotation_deg: -0.6459544553476199,
+        obs_time: "2014-03-29T16:04:07.679Z",
+        exptime_s: 3.456562582051979,
+    },
+    IrisFrame {
+        file: SJI_1400,
+        frame: 53,
+        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        rotation_deg: -0.6459544553476199,
+        obs_time: "2014-03-29T17:54:08.106Z",
+        exptime_s: 1.8078919649124146,
+    },
+    IrisFrame {
+        file: SJI_2796,
+        frame: 0,
+        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        rotation_deg: -0.6459244448721853,
+        obs_time: "2014-03-29T14:09:48.490Z",
+        exptime_s: 8.000052452087402,
+    },
+    IrisFrame {
+        file: SJI_2796,
+        frame: 35,
+        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        rotation_deg: -0.6459244448721853,
+        obs_time: "2014-03-29T16:00:25.047Z",
+        exptime_s: 8.000021195747482,
+    },
+    IrisFrame {
+        file: SJI_2796,
+        frame: 71,
+        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        rotation_deg: -0.6459244448721853,
+        obs_time: "2014-03-29T17:54:11.310Z",
+        exptime_s: 8.00007438659668,
+    },
+    IrisFrame {
+        file: SJI_2832,
+        frame: 0,
+        sun_center_px: (-2964.137551869601, -1662.6064252184203),
+        rotation_deg: -0.6458950118711072,
+        obs_time: "2014-03-29T14:09:57.930Z",
+        exptime_s: 8.000049591064503,
+    },
+    IrisFrame {
+        file: SJI_2832,
+        frame: 17,
+        sun_center_px: (-2964.137551869601, -1662.6064252184203),
+        rotation_deg: -0.6458950118711072,
+        obs_time: "2014-03-29T17:53:24.770Z",
+        exptime_s: 8.000077247619705,
+    },
 ];
 
 fn sunjitter(args: &[&std::ffi::OsStr]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sunjitter")).args(args).output().expect("run sunjitter")
+    Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(args)
+        .output()
+        .expect("run sunjitter")
 }
 
 fn info_json(paths: &[PathBuf]) -> (Vec<Value>, Output) {
@@ -142,7 +217,10 @@ fn info_json(paths: &[PathBuf]) -> (Vec<Value>, Output) {
     args.extend(paths.iter().map(|p| p.as_os_str()));
     let out = sunjitter(&args);
     let parsed: Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
-        panic!("stdout is not JSON ({e}): {}", String::from_utf8_lossy(&out.stdout))
+        panic!(
+            "stdout is not JSON ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
     });
     (parsed.as_array().expect("a JSON array").clone(), out)
 }
@@ -154,7 +232,10 @@ fn real(name: &str) -> PathBuf {
 /// Seconds of day of `YYYY-MM-DDTHH:MM:SS.sssZ` after checking the date part is `date`.
 fn seconds_of_day(iso: &str, date: &str) -> f64 {
     assert_eq!(&iso[..10], date, "{iso}");
-    assert!(iso.ends_with('Z') && iso.len() == 24, "not ISO 8601 UTC with ms: {iso}");
+    assert!(
+        iso.ends_with('Z') && iso.len() == 24,
+        "not ISO 8601 UTC with ms: {iso}"
+    );
     let t: Vec<f64> = iso[11..23].split(':').map(|v| v.parse().unwrap()).collect();
     t[0] * 3600.0 + t[1] * 60.0 + t[2]
 }
@@ -166,7 +247,9 @@ fn assert_time(got: &Value, truth: &str) {
 }
 
 fn assert_close(got: &Value, truth: f64, tol: f64, what: &str) {
-    let g = got.as_f64().unwrap_or_else(|| panic!("{what} is not a number: {got}"));
+    let g = got
+        .as_f64()
+        .unwrap_or_else(|| panic!("{what} is not a number: {got}"));
     assert!((g - truth).abs() <= tol, "{what}: {g} vs truth {truth}");
 }
 
@@ -179,11 +262,29 @@ fn assert_option(got: &Value, truth: Option<f64>, tol: f64, what: &str) {
 
 /// The fields and nothing else (the contract's list).
 fn assert_contract_fields(rec: &Value) {
-    let mut keys: Vec<&str> = rec.as_object().unwrap().keys().map(String::as_str).collect();
+    let mut keys: Vec<&str> = rec
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
     keys.sort_unstable();
     let mut want = vec![
-        "file", "hdu", "frame", "width", "height", "bitpix", "channel", "instrument", "wavelength", "obs_time",
-        "exptime_s", "plate_scale_arcsec", "rotation_deg", "sun_center_px", "rsun_arcsec",
+        "file",
+        "hdu",
+        "frame",
+        "width",
+        "height",
+        "bitpix",
+        "channel",
+        "instrument",
+        "wavelength",
+        "obs_time",
+        "exptime_s",
+        "plate_scale_arcsec",
+        "rotation_deg",
+        "sun_center_px",
+        "rsun_arcsec",
     ];
     want.sort_unstable();
     assert_eq!(keys, want);
@@ -194,26 +295,77 @@ fn check(rec: &Value, t: &Truth) {
     let what = format!("{}[{:?}]", t.file, t.frame);
     assert!(rec["file"].as_str().unwrap().ends_with(t.file), "{what}");
     assert_eq!(rec["frame"].as_u64(), t.frame, "{what}");
-    assert_eq!((rec["width"].as_u64().unwrap(), rec["height"].as_u64().unwrap()), t.size, "{what}");
+    assert_eq!(
+        (
+            rec["width"].as_u64().unwrap(),
+            rec["height"].as_u64().unwrap()
+        ),
+        t.size,
+        "{what}"
+    );
     assert_eq!(rec["bitpix"].as_i64(), Some(t.bitpix), "{what}");
     assert_eq!(rec["channel"], t.channel, "{what}");
     assert_eq!(rec["instrument"], t.instrument, "{what}");
-    assert_close(&rec["wavelength"], t.wavelength, 0.0, &format!("{what} wavelength"));
-    assert_close(&rec["sun_center_px"][0], t.sun_center_px.0, 0.01, &format!("{what} sun x"));
-    assert_close(&rec["sun_center_px"][1], t.sun_center_px.1, 0.01, &format!("{what} sun y"));
-    assert_close(&rec["plate_scale_arcsec"][0], t.plate_scale, 0.0, &format!("{what} scale x"));
-    assert_close(&rec["plate_scale_arcsec"][1], t.plate_scale, 0.0, &format!("{what} scale y"));
-    assert_close(&rec["rotation_deg"], t.rotation_deg, 0.001, &format!("{what} roll"));
+    assert_close(
+        &rec["wavelength"],
+        t.wavelength,
+        0.0,
+        &format!("{what} wavelength"),
+    );
+    assert_close(
+        &rec["sun_center_px"][0],
+        t.sun_center_px.0,
+        0.01,
+        &format!("{what} sun x"),
+    );
+    assert_close(
+        &rec["sun_center_px"][1],
+        t.sun_center_px.1,
+        0.01,
+        &format!("{what} sun y"),
+    );
+    assert_close(
+        &rec["plate_scale_arcsec"][0],
+        t.plate_scale,
+        0.0,
+        &format!("{what} scale x"),
+    );
+    assert_close(
+        &rec["plate_scale_arcsec"][1],
+        t.plate_scale,
+        0.0,
+        &format!("{what} scale y"),
+    );
+    assert_close(
+        &rec["rotation_deg"],
+        t.rotation_deg,
+        0.001,
+        &format!("{what} roll"),
+    );
     assert_time(&rec["obs_time"], t.obs_time);
-    assert_option(&rec["exptime_s"], t.exptime_s, 1e-6, &format!("{what} exptime"));
-    assert_option(&rec["rsun_arcsec"], t.rsun_arcsec, 1e-6, &format!("{what} rsun"));
+    assert_option(
+        &rec["exptime_s"],
+        t.exptime_s,
+        1e-6,
+        &format!("{what} exptime"),
+    );
+    assert_option(
+        &rec["rsun_arcsec"],
+        t.rsun_arcsec,
+        1e-6,
+        &format!("{what} rsun"),
+    );
 }
 
 #[test]
 fn two_d_images_match_sunpy() {
     let paths: Vec<PathBuf> = TRUTH.iter().map(|t| real(t.file)).collect();
     let (records, out) = info_json(&paths);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert_eq!(records.len(), TRUTH.len());
     for (rec, t) in records.iter().zip(TRUTH) {
         check(rec, t);
@@ -224,26 +376,31 @@ fn two_d_images_match_sunpy() {
 #[test]
 fn iris_cubes_list_every_frame_with_table_times() {
     let (records, out) = info_json(&[real(SJI_1400), real(SJI_2796), real(SJI_2832)]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert_eq!(records.len(), 54 + 72 + 18);
     let offsets = [(SJI_1400, 0usize), (SJI_2796, 54), (SJI_2832, 54 + 72)];
-    for &(file, frame, sun, roll, time, exptime) in IRIS {
+    for iris in IRIS {
+        let file = iris.file;
         let base = offsets.iter().find(|(f, _)| *f == file).unwrap().1;
-        let rec = &records[base + frame as usize];
+        let rec = &records[base + iris.frame as usize];
         let channel = &file[file.find("SJI_").unwrap()..][..8];
         let truth = Truth {
             file,
-            frame: Some(frame),
+            frame: Some(iris.frame),
             size: (110, 109),
             bitpix: -32,
             channel,
             instrument: "SJI",
             wavelength: channel[4..].parse().unwrap(),
-            sun_center_px: sun,
+            sun_center_px: iris.sun_center_px,
             plate_scale: 0.16635,
-            rotation_deg: roll,
-            obs_time: time,
-            exptime_s: Some(exptime),
+            rotation_deg: iris.rotation_deg,
+            obs_time: iris.obs_time,
+            exptime_s: Some(iris.exptime_s),
             rsun_arcsec: None,
         };
         check(rec, &truth);
@@ -268,10 +425,16 @@ fn out_of_order_naxis_file_is_read_tolerantly() {
     let (records, out) = info_json(&[file]);
     assert!(out.status.success());
     let t = &TRUTH[4];
-    let expected = Truth { file: "trace_171_naxis_cards_out_of_order.fits", ..*t };
+    let expected = Truth {
+        file: "trace_171_naxis_cards_out_of_order.fits",
+        ..*t
+    };
     check(&records[0], &expected);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("NAXIS1 is card 17") && stderr.contains("NAXIS2 is card 18"), "{stderr}");
+    assert!(
+        stderr.contains("NAXIS1 is card 17") && stderr.contains("NAXIS2 is card 18"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -286,9 +449,19 @@ fn paths_with_spaces_and_brackets() {
     std::fs::copy(real(SJI_2832), &cube).unwrap();
     let frame_arg = PathBuf::from(format!("{}[5]", cube.display()));
     let (records, out) = info_json(&[aia.clone(), frame_arg]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     assert_eq!(records.len(), 2);
-    check(&records[0], &Truth { file: "aia 171 [a].fits", ..TRUTH[0] });
+    check(
+        &records[0],
+        &Truth {
+            file: "aia 171 [a].fits",
+            ..TRUTH[0]
+        },
+    );
     assert_eq!(records[1]["frame"], 5);
     assert_eq!(records[1]["channel"], "SJI_2832");
 }
@@ -320,5 +493,8 @@ fn a_bad_file_among_good_ones() {
     check(&records[1], &TRUTH[2]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(stderr.lines().count(), 1, "{stderr}");
-    assert!(stderr.starts_with(&format!("sunjitter: {}: not a FITS file", bad.display())), "{stderr}");
+    assert!(
+        stderr.starts_with(&format!("sunjitter: {}: not a FITS file", bad.display())),
+        "{stderr}"
+    );
 }

@@ -78,7 +78,8 @@ pub fn run(args: &Args) -> Result<i32> {
         }
     }
     if args.json {
-        let text = serde_json::to_string_pretty(&records).map_err(|e| Error::Usage(format!("JSON output: {e}")))?;
+        let text = serde_json::to_string_pretty(&records)
+            .map_err(|e| Error::Usage(format!("JSON output: {e}")))?;
         println!("{text}");
     } else if !records.is_empty() {
         print!("{}", table(&records));
@@ -88,20 +89,41 @@ pub fn run(args: &Args) -> Result<i32> {
 
 /// Metadata of one command-line argument: every frame of a file, or the one frame named.
 pub fn describe(arg: &Path) -> Result<Vec<FrameMeta>> {
-    let text = arg.to_str().ok_or_else(|| Error::bad_input(arg, "the path is not valid UTF-8"))?;
+    let text = arg
+        .to_str()
+        .ok_or_else(|| Error::bad_input(arg, "the path is not valid UTF-8"))?;
     let spec = FrameSpec::parse(text);
     let metas = fits::read_meta(&spec.path)?;
-    let Some(n) = spec.frame else { return Ok(metas) };
+    let Some(n) = spec.frame else {
+        return Ok(metas);
+    };
     let is_2d = metas.len() == 1 && metas[0].frame.is_none();
-    match metas.into_iter().find(|m| m.frame == Some(n) || (is_2d && n == 0)) {
+    match metas
+        .into_iter()
+        .find(|m| m.frame == Some(n) || (is_2d && n == 0))
+    {
         Some(m) => Ok(vec![m]),
-        None => Err(Error::bad_input(&spec.path, format!("frame {n} does not exist"))),
+        None => Err(Error::bad_input(
+            &spec.path,
+            format!("frame {n} does not exist"),
+        )),
     }
 }
 
 /// A compact human-readable table, one line per image/frame.
 pub fn table(records: &[InfoRecord]) -> String {
-    let header = ["FILE", "SIZE", "BITPIX", "CHANNEL", "OBS_TIME (UTC)", "EXP s", "SCALE \"/px", "ROLL °", "SUN CENTRE px", "RSUN \""];
+    let header = [
+        "FILE",
+        "SIZE",
+        "BITPIX",
+        "CHANNEL",
+        "OBS_TIME (UTC)",
+        "EXP s",
+        "SCALE \"/px",
+        "ROLL °",
+        "SUN CENTRE px",
+        "RSUN \"",
+    ];
     let rows: Vec<[String; 10]> = records.iter().map(row).collect();
     let mut widths = header.map(|h| h.chars().count());
     for r in &rows {
@@ -111,7 +133,11 @@ pub fn table(records: &[InfoRecord]) -> String {
     }
     let mut out = String::new();
     let mut line = |cells: &[String]| {
-        let padded: Vec<String> = cells.iter().zip(widths).map(|(c, w)| format!("{c:<w$}")).collect();
+        let padded: Vec<String> = cells
+            .iter()
+            .zip(widths)
+            .map(|(c, w)| format!("{c:<w$}"))
+            .collect();
         out.push_str(padded.join("  ").trim_end());
         out.push('\n');
     };
@@ -121,7 +147,8 @@ pub fn table(records: &[InfoRecord]) -> String {
 }
 
 fn row(r: &InfoRecord) -> [String; 10] {
-    let opt = |v: Option<f64>, digits: usize| v.map_or("-".to_string(), |v| format!("{v:.digits$}"));
+    let opt =
+        |v: Option<f64>, digits: usize| v.map_or("-".to_string(), |v| format!("{v:.digits$}"));
     let file = match r.frame {
         Some(f) => format!("{}[{f}]", r.file),
         None => r.file.clone(),
