@@ -446,38 +446,51 @@ fn read_uncompressed(path: &Path, hdu: &Hdu, frame: usize) -> Result<Vec<f32>> {
 
 /// Decode big-endian FITS samples, applying `BZERO + BSCALE·raw`; `BLANK` and NaN give NaN.
 fn decode_samples(bytes: &[u8], bitpix: i32, s: Scaling, mut emit: impl FnMut(f64)) {
-    let int = |raw: i64, emit: &mut dyn FnMut(f64)| {
+    let int = |raw: i64| {
         if s.blank == Some(raw) {
-            emit(f64::NAN)
+            f64::NAN
         } else {
-            emit(s.zero + s.scale * raw as f64)
+            s.zero + s.scale * raw as f64
         }
     };
+    let float = |raw: f64| s.zero + s.scale * raw;
     match bitpix {
-        8 => bytes.iter().for_each(|&b| int(i64::from(b), &mut emit)),
-        16 => bytes
-            .chunks_exact(2)
-            .for_each(|c| int(i64::from(i16::from_be_bytes([c[0], c[1]])), &mut emit)),
-        32 => bytes.chunks_exact(4).for_each(|c| {
-            int(
-                i64::from(i32::from_be_bytes([c[0], c[1], c[2], c[3]])),
-                &mut emit,
-            )
-        }),
-        64 => bytes.chunks_exact(8).for_each(|c| {
-            let mut a = [0u8; 8];
-            a.copy_from_slice(c);
-            int(i64::from_be_bytes(a), &mut emit)
-        }),
-        -32 => bytes.chunks_exact(4).for_each(|c| {
-            emit(s.zero + s.scale * f64::from(f32::from_be_bytes([c[0], c[1], c[2], c[3]])))
-        }),
-        _ => bytes.chunks_exact(8).for_each(|c| {
-            let mut a = [0u8; 8];
-            a.copy_from_slice(c);
-            emit(s.zero + s.scale * f64::from_be_bytes(a))
-        }),
+        8 => bytes.iter().for_each(|&b| emit(int(i64::from(b)))),
+        16 => {
+            for c in bytes.chunks_exact(2) {
+                emit(int(i64::from(i16::from_be_bytes([c[0], c[1]]))));
+            }
+        }
+        32 => {
+            for c in bytes.chunks_exact(4) {
+                emit(int(i64::from(i32::from_be_bytes([c[0], c[1], c[2], c[3]]))));
+            }
+        }
+        64 => {
+            for c in bytes.chunks_exact(8) {
+                emit(int(i64::from_be_bytes(eight(c))));
+            }
+        }
+        -32 => {
+            for c in bytes.chunks_exact(4) {
+                emit(float(f64::from(f32::from_be_bytes([
+                    c[0], c[1], c[2], c[3],
+                ]))));
+            }
+        }
+        _ => {
+            for c in bytes.chunks_exact(8) {
+                emit(float(f64::from_be_bytes(eight(c))));
+            }
+        }
     }
+}
+
+/// The first eight bytes of a chunk of eight.
+fn eight(c: &[u8]) -> [u8; 8] {
+    let mut a = [0u8; 8];
+    a.copy_from_slice(&c[..8]);
+    a
 }
 
 /// cfitsio is not guaranteed re-entrant as bundled: one call at a time.
@@ -1016,6 +1029,86 @@ mod tests {
         assert_eq!(out, vec![0.0, 65535.0]);
     }
 
+    /// A primary image from header cards and raw big-endian data (test fixture).
+    fn fixture(dir: &tempfile::TempDir, name: &str, cards: &[String], data: &[u8]) -> PathBuf {
+        let mut bytes: Vec<u8> = cards
+            .iter()
+            .map(String::as_str)
+            .chain(["END"])
+            .flat_map(|c| format!("{c:<80}").into_bytes())
+            .collect();
+        bytes.resize(bytes.len().div_ceil(BLOCK) * BLOCK, b' ');
+        bytes.extend_from_slice(data);
+        bytes.resize(bytes.len().div_ceil(BLOCK) * BLOCK, 0);
+        let path = dir.path().join(name);
+        std::fs::write(&path, bytes).unwrap();
+        path
+    }
+
+    /// Every BITPIX end to end, with BSCALE/BZERO and BLANK (FITS standard §5.3:
+    /// physical = BZERO + BSCALE·raw, raw = BLANK → undefined; float NaN stays NaN).
+    #[test]
+    fn every_bitpix_with_scaling_and_blank() {
+        let dir = tempfile::tempdir().unwrap();
+        let card = |k: &str, v: &str| format!("{k:<8}= {v:>20}");
+        let raws: [i64; 4] = [-1, 0, 2, 7];
+        for bitpix in [8i32, 16, 32, 64, -32, -64] {
+            let mut data = Vec::new();
+            for &r in &raws {
+                match bitpix {
+                    8 => data.push(r as u8),
+                    16 => data.extend((r as i16).to_be_bytes()),
+                    32 => data.extend((r as i32).to_be_bytes()),
+                    64 => data.extend(r.to_be_bytes()),
+                    -32 => data.extend((if r == -1 { f32::NAN } else { r as f32 }).to_be_bytes()),
+                    _ => data.extend((if r == -1 { f64::NAN } else { r as f64 }).to_be_bytes()),
+                }
+            }
+            let mut cards = vec![
+                card("SIMPLE", "T"),
+                card("BITPIX", &bitpix.to_string()),
+                card("NAXIS", "2"),
+                card("NAXIS1", "2"),
+                card("NAXIS2", "2"),
+                card("BSCALE", "0.5"),
+                card("BZERO", "100.0"),
+                card("CDELT1", "1.0"),
+                card("CDELT2", "1.0"),
+                card("CRPIX1", "1.0"),
+                card("CRPIX2", "1.0"),
+            ];
+            // BLANK is the raw value −1 (255 for unsigned bytes); floats use NaN instead.
+            if bitpix > 0 {
+                cards.push(card("BLANK", if bitpix == 8 { "255" } else { "-1" }));
+            }
+            let path = fixture(&dir, &format!("b{bitpix}.fits"), &cards, &data);
+            let img = read_frame(&FrameSpec::file(&path)).unwrap();
+            assert!(img.data[[0, 0]].is_nan(), "BITPIX {bitpix}");
+            assert_eq!(
+                (img.data[[0, 1]], img.data[[1, 0]], img.data[[1, 1]]),
+                (100.0, 101.0, 103.5),
+                "BITPIX {bitpix}"
+            );
+            assert_eq!(img.meta.bitpix, bitpix);
+        }
+    }
+
+    /// astropy: `(fits.getdata(out_of_order) == fits.getdata(reordered)).all()` is True.
+    #[test]
+    fn out_of_order_idl_file_has_the_same_pixels() {
+        let tolerant = read_frame(&FrameSpec::file(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/data/malformed/trace_171_naxis_cards_out_of_order.fits"
+        )))
+        .unwrap();
+        let reordered = read_frame(&FrameSpec::file(format!(
+            "{REAL}trace_171_19980519T222143_1024.fits"
+        )))
+        .unwrap();
+        assert_eq!(tolerant.data, reordered.data);
+        assert_eq!(tolerant.meta.sun_center_px, reordered.meta.sun_center_px);
+    }
+
     /// A Rice tile-compressed copy written by cfitsio (`[compress R]`) reads back identical.
     #[test]
     fn rice_compressed_copy_reads_back_identical() {
@@ -1024,6 +1117,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let packed = dir.path().join("rice.fits");
         write_rice_i16(&packed, &original.data);
+        // cfitsio reads it as a plain disk file even when the name has brackets and spaces.
+        let packed_odd = dir.path().join("rice [compress R] 1.fits");
+        std::fs::rename(&packed, &packed_odd).unwrap();
+        let packed = packed_odd;
         let layout = scan(&packed).unwrap();
         let hdu = layout.image_hdu(&packed).unwrap();
         assert!(

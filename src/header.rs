@@ -337,10 +337,12 @@ pub struct ImageGeometry {
 }
 
 impl ImageGeometry {
+    /// `NAXIS1` (0 for a geometry without axes).
     pub fn width(&self) -> usize {
-        self.axes[0]
+        self.axes.first().copied().unwrap_or(0)
     }
 
+    /// `NAXIS2` (1 for a single row).
     pub fn height(&self) -> usize {
         self.axes.get(1).copied().unwrap_or(1)
     }
@@ -350,8 +352,7 @@ impl ImageGeometry {
         self.axes.iter().skip(2).product()
     }
 
-    /// True for a stack of frames (`NAXIS3` present and not all higher axes are 1… unless
-    /// the cube says it is one: a 3-D array with one frame is still a cube).
+    /// A 3-D (or higher) array: a stack of frames, even when it holds only one.
     pub fn is_cube(&self) -> bool {
         self.axes.len() >= 3
     }
@@ -460,7 +461,7 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
         return Err(format!("{bitpix_key} = {bitpix} is not a FITS pixel type"));
     }
     let axes = axes(header, prefix)?;
-    if axes.is_empty() || axes.contains(&0) {
+    if axes.len() < 2 || axes.contains(&0) {
         return Ok(None);
     }
     check_sizes(&axes, prefix)?;
