@@ -1,7 +1,7 @@
 //! FITS ingestion: images and cube frames as `f32` arrays with their metadata, and f32 output.
 //!
 //! How a file is read:
-//! 1. [`scan`] walks the HDU headers with sunjitter's own parser ([`crate::header`]): this
+//! 1. `scan` walks the HDU headers with sunjitter's own parser ([`crate::header`]): this
 //!    refuses non-FITS, truncated and absurdly sized files with a clear reason *before*
 //!    anything large is allocated, and tolerates header quirks cfitsio rejects (NAXISn cards
 //!    out of order, as in old IDL-written TRACE files).

@@ -465,6 +465,9 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
         return Ok(None);
     }
     check_sizes(&axes, prefix)?;
+    if compressed {
+        check_tiles(header, &axes)?;
+    }
     Ok(Some(ImageGeometry {
         bitpix: bitpix as i32,
         axes: axes.iter().map(|&a| a as usize).collect(),
@@ -487,6 +490,22 @@ fn check_sizes(axes: &[u64], prefix: &str) -> Result<(), String> {
             "absurd image size {} (a frame over {MAX_FRAME_PIXELS} pixels)",
             dims.join(" × ")
         ));
+    }
+    Ok(())
+}
+
+/// Compression tiles (`ZTILEn`) larger than the image would make cfitsio allocate for them.
+fn check_tiles(header: &Header, axes: &[u64]) -> Result<(), String> {
+    for (i, &axis) in axes.iter().enumerate() {
+        let key = format!("ZTILE{}", i + 1);
+        if let Some(tile) = header.i64(&key) {
+            if tile < 1 || tile as u64 > axis {
+                return Err(format!(
+                    "{key} = {tile} does not fit ZNAXIS{} = {axis}",
+                    i + 1
+                ));
+            }
+        }
     }
     Ok(())
 }
@@ -601,6 +620,54 @@ mod tests {
             "NAXIS3  = 4",
         ]);
         assert!(data_size_bytes(&huge).unwrap_err().contains("absurd"));
+    }
+
+    #[test]
+    fn compressed_geometry_and_tile_check() {
+        let ok = header(&[
+            "XTENSION= 'BINTABLE'",
+            "BITPIX  = 8",
+            "NAXIS   = 2",
+            "NAXIS1  = 8",
+            "NAXIS2  = 16",
+            "ZIMAGE  = T",
+            "ZBITPIX = 16",
+            "ZNAXIS  = 2",
+            "ZNAXIS1 = 64",
+            "ZNAXIS2 = 16",
+            "ZTILE1  = 64",
+            "ZTILE2  = 1",
+        ]);
+        let g = image_geometry(&ok, &HduKind::BinTable).unwrap().unwrap();
+        assert_eq!(
+            (g.bitpix, g.axes.clone(), g.compressed),
+            (16, vec![64, 16], true)
+        );
+        let bad = header(&[
+            "XTENSION= 'BINTABLE'",
+            "BITPIX  = 8",
+            "NAXIS   = 2",
+            "NAXIS1  = 8",
+            "NAXIS2  = 16",
+            "ZIMAGE  = T",
+            "ZBITPIX = 16",
+            "ZNAXIS  = 2",
+            "ZNAXIS1 = 64",
+            "ZNAXIS2 = 16",
+            "ZTILE1  = 2000000000",
+        ]);
+        assert!(image_geometry(&bad, &HduKind::BinTable)
+            .unwrap_err()
+            .contains("ZTILE1"));
+        // A plain binary table holds no image.
+        let table = header(&[
+            "XTENSION= 'BINTABLE'",
+            "BITPIX  = 8",
+            "NAXIS   = 2",
+            "NAXIS1  = 8",
+            "NAXIS2  = 16",
+        ]);
+        assert_eq!(image_geometry(&table, &HduKind::BinTable).unwrap(), None);
     }
 
     #[test]
