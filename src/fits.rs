@@ -94,12 +94,6 @@ fn split_frame_suffix(arg: &str) -> Option<(&str, usize)> {
 
 /// Read one image (or one frame of a cube) as f32, with its metadata.
 pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
-<<<<<<< HEAD
-    Err(crate::Error::bad_input(
-        &spec.path,
-        "FITS reading not implemented yet",
-    ))
-=======
     let path = spec.path.as_path();
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
@@ -113,17 +107,10 @@ pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
     }
     let data = read_pixels(path, hdu, frame.unwrap_or(0))?;
     Ok(Image { data, meta })
->>>>>>> fits
 }
 
 /// Metadata of every image (every frame of a cube) in a file.
 pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
-<<<<<<< HEAD
-    Err(crate::Error::bad_input(
-        path,
-        "FITS reading not implemented yet",
-    ))
-=======
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
@@ -1248,5 +1235,4 @@ mod tests {
         // No temporary file left behind.
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
->>>>>>> fits
 }
