@@ -154,7 +154,8 @@ pub fn matching_sigma_px(
     plate_scale_arcsec: f64,
 ) -> f64 {
     let d2 = fwhm_blurred_arcsec * fwhm_blurred_arcsec - fwhm_sharp_arcsec * fwhm_sharp_arcsec;
-    if !(d2 > 0.0) || !(plate_scale_arcsec.abs() > 0.0) {
+    let usable = d2 > 0.0 && plate_scale_arcsec.abs() > 0.0 && plate_scale_arcsec.is_finite();
+    if !usable {
         return 0.0;
     }
     d2.sqrt() / FWHM_PER_SIGMA / plate_scale_arcsec.abs()
@@ -186,70 +187,87 @@ pub fn resolution_matching_sigmas(
 /// The kernel is truncated at `round(4σ)` like `scipy.ndimage.gaussian_filter`, whose
 /// numbers it reproduces away from NaNs and borders.
 pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
-    if !(sigma_px > 0.0) || !sigma_px.is_finite() {
+    if sigma_px.is_nan() || sigma_px <= 0.0 || !sigma_px.is_finite() {
         return img.to_owned();
     }
     let radius = (4.0 * sigma_px + 0.5) as usize;
-    let kernel: Vec<f64> = (0..=2 * radius)
+    let mut kernel: Vec<f32> = (0..=2 * radius)
         .map(|i| {
             let d = i as f64 - radius as f64;
-            (-0.5 * d * d / (sigma_px * sigma_px)).exp()
+            (-0.5 * d * d / (sigma_px * sigma_px)).exp() as f32
         })
         .collect();
+    let total: f32 = kernel.iter().sum();
+    kernel.iter_mut().for_each(|k| *k /= total);
     let (h, w) = img.dim();
-    // Value·weight and weight planes, convolved along x then y.
-    let mut num = Array2::<f64>::zeros((h, w));
-    let mut den = Array2::<f64>::zeros((h, w));
-    Zip::from(&mut num)
-        .and(&mut den)
-        .and(&img)
-        .for_each(|n, d, &v| {
-            if v.is_finite() {
-                *n = v as f64;
-                *d = 1.0;
-            }
-        });
-    let num = convolve_columns(&convolve_rows(&num, &kernel), &kernel);
-    let den = convolve_columns(&convolve_rows(&den, &kernel), &kernel);
-    Zip::from(&img)
-        .and(&num)
-        .and(&den)
-        .map_collect(|&v, &n, &d| {
-            if v.is_finite() && d > 0.0 {
-                (n / d) as f32
-            } else {
-                f32::NAN
-            }
-        })
+    let has_nan = img.iter().any(|v| !v.is_finite());
+    let values = img.mapv(|v| if v.is_finite() { v } else { 0.0 });
+    let mut out = convolve_columns(&convolve_rows(&values, &kernel), &kernel);
+    if has_nan {
+        let weights = img.mapv(|v| if v.is_finite() { 1.0f32 } else { 0.0 });
+        let den = convolve_columns(&convolve_rows(&weights, &kernel), &kernel);
+        Zip::from(&mut out)
+            .and(&den)
+            .and(&img)
+            .for_each(|o, &d, &v| {
+                *o = if v.is_finite() && d > 0.0 {
+                    *o / d
+                } else {
+                    f32::NAN
+                };
+            });
+    } else {
+        // Without NaNs the weight plane is the outer product of the 1-D edge sums.
+        let edge_sum = |n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| {
+                    let lo = radius.saturating_sub(i);
+                    let hi = (radius + n - 1 - i).min(2 * radius);
+                    kernel[lo..=hi].iter().sum()
+                })
+                .collect()
+        };
+        let (wx, wy) = (edge_sum(w), edge_sum(h));
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| {
+                for (o, &kx) in row.iter_mut().zip(&wx) {
+                    *o /= kx * wy[y];
+                }
+            });
+    }
+    out
 }
 
 /// Zero-padded 1-D convolution along each row (symmetric kernel).
-fn convolve_rows(a: &Array2<f64>, kernel: &[f64]) -> Array2<f64> {
+fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
     let r = kernel.len() / 2;
     let (h, w) = a.dim();
-    let mut out = Array2::<f64>::zeros((h, w));
+    let mut out = Array2::<f32>::zeros((h, w));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(a.axis_iter(Axis(0)))
         .for_each(|(mut o, row)| {
-            for x in 0..w {
+            let row = row.to_vec(); // contiguous copy: one row, cheap
+            for (x, ov) in o.iter_mut().enumerate() {
                 let lo = x.saturating_sub(r);
                 let hi = (x + r).min(w - 1);
-                let mut acc = 0.0;
-                for xx in lo..=hi {
-                    acc += kernel[xx + r - x] * row[xx];
-                }
-                o[x] = acc;
+                *ov = row[lo..=hi]
+                    .iter()
+                    .zip(&kernel[lo + r - x..=hi + r - x])
+                    .map(|(v, k)| v * k)
+                    .sum();
             }
         });
     out
 }
 
 /// Zero-padded 1-D convolution along each column, row-wise for cache locality.
-fn convolve_columns(a: &Array2<f64>, kernel: &[f64]) -> Array2<f64> {
+fn convolve_columns(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
     let r = kernel.len() / 2;
     let (h, _) = a.dim();
-    let mut out = Array2::<f64>::zeros(a.dim());
+    let mut out = Array2::<f32>::zeros(a.dim());
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
@@ -305,8 +323,10 @@ const MIN_LIMB_POINTS: f64 = 0.5;
 /// Largest run of disagreeing sectors tolerated (active regions on the limb), radians
 /// (measured: EIT ≤ 57°, the forced TRACE circle 124°).
 const MAX_LIMB_GAP_RAD: f64 = std::f64::consts::FRAC_PI_2;
-/// Step along limb rays, px.
+/// Step along limb rays, px (finest; coarser when a window would need more samples).
 const RAY_STEP_PX: f64 = 0.25;
+/// Samples per ray at most: wide windows on 4096² images need no 0.25 px steps.
+const MAX_RAY_SAMPLES: f64 = 800.0;
 /// Initial estimates are made on an image binned to at most this size.
 const COARSE_SIZE_PX: usize = 512;
 
@@ -406,7 +426,7 @@ fn first_guess(img: &ArrayView2<f32>, background: f32) -> Option<FirstGuess> {
         return None;
     }
     let top = quantile_in_place(&mut vals, 0.75);
-    if !(top > background) {
+    if top.partial_cmp(&background) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     // Centroid of the clipped intensity: bright active regions weigh no more than the disk.
@@ -540,15 +560,16 @@ fn limb_points(
     let per = ((TAU * radius / sectors as f64).round() as usize).clamp(1, 8);
     let n_rays = sectors * per;
     let r_lo = window.0 * radius;
-    let n_samples = (((window.1 - window.0) * radius) / RAY_STEP_PX) as usize;
-    let smooth_sigma = 1.0 / RAY_STEP_PX; // 1 px
+    let step = RAY_STEP_PX.max((window.1 - window.0) * radius / MAX_RAY_SAMPLES);
+    let n_samples = (((window.1 - window.0) * radius) / step) as usize;
+    let smooth_sigma = 1.0 / step; // 1 px
     let kernel: Vec<f64> = {
         let r = (4.0 * smooth_sigma) as isize;
         (-r..=r)
             .map(|d| (-0.5 * (d as f64 / smooth_sigma).powi(2)).exp())
             .collect()
     };
-    let margin = (1.0 / RAY_STEP_PX) as usize;
+    let margin = ((1.0 / step) as usize).max(1);
     let points = (0..sectors)
         .into_par_iter()
         .filter_map(|k| {
@@ -558,7 +579,7 @@ fn limb_points(
                 let a = (k * per + j) as f64 * TAU / n_rays as f64;
                 let (ca, sa) = (a.cos(), a.sin());
                 for (i, p) in profile.iter_mut().enumerate().take(len) {
-                    let r = r_lo + i as f64 * RAY_STEP_PX;
+                    let r = r_lo + i as f64 * step;
                     match bilinear(img, center[0] + r * ca, center[1] + r * sa) {
                         Some(v) => *p += v,
                         None => {
@@ -584,7 +605,7 @@ fn limb_points(
             }
             let neg_smooth: Vec<f64>;
             let feature: &[f64] = if ring {
-                let j0 = i.saturating_sub((0.15 * radius / RAY_STEP_PX) as usize);
+                let j0 = i.saturating_sub((0.15 * radius / step) as usize);
                 let j = (j0..=i).max_by(|&a, &b| smooth[a].total_cmp(&smooth[b]))?;
                 if j == j0 {
                     return None;
@@ -606,7 +627,7 @@ fn limb_points(
             } else {
                 0.0
             };
-            let r = r_lo + (i as f64 + offset) * RAY_STEP_PX;
+            let r = r_lo + (i as f64 + offset) * step;
             let angle = (k as f64 * per as f64 + (per as f64 - 1.0) / 2.0) * TAU / n_rays as f64;
             Some(LimbPoint {
                 xy: [center[0] + r * angle.cos(), center[1] + r * angle.sin()],

@@ -214,25 +214,39 @@ fn detect_disk_agrees_with_an_independent_scipy_measurement() {
     }
 }
 
+/// Every plane of a FITS image or cube, as f32 images.
+fn read_planes(path: &Path) -> Vec<Array2<f32>> {
+    let mut f = fitsio::FitsFile::open(path).expect("open FITS");
+    let hdu = f.primary_hdu().expect("primary HDU");
+    let shape = match &hdu.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } => shape.clone(),
+        _ => panic!("{}: not an image", path.display()),
+    };
+    let (h, w) = (shape[shape.len() - 2], shape[shape.len() - 1]);
+    let data: Vec<f32> = hdu.read_image(&mut f).expect("read image");
+    data.chunks_exact(h * w)
+        .map(|plane| Array2::from_shape_vec((h, w), plane.to_vec()).expect("plane shape"))
+        .collect()
+}
+
 #[test]
 fn no_disk_is_reported_where_none_is_whole() {
-    // TRACE: a 512″ field inside the disk; IRIS: a 18″ slit-jaw field.
+    // TRACE: a 512″ field on the disk (by its header the far corner is 944″ from disk
+    // centre, inside the ~948″ limb of May 1998). IRIS: every frame of the three slit-jaw cubes (about 18″ fields,
+    // with −200 padding around a tilted rectangle).
+    let mut frames = 0;
     for name in [
         "trace_171_19980519T222143_1024.fits",
         "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits",
+        "iris_l2_20140329_140938_3860258481_SJI_2796_t000_deconvolved.fits",
+        "iris_l2_20140329_140938_3860258481_SJI_2832_t000.fits",
     ] {
-        let path = real(name);
-        let mut f = fitsio::FitsFile::open(&path).expect("open");
-        let hdu = f.primary_hdu().expect("hdu");
-        let shape = match &hdu.info {
-            fitsio::hdu::HduInfo::ImageInfo { shape, .. } => shape.clone(),
-            _ => panic!("not an image"),
-        };
-        let (h, w) = (shape[shape.len() - 2], shape[shape.len() - 1]);
-        let data: Vec<f32> = hdu.read_image(&mut f).expect("read");
-        let img = Array2::from_shape_vec((h, w), data[..h * w].to_vec()).expect("shape");
-        assert_eq!(detect_disk(img.view()), None, "{name}");
+        for (k, img) in read_planes(&real(name)).iter().enumerate() {
+            assert_eq!(detect_disk(img.view()), None, "{name}[{k}]");
+            frames += 1;
+        }
     }
+    assert_eq!(frames, 1 + 54 + 72 + 18);
     // Half of the AIA disk (columns 0..70 of 128: the limb east of x = 70 is cut off).
     let aia = read_image(&real(AIA));
     let half = aia.slice(ndarray::s![.., 0..70]).to_owned();
