@@ -25,6 +25,7 @@
 
 mod poly;
 mod pyramid;
+mod simd;
 mod solve;
 
 use crate::error::{Error, Result};
@@ -416,7 +417,8 @@ impl Farneback {
                 sample_init(f, g, &mut self.u[0], &mut self.v[0]);
             }
 
-            let t = solve::typical_trace(&self.r0);
+            let t = solve::typical_trace(&self.r0, n);
+            let col_taper = solve::column_taper(dom.x0, dw, g.w);
             if !(t > 0.0 && t.is_finite()) {
                 // No usable texture at this level: keep the flow as it is.
                 std::mem::swap(&mut self.prev_u, &mut self.u[0]);
@@ -429,11 +431,10 @@ impl Farneback {
                 h: dh,
                 w: dw,
                 y0: dom.y0,
-                x0: dom.x0,
                 level_h: g.h,
-                level_w: g.w,
                 r0: &self.r0,
                 r1: &self.r1,
+                col_taper: &col_taper,
                 m,
                 gauss: self.gauss.as_deref(),
                 reg_abs: 1e-6 * t,

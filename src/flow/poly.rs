@@ -6,6 +6,7 @@
 //! data (NaN) gets NaN in all five channels.
 
 use nalgebra::SMatrix;
+use super::simd;
 use rayon::prelude::*;
 
 /// Separable kernels and the entries of the inverse Gram matrix the expansion needs.
@@ -79,69 +80,130 @@ impl PolyKernel {
     }
 }
 
-/// Expand `img` (h×w, row-major) into `out` (h×w×5).
+/// Expand `img` (h×w, row-major) into `out`: 5 planes of h×w, channel-major
+/// (`out[c·h·w + y·w + x]`), so that later loops read each channel contiguously.
 pub(crate) fn expand(k: &PolyKernel, img: &[f32], h: usize, w: usize, out: &mut Vec<f32>) {
-    let n = k.n;
     out.clear();
     out.resize(h * w * 5, 0.0);
-    out.par_chunks_mut(w * 5).enumerate().for_each_init(
-        || vec![0f32; (w + 2 * n) * 3],
-        |row, (y, drow)| {
-            // Vertical pass: row[x] = (Σg·f, Σ y·g·f, Σ y²·g·f), planar thirds for SIMD.
-            let (r0, rest) = row.split_at_mut(w + 2 * n);
-            let (r1, r2) = rest.split_at_mut(w + 2 * n);
-            let s0 = &img[y * w..][..w];
+    let plane = h * w;
+    // Rows are independent; hand each worker a set of output rows in all five planes.
+    let (p0, rest) = out.split_at_mut(plane);
+    let (p1, rest) = rest.split_at_mut(plane);
+    let (p2, rest) = rest.split_at_mut(plane);
+    let (p3, p4) = rest.split_at_mut(plane);
+    p0.par_chunks_mut(w)
+        .zip(p1.par_chunks_mut(w))
+        .zip(p2.par_chunks_mut(w))
+        .zip(p3.par_chunks_mut(w))
+        .zip(p4.par_chunks_mut(w))
+        .enumerate()
+        .for_each_init(
+            || vec![0f32; (w + 2 * k.n) * 3 + 6 * w],
+            |buf, (y, ((((d0, d1), d2), d3), d4))| {
+                expand_row_mv(k, img, h, w, y, buf, [d0, d1, d2, d3, d4])
+            },
+        );
+}
+
+simd::multiversion!(fn expand_row_mv(
+    k: &PolyKernel,
+    img: &[f32],
+    h: usize,
+    w: usize,
+    y: usize,
+    buf: &mut [f32],
+    d: [&mut [f32]; 5],
+) => expand_row);
+
+#[inline(always)]
+fn expand_row(
+    k: &PolyKernel,
+    img: &[f32],
+    h: usize,
+    w: usize,
+    y: usize,
+    buf: &mut [f32],
+    d: [&mut [f32]; 5],
+) {
+    let n = k.n;
+    let wp = w + 2 * n;
+    let (r0, rest) = buf.split_at_mut(wp);
+    let (r1, rest) = rest.split_at_mut(wp);
+    let (r2, rest) = rest.split_at_mut(wp);
+    let (acc, _) = rest.split_at_mut(6 * w);
+    // Vertical pass: (Σg·f, Σ y·g·f, Σ y²·g·f) along the column, replicate border.
+    let s0 = &img[y * w..][..w];
+    {
+        let (q0, q1, q2) = (&mut r0[n..n + w], &mut r1[n..n + w], &mut r2[n..n + w]);
+        let g0 = k.g[0];
+        for x in 0..w {
+            q0[x] = s0[x] * g0;
+            q1[x] = 0.0;
+            q2[x] = 0.0;
+        }
+        for t in 1..=n {
+            let a = &img[y.saturating_sub(t) * w..][..w];
+            let b = &img[(y + t).min(h - 1) * w..][..w];
+            let (g0, g1, g2) = (k.g[t], k.xg[t], k.xxg[t]);
             for x in 0..w {
-                r0[n + x] = s0[x] * k.g[0];
-                r1[n + x] = 0.0;
-                r2[n + x] = 0.0;
+                let p = a[x] + b[x];
+                q0[x] += g0 * p;
+                q1[x] += g1 * (b[x] - a[x]);
+                q2[x] += g2 * p;
             }
-            for t in 1..=n {
-                let a = &img[y.saturating_sub(t) * w..][..w];
-                let b = &img[(y + t).min(h - 1) * w..][..w];
-                let (g0, g1, g2) = (k.g[t], k.xg[t], k.xxg[t]);
-                let (p0, p1, p2) = (&mut r0[n..n + w], &mut r1[n..n + w], &mut r2[n..n + w]);
-                for x in 0..w {
-                    let p = a[x] + b[x];
-                    p0[x] += g0 * p;
-                    p1[x] += g1 * (b[x] - a[x]);
-                    p2[x] += g2 * p;
-                }
-            }
-            for r in [&mut *r0, &mut *r1, &mut *r2] {
-                let (first, last) = (r[n], r[n + w - 1]);
-                r[..n].iter_mut().for_each(|v| *v = first);
-                r[n + w..].iter_mut().for_each(|v| *v = last);
-            }
-            // Horizontal pass.
-            for x in 0..w {
-                let c = n + x;
-                let g0 = k.g[0];
-                let (mut b1, mut b2, mut b3) = (r0[c] * g0, 0f32, r1[c] * g0);
-                let (mut b4, mut b5, mut b6) = (0f32, r2[c] * g0, 0f32);
-                for t in 1..=n {
-                    let (l, rr) = (c - t, c + t);
-                    let tg = r0[rr] + r0[l];
-                    let gt = k.g[t];
-                    b1 += tg * gt;
-                    b4 += tg * k.xxg[t];
-                    b2 += (r0[rr] - r0[l]) * k.xg[t];
-                    b3 += (r1[rr] + r1[l]) * gt;
-                    b6 += (r1[rr] - r1[l]) * k.xg[t];
-                    b5 += (r2[rr] + r2[l]) * gt;
-                }
-                let d = &mut drow[x * 5..x * 5 + 5];
-                d[0] = b3 * k.ig11;
-                d[1] = b2 * k.ig11;
-                d[2] = b1 * k.ig03 + b5 * k.ig33;
-                d[3] = b1 * k.ig03 + b4 * k.ig33;
-                d[4] = b6 * k.ig55;
-                if (d[0] + d[1] + d[2] + d[3] + d[4]).is_nan() {
-                    d.iter_mut().for_each(|v| *v = f32::NAN);
-                }
-            }
-        },
-    );
+        }
+    }
+    for r in [&mut *r0, &mut *r1, &mut *r2] {
+        let (first, last) = (r[n], r[n + w - 1]);
+        r[..n].iter_mut().for_each(|v| *v = first);
+        r[n + w..].iter_mut().for_each(|v| *v = last);
+    }
+    // Horizontal pass, tap-outer so the inner loop runs along contiguous x.
+    let (b1, rest) = acc.split_at_mut(w);
+    let (b2, rest) = rest.split_at_mut(w);
+    let (b3, rest) = rest.split_at_mut(w);
+    let (b4, rest) = rest.split_at_mut(w);
+    let (b5, b6) = rest.split_at_mut(w);
+    let g0 = k.g[0];
+    for x in 0..w {
+        b1[x] = r0[n + x] * g0;
+        b2[x] = 0.0;
+        b3[x] = r1[n + x] * g0;
+        b4[x] = 0.0;
+        b5[x] = r2[n + x] * g0;
+        b6[x] = 0.0;
+    }
+    for t in 1..=n {
+        let (gt, xgt, xxgt) = (k.g[t], k.xg[t], k.xxg[t]);
+        let (l0, h0) = (&r0[n - t..][..w], &r0[n + t..][..w]);
+        let (l1, h1) = (&r1[n - t..][..w], &r1[n + t..][..w]);
+        let (l2, h2) = (&r2[n - t..][..w], &r2[n + t..][..w]);
+        for x in 0..w {
+            let tg = h0[x] + l0[x];
+            b1[x] += tg * gt;
+            b4[x] += tg * xxgt;
+            b2[x] += (h0[x] - l0[x]) * xgt;
+            b3[x] += (h1[x] + l1[x]) * gt;
+            b6[x] += (h1[x] - l1[x]) * xgt;
+            b5[x] += (h2[x] + l2[x]) * gt;
+        }
+    }
+    let [d0, d1, d2, d3, d4] = d;
+    for x in 0..w {
+        let v0 = b3[x] * k.ig11;
+        let v1 = b2[x] * k.ig11;
+        let v2 = b1[x] * k.ig03 + b5[x] * k.ig33;
+        let v3 = b1[x] * k.ig03 + b4[x] * k.ig33;
+        let v4 = b6[x] * k.ig55;
+        // One NaN channel makes the pixel missing in all five.
+        let bad = (v0 + v1 + v2 + v3 + v4).is_nan();
+        let nan = f32::NAN;
+        d0[x] = if bad { nan } else { v0 };
+        d1[x] = if bad { nan } else { v1 };
+        d2[x] = if bad { nan } else { v2 };
+        d3[x] = if bad { nan } else { v3 };
+        d4[x] = if bad { nan } else { v4 };
+    }
 }
 
 #[cfg(test)]
@@ -163,7 +225,7 @@ mod tests {
         let mut out = Vec::new();
         expand(&k, &img, h, w, &mut out);
         let (x, y) = (11usize, 10usize);
-        let d = &out[(y * w + x) * 5..][..5];
+        let d: Vec<f32> = (0..5).map(|c| out[c * h * w + y * w + x]).collect();
         // Gradient at (x, y): b_y = −0.25 − 0.1y + 0.02x, b_x = 0.5 + 0.2x + 0.02y.
         let by = -0.25 - 0.1 * y as f32 + 0.02 * x as f32;
         let bx = 0.5 + 0.2 * x as f32 + 0.02 * y as f32;
@@ -181,8 +243,8 @@ mod tests {
         let k = PolyKernel::new(5, 1.1);
         let mut out = Vec::new();
         expand(&k, &img, h, w, &mut out);
-        assert!(out[(15 * w + 20) * 5].is_nan());
-        assert!(out[(15 * w + 21) * 5].is_finite());
-        assert!(out[(9 * w + 15) * 5].is_finite());
+        assert!(out[15 * w + 20].is_nan());
+        assert!(out[15 * w + 21].is_finite());
+        assert!(out[9 * w + 15].is_finite());
     }
 }

@@ -8,6 +8,7 @@
 //! recomputes the `m` rows of halo it shares with its neighbours, which keeps the iteration a
 //! plain Jacobi step (identical to OpenCV's, whose in-place update never reads a row it changed).
 
+use super::simd;
 use rayon::prelude::*;
 
 /// OpenCV's border taper for the 5 outermost pixels of a level.
@@ -18,13 +19,13 @@ pub(crate) struct Level<'a> {
     /// Domain size.
     pub h: usize,
     pub w: usize,
-    /// Domain origin and whole level size (for OpenCV's border taper at true image edges).
+    /// Domain's first row and the level's height (for OpenCV's border taper at true edges).
     pub y0: usize,
-    pub x0: usize,
     pub level_h: usize,
-    pub level_w: usize,
     pub r0: &'a [f32],
     pub r1: &'a [f32],
+    /// OpenCV's border taper per domain column.
+    pub col_taper: &'a [f32],
     /// Half window.
     pub m: usize,
     /// Gaussian window kernel (`m+1` taps, centre first); `None` = box window.
@@ -43,6 +44,7 @@ pub(crate) struct StripScratch {
     ring_row: Vec<usize>,
     vsum: Vec<f64>,
     pad: Vec<f64>,
+    hsum: Vec<f64>,
     vconv: Vec<f32>,
     hconv: Vec<f32>,
 }
@@ -59,89 +61,141 @@ fn taper(pos: usize, len: usize) -> f32 {
     s
 }
 
-/// Normal-equation row `y` (5 channels per pixel: G11, G12, G22, h1, h2 in (y, x) order)
-/// from the current flow `u`, `v` of that row. Missing data (NaN expansion at the pixel, or at
-/// the place the flow points to, or that place outside the domain) gets zero weight.
+/// OpenCV's taper for every column of the domain (1 away from the level's true edges).
+pub(crate) fn column_taper(x0: usize, w: usize, level_w: usize) -> Vec<f32> {
+    (0..w).map(|x| taper(x0 + x, level_w)).collect()
+}
+
+const LANES: usize = 8;
+
+/// Normal-equation row `y` (5 planes of `w`: G11, G12, G22, h1, h2 in (y, x) order) from the
+/// current flow `u`, `v` of that row. Missing data (NaN expansion at the pixel, or at the place
+/// the flow points to, or that place outside the domain) gets zero weight.
+///
+/// Pixels go by groups of 8; when the flow's integer part is the same across a group (the
+/// usual case: flow is smooth) the bilinear taps are contiguous loads and the group is
+/// computed as straight-line lane arithmetic the compiler vectorises.
+#[inline(always)]
 fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut [f32]) {
-    let w = lv.w;
-    let r0row = &lv.r0[y * w * 5..][..w * 5];
-    let r1 = lv.r1;
+    let (w, h) = (lv.w, lv.h);
+    let plane = w * h;
     let gy = lv.y0 + y;
     let row_taper = if gy < 5 || gy + 5 >= lv.level_h {
         taper(gy, lv.level_h)
     } else {
         1.0
     };
-    let stride = w * 5;
+    let (o0, rest) = out.split_at_mut(w);
+    let (o1, rest) = rest.split_at_mut(w);
+    let (o2, rest) = rest.split_at_mut(w);
+    let (o3, o4) = rest.split_at_mut(w);
+    let o4 = &mut o4[..w];
+    let q: [&[f32]; 5] = std::array::from_fn(|c| &lv.r0[c * plane + y * w..][..w]);
+    let r1: [&[f32]; 5] = std::array::from_fn(|c| &lv.r1[c * plane..][..plane]);
     let yf = y as f32;
-    for x in 0..w {
-        let (dx, dy) = (u[x], v[x]);
-        let fx = x as f32 + dx;
-        let fy = yf + dy;
-        let x1 = fx.floor();
-        let y1 = fy.floor();
-        let ax = fx - x1;
-        let ay = fy - y1;
-        let (ix, iy) = (x1 as isize, y1 as isize);
-        let q = &r0row[x * 5..x * 5 + 5];
-        let o = &mut out[x * 5..x * 5 + 5];
-        let inside = ix >= 0 && iy >= 0 && (ix as usize) < w - 1 && (iy as usize) < lv.h - 1;
-        if !inside || q[0].is_nan() {
-            o.iter_mut().for_each(|v| *v = 0.0);
-            continue;
+    let mut x = 0;
+    while x < w {
+        let n = LANES.min(w - x);
+        let mut fx = [0f32; LANES];
+        let mut fy = [0f32; LANES];
+        let mut ixs = [0i32; LANES];
+        let mut iys = [0i32; LANES];
+        for i in 0..LANES {
+            let j = (x + i).min(w - 1);
+            let px = (x + i) as f32 + u[j];
+            let py = yf + v[j];
+            let flx = floor_fast(px);
+            let fly = floor_fast(py);
+            fx[i] = px - flx;
+            fy[i] = py - fly;
+            ixs[i] = flx as i32;
+            iys[i] = fly as i32;
         }
-        let p = (iy as usize) * stride + (ix as usize) * 5;
-        let a00 = (1.0 - ax) * (1.0 - ay);
-        let a01 = ax * (1.0 - ay);
-        let a10 = (1.0 - ax) * ay;
-        let a11 = ax * ay;
-        let s = |c: usize| {
-            a00 * r1[p + c] + a01 * r1[p + 5 + c] + a10 * r1[p + stride + c] + a11 * r1[p + stride + 5 + c]
-        };
-        let (mut r2, mut r3, mut r4, mut r5, mut r6) = (s(0), s(1), s(2), s(3), s(4));
-        if r2.is_nan() {
-            o.iter_mut().for_each(|v| *v = 0.0);
-            continue;
+        let off = ixs[0] - x as i32;
+        let row = iys[0];
+        let uniform = n == LANES
+            && (0..LANES).all(|i| ixs[i] - (x + i) as i32 == off && iys[i] == row)
+            && ixs[0] >= 0
+            && ixs[LANES - 1] < w as i32 - 1
+            && row >= 0
+            && row < h as i32 - 1;
+        // Interpolated R1 channels per lane.
+        let mut s = [[0f32; LANES]; 5];
+        if uniform {
+            let base = row as usize * w + ixs[0] as usize;
+            for (c, sc) in s.iter_mut().enumerate() {
+                let top = &r1[c][base..base + LANES + 1];
+                let bot = &r1[c][base + w..base + w + LANES + 1];
+                for i in 0..LANES {
+                    let t = top[i] + fx[i] * (top[i + 1] - top[i]);
+                    let b = bot[i] + fx[i] * (bot[i + 1] - bot[i]);
+                    sc[i] = t + fy[i] * (b - t);
+                }
+            }
+        } else {
+            for i in 0..n {
+                let (ix, iy) = (ixs[i], iys[i]);
+                let inside = ix >= 0 && iy >= 0 && ix < w as i32 - 1 && iy < h as i32 - 1;
+                for (c, sc) in s.iter_mut().enumerate() {
+                    sc[i] = if inside {
+                        let p = iy as usize * w + ix as usize;
+                        let pl = r1[c];
+                        let t = pl[p] + fx[i] * (pl[p + 1] - pl[p]);
+                        let b = pl[p + w] + fx[i] * (pl[p + w + 1] - pl[p + w]);
+                        t + fy[i] * (b - t)
+                    } else {
+                        f32::NAN
+                    };
+                }
+            }
         }
-        r4 = (q[2] + r4) * 0.5;
-        r5 = (q[3] + r5) * 0.5;
-        r6 = (q[4] + r6) * 0.25;
-        r2 = (q[0] - r2) * 0.5;
-        r3 = (q[1] - r3) * 0.5;
-        r2 += r4 * dy + r6 * dx;
-        r3 += r6 * dy + r5 * dx;
-        let gx = lv.x0 + x;
-        let mut t = row_taper;
-        if gx < 5 || gx + 5 >= lv.level_w {
-            t *= taper(gx, lv.level_w);
+        for i in 0..n {
+            let j = x + i;
+            let (dx, dy) = (u[j], v[j]);
+            let r4 = (q[2][j] + s[2][i]) * 0.5;
+            let r5 = (q[3][j] + s[3][i]) * 0.5;
+            let r6 = (q[4][j] + s[4][i]) * 0.25;
+            let r2 = (q[0][j] - s[0][i]) * 0.5 + r4 * dy + r6 * dx;
+            let r3 = (q[1][j] - s[1][i]) * 0.5 + r6 * dy + r5 * dx;
+            let t = row_taper * lv.col_taper[j];
+            let (r2, r3, r4, r5, r6) = (r2 * t, r3 * t, r4 * t, r5 * t, r6 * t);
+            let m0 = r4 * r4 + r6 * r6;
+            let m1 = (r4 + r5) * r6;
+            let m2 = r5 * r5 + r6 * r6;
+            let m3 = r4 * r2 + r6 * r3;
+            let m4 = r6 * r2 + r5 * r3;
+            // NaN anywhere (missing data, outside) means zero weight.
+            let bad = (m0 + m1 + m2 + m3 + m4).is_nan();
+            o0[j] = if bad { 0.0 } else { m0 };
+            o1[j] = if bad { 0.0 } else { m1 };
+            o2[j] = if bad { 0.0 } else { m2 };
+            o3[j] = if bad { 0.0 } else { m3 };
+            o4[j] = if bad { 0.0 } else { m4 };
         }
-        if t != 1.0 {
-            r2 *= t;
-            r3 *= t;
-            r4 *= t;
-            r5 *= t;
-            r6 *= t;
-        }
-        o[0] = r4 * r4 + r6 * r6;
-        o[1] = (r4 + r5) * r6;
-        o[2] = r5 * r5 + r6 * r6;
-        o[3] = r4 * r2 + r6 * r3;
-        o[4] = r6 * r2 + r5 * r3;
+        x += n;
     }
 }
 
 /// Mean trace of the normal matrices at zero flow from `R0` alone: the level's typical
 /// "texture energy", the unit in which the regulariser is expressed (scale-free).
-pub(crate) fn typical_trace(r0: &[f32]) -> f64 {
-    let (sum, count) = r0
-        .par_chunks(5 * 1024)
-        .map(|c| {
+pub(crate) fn typical_trace(r0: &[f32], plane: usize) -> f64 {
+    let (a, b, e) = (
+        &r0[2 * plane..3 * plane],
+        &r0[3 * plane..4 * plane],
+        &r0[4 * plane..5 * plane],
+    );
+    let (sum, count) = a
+        .par_chunks(4096)
+        .zip(b.par_chunks(4096))
+        .zip(e.par_chunks(4096))
+        .map(|((a, b), e)| {
             let mut s = 0f64;
             let mut n = 0usize;
-            for q in c.chunks_exact(5) {
-                if q[0].is_finite() {
-                    let (a, b, e) = (q[2] as f64, q[3] as f64, q[4] as f64 * 0.5);
-                    s += a * a + b * b + 2.0 * e * e;
+            for i in 0..a.len() {
+                let (a, b, e) = (a[i] as f64, b[i] as f64, e[i] as f64 * 0.5);
+                let t = a * a + b * b + 2.0 * e * e;
+                if t.is_finite() {
+                    s += t;
                     n += 1;
                 }
             }
@@ -155,27 +209,33 @@ pub(crate) fn typical_trace(r0: &[f32]) -> f64 {
     }
 }
 
-/// Solve the averaged 2×2 system for one row; `sums` holds the window-averaged 5 channels.
-#[inline]
+/// Solve the averaged 2×2 system for one row; `sums` holds the 5 window-sum planes (`w` each).
+#[inline(always)]
 fn solve_row(lv: &Level, sums: &[f64], scale: f64, u: &mut [f32], v: &mut [f32], last: bool) {
-    for x in 0..u.len() {
-        let s = &sums[x * 5..x * 5 + 5];
-        let g11 = s[0] * scale;
-        let g12 = s[1] * scale;
-        let g22 = s[2] * scale;
-        let h1 = s[3] * scale;
-        let h2 = s[4] * scale;
+    let w = u.len();
+    let (s0, s1, s2, s3, s4) = (
+        &sums[..w],
+        &sums[w..2 * w],
+        &sums[2 * w..3 * w],
+        &sums[3 * w..4 * w],
+        &sums[4 * w..5 * w],
+    );
+    let empty = if last { lv.empty_trace } else { f64::NEG_INFINITY };
+    for x in 0..w {
+        let g11 = s0[x] * scale;
+        let g12 = s1[x] * scale;
+        let g22 = s2[x] * scale;
+        let h1 = s3[x] * scale;
+        let h2 = s4[x] * scale;
         let tr = g11 + g22;
-        if last && tr <= lv.empty_trace {
-            u[x] = f32::NAN;
-            v[x] = f32::NAN;
-            continue;
-        }
         let l = lv.reg_abs + lv.reg_rel * tr;
         let (a, c) = (g11 + l, g22 + l);
         let idet = 1.0 / (a * c - g12 * g12);
-        u[x] = ((a * h2 - g12 * h1) * idet) as f32;
-        v[x] = ((c * h1 - g12 * h2) * idet) as f32;
+        let uu = ((a * h2 - g12 * h1) * idet) as f32;
+        let vv = ((c * h1 - g12 * h2) * idet) as f32;
+        let gone = tr <= empty;
+        u[x] = if gone { f32::NAN } else { uu };
+        v[x] = if gone { f32::NAN } else { vv };
     }
 }
 
@@ -193,7 +253,7 @@ pub(crate) fn strips(h: usize, m: usize) -> Vec<(usize, usize)> {
     (0..n).map(|i| (i * h / n, (i + 1) * h / n)).collect()
 }
 
-/// One iteration: new flow (`u_new`, `v_new`) from the old one. `last` marks the level's final
+/// One iteration: new flow (`u_new`, `v_new`) from the old one. `last` marks the final
 /// iteration of the finest level (empty windows become NaN).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn iterate(
@@ -227,11 +287,55 @@ pub(crate) fn iterate(
         .zip(scratch.par_iter_mut())
         .zip(u_parts.into_par_iter().zip(v_parts.into_par_iter()))
         .for_each(|((&(ya, yb), sc), (uo, vo))| {
-            run_strip(lv, u_old, v_old, ya, yb, uo, vo, sc, last);
+            run_strip_mv(lv, u_old, v_old, ya, yb, uo, vo, sc, last);
         });
 }
 
+simd::multiversion!(fn run_strip_mv(
+    lv: &Level,
+    u_old: &[f32],
+    v_old: &[f32],
+    ya: usize,
+    yb: usize,
+    u_out: &mut [f32],
+    v_out: &mut [f32],
+    sc: &mut StripScratch,
+    last: bool,
+) => run_strip);
+
+/// Make sure matrix row `c` is in the ring; returns its slot.
+#[inline(always)]
+fn ensure_row(
+    lv: &Level,
+    u_old: &[f32],
+    v_old: &[f32],
+    sc: &mut StripScratch,
+    c: usize,
+    slots: usize,
+) -> usize {
+    let (w, rw) = (lv.w, lv.w * 5);
+    let slot = c % slots;
+    if sc.ring_row[slot] != c {
+        let (u, v) = (&u_old[c * w..][..w], &v_old[c * w..][..w]);
+        matrices_row(lv, c, u, v, &mut sc.ring[slot * rw..][..rw]);
+        sc.ring_row[slot] = c;
+    }
+    slot
+}
+
+/// Floor that compiles to plain instructions on any x86-64 (|x| < 2³¹).
+#[inline(always)]
+fn floor_fast(x: f32) -> f32 {
+    let t = x as i32 as f32;
+    if t > x {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn run_strip(
     lv: &Level,
     u_old: &[f32],
@@ -250,16 +354,8 @@ fn run_strip(
     sc.ring_row.clear();
     sc.ring_row.resize(slots, usize::MAX);
     let clamp = |r: isize| r.clamp(0, h as isize - 1) as usize;
-    // Make sure matrix row `c` is in the ring.
-    let ensure = |sc: &mut StripScratch, c: usize| {
-        let slot = c % slots;
-        if sc.ring_row[slot] != c {
-            let (u, v) = (&u_old[c * w..][..w], &v_old[c * w..][..w]);
-            matrices_row(lv, c, u, v, &mut sc.ring[slot * rw..][..rw]);
-            sc.ring_row[slot] = c;
-        }
-        slot
-    };
+    let ensure = |sc: &mut StripScratch, c: usize| ensure_row(lv, u_old, v_old, sc, c, slots);
+    let wp = w + 2 * m + 1;
     match lv.gauss {
         None => {
             let scale = 1.0 / ((2 * m + 1) * (2 * m + 1)) as f64;
@@ -272,37 +368,46 @@ fn run_strip(
                     *acc += val as f64;
                 }
             }
-            sc.pad.resize((w + 2 * m + 1) * 5, 0.0);
+            sc.pad.resize(5 * wp, 0.0);
+            sc.hsum.resize(rw, 0.0);
             for y in ya..yb {
-                // Replicate-padded copy of the vertical sums, then a running horizontal sum.
+                // Replicate-padded vertical sums, then a running horizontal sum (5 chains).
+                for c in 0..5 {
+                    let src = &sc.vsum[c * w..][..w];
+                    let dst = &mut sc.pad[c * wp..][..wp];
+                    dst[..m].iter_mut().for_each(|d| *d = src[0]);
+                    dst[m..m + w].copy_from_slice(src);
+                    dst[m + w..].iter_mut().for_each(|d| *d = src[w - 1]);
+                }
                 {
-                    let (vs, pad) = (&sc.vsum, &mut sc.pad);
-                    for j in 0..w + 2 * m + 1 {
-                        let src = (j as isize - m as isize).clamp(0, w as isize - 1) as usize;
-                        pad[j * 5..j * 5 + 5].copy_from_slice(&vs[src * 5..src * 5 + 5]);
-                    }
+                    let pad = &sc.pad;
+                    let p: [&[f64]; 5] = std::array::from_fn(|c| &pad[c * wp..][..wp]);
                     let mut acc = [0f64; 5];
-                    for j in 0..2 * m + 1 {
-                        for c in 0..5 {
-                            acc[c] += pad[j * 5 + c];
-                        }
+                    for (c, a) in acc.iter_mut().enumerate() {
+                        *a = p[c][..2 * m + 1].iter().sum();
                     }
-                    // Reuse `vsum`-sized output by writing window sums in place into pad's head.
+                    let (h0, rest) = sc.hsum.split_at_mut(w);
+                    let (h1, rest) = rest.split_at_mut(w);
+                    let (h2, rest) = rest.split_at_mut(w);
+                    let (h3, h4) = rest.split_at_mut(w);
                     for x in 0..w {
-                        let (add, sub) = ((x + 2 * m + 1) * 5, x * 5);
-                        let cur = acc;
-                        if x + 1 < w {
+                        h0[x] = acc[0];
+                        h1[x] = acc[1];
+                        h2[x] = acc[2];
+                        h3[x] = acc[3];
+                        h4[x] = acc[4];
+                        let (add, sub) = (x + 2 * m + 1, x);
+                        if add < wp {
                             for c in 0..5 {
-                                acc[c] += pad[add + c] - pad[sub + c];
+                                acc[c] += p[c][add] - p[c][sub];
                             }
                         }
-                        pad[sub..sub + 5].copy_from_slice(&cur);
                     }
                 }
                 let r = y - ya;
                 solve_row(
                     lv,
-                    &sc.pad[..rw],
+                    &sc.hsum,
                     scale,
                     &mut u_out[r * w..][..w],
                     &mut v_out[r * w..][..w],
@@ -321,57 +426,55 @@ fn run_strip(
             }
         }
         Some(kernel) => {
-            sc.vconv.resize((w + 2 * m) * 5, 0.0);
+            let wg = w + 2 * m;
+            sc.vconv.resize(5 * wg, 0.0);
             sc.hconv.resize(rw, 0.0);
-            sc.pad.resize(rw, 0.0);
+            sc.hsum.resize(rw, 0.0);
             for y in ya..yb {
                 for t in -(m as isize)..=(m as isize) {
                     ensure(sc, clamp(y as isize + t));
                 }
-                // Vertical convolution into the padded row buffer.
-                {
-                    let dst = &mut sc.vconv[m * 5..m * 5 + rw];
+                // Vertical convolution into replicate-padded planar rows.
+                for c in 0..5 {
+                    let dst = &mut sc.vconv[c * wg + m..][..w];
                     let c0 = clamp(y as isize) % slots;
                     let k0 = kernel[0];
-                    for (d, &s) in dst.iter_mut().zip(&sc.ring[c0 * rw..][..rw]) {
+                    for (d, &s) in dst.iter_mut().zip(&sc.ring[c0 * rw + c * w..][..w]) {
                         *d = s * k0;
                     }
                     for (i, &ki) in kernel.iter().enumerate().skip(1) {
                         let a = clamp(y as isize + i as isize) % slots;
                         let b = clamp(y as isize - i as isize) % slots;
-                        let ra = &sc.ring[a * rw..][..rw];
-                        let rb = &sc.ring[b * rw..][..rw];
+                        let ra = &sc.ring[a * rw + c * w..][..w];
+                        let rb = &sc.ring[b * rw + c * w..][..w];
                         for ((d, &p), &q) in dst.iter_mut().zip(ra).zip(rb) {
                             *d += ki * (p + q);
                         }
                     }
-                }
-                let vc = &mut sc.vconv;
-                for j in 0..m {
-                    for c in 0..5 {
-                        vc[j * 5 + c] = vc[m * 5 + c];
-                        vc[(m + w + j) * 5 + c] = vc[(m + w - 1) * 5 + c];
+                    let row = &mut sc.vconv[c * wg..][..wg];
+                    let (first, lastv) = (row[m], row[m + w - 1]);
+                    row[..m].iter_mut().for_each(|d| *d = first);
+                    row[m + w..].iter_mut().for_each(|d| *d = lastv);
+                    // Horizontal convolution.
+                    let hc = &mut sc.hconv[c * w..][..w];
+                    for (hv, &a) in hc.iter_mut().zip(&row[m..m + w]) {
+                        *hv = a * k0;
+                    }
+                    for (t, &kt) in kernel.iter().enumerate().skip(1) {
+                        let l = &row[m - t..][..w];
+                        let r = &row[m + t..][..w];
+                        for ((hv, &a), &b) in hc.iter_mut().zip(l).zip(r) {
+                            *hv += kt * (a + b);
+                        }
                     }
                 }
-                // Horizontal convolution.
-                let k0 = kernel[0];
-                for (i, hv) in sc.hconv.iter_mut().enumerate() {
-                    *hv = vc[m * 5 + i] * k0;
-                }
-                for (t, &kt) in kernel.iter().enumerate().skip(1) {
-                    let l = &vc[(m - t) * 5..][..rw];
-                    let r = &vc[(m + t) * 5..][..rw];
-                    for ((hv, &a), &b) in sc.hconv.iter_mut().zip(l).zip(r) {
-                        *hv += kt * (a + b);
-                    }
-                }
-                for (p, &hv) in sc.pad.iter_mut().zip(&sc.hconv) {
+                for (p, &hv) in sc.hsum.iter_mut().zip(&sc.hconv) {
                     *p = hv as f64;
                 }
                 let r = y - ya;
                 solve_row(
                     lv,
-                    &sc.pad[..rw],
+                    &sc.hsum,
                     1.0,
                     &mut u_out[r * w..][..w],
                     &mut v_out[r * w..][..w],
