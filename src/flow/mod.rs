@@ -23,6 +23,7 @@
 //!   output pixels outside the ROI are NaN. Inside the ROI the result differs from the
 //!   whole-image flow only through the truncated outer margin (measured in the tests).
 
+mod grid;
 mod poly;
 mod pyramid;
 mod simd;
@@ -65,6 +66,49 @@ impl Default for FarnebackParams {
             poly_sigma: 1.1,
             gaussian_window: false,
         }
+    }
+}
+
+/// Motion model inside the averaging window.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WindowModel {
+    /// One displacement per window (Farnebäck/OpenCV). The estimate is the displacement at the
+    /// window's texture centroid, which under-measures rotation and scale where texture is
+    /// unevenly spread (see [`FlowOptions`]).
+    Constant,
+    /// `d(x') = a + B (x' − x)` fitted in the window; the estimate `a` is exact for any affine
+    /// motion whatever the texture layout. Windows are truncated (not replicated) at edges.
+    Affine,
+}
+
+/// Departures from OpenCV's algorithm, for accuracy and speed. The default is OpenCV's
+/// algorithm (dense constant-model solve, same iterations on every level).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlowOptions {
+    pub model: WindowModel,
+    /// Solve the window system every `grid_stride` pixels (per level) and interpolate the flow
+    /// bilinearly in between; the normal equations still use every pixel. 1 = every pixel.
+    /// Any value other than 1, or the affine model, uses the grid solver (windows truncated at
+    /// the domain's edges instead of OpenCV's replicated border).
+    pub grid_stride: usize,
+    /// Iterations on the finest level (`None`: `FarnebackParams::iterations`). The finest
+    /// level starts from the upsampled coarse flow and needs few Gauss–Newton steps.
+    pub finest_iterations: Option<usize>,
+}
+
+impl Default for FlowOptions {
+    fn default() -> Self {
+        FlowOptions {
+            model: WindowModel::Constant,
+            grid_stride: 1,
+            finest_iterations: None,
+        }
+    }
+}
+
+impl FlowOptions {
+    fn uses_grid(&self) -> bool {
+        self.model == WindowModel::Affine || self.grid_stride > 1
     }
 }
 
@@ -131,6 +175,12 @@ impl Rect {
 /// Reusable solver: holds every buffer, so repeated calls on same-sized frames do not allocate.
 pub struct Farneback {
     params: FarnebackParams,
+    options: FlowOptions,
+    grid_scratch: Vec<grid::GridScratch>,
+    grid_xs: Vec<usize>,
+    grid_ys: Vec<usize>,
+    prev_grid_xs: Vec<usize>,
+    prev_grid_ys: Vec<usize>,
     poly: poly::PolyKernel,
     gauss: Option<Vec<f32>>,
     img0: Vec<f32>,
@@ -228,6 +278,12 @@ impl Farneback {
             .then(|| solve::gaussian_window(params.winsize / 2));
         Ok(Farneback {
             params,
+            options: FlowOptions::default(),
+            grid_scratch: Vec::new(),
+            grid_xs: Vec::new(),
+            grid_ys: Vec::new(),
+            prev_grid_xs: Vec::new(),
+            prev_grid_ys: Vec::new(),
             poly,
             gauss,
             img0: Vec::new(),
@@ -245,6 +301,21 @@ impl Farneback {
 
     pub fn params(&self) -> &FarnebackParams {
         &self.params
+    }
+
+    /// Use `options` (see [`FlowOptions`]); errors on a zero stride or zero iterations.
+    pub fn with_options(mut self, options: FlowOptions) -> Result<Self> {
+        if options.grid_stride == 0 || options.finest_iterations == Some(0) {
+            return Err(Error::Usage(
+                "flow: grid_stride and finest_iterations must be ≥ 1".into(),
+            ));
+        }
+        self.options = options;
+        Ok(self)
+    }
+
+    pub fn options(&self) -> &FlowOptions {
+        &self.options
     }
 
     /// Pyramid levels as OpenCV crops them (none smaller than 32 px) and their domains.
@@ -367,7 +438,7 @@ impl Farneback {
         let (offset, gain) = (mean as f32, (1.0 / sd) as f32);
 
         let m = self.params.winsize / 2;
-        let mut have_prev = false;
+        let use_grid = self.options.uses_grid();
         let mut prev_geom: Option<LevelGeom> = None;
         for (k, g) in geoms.iter().enumerate().rev() {
             let dom = g.dom;
@@ -395,38 +466,45 @@ impl Farneback {
             poly::expand(&self.poly, &self.img0, dh, dw, &mut self.r0);
             poly::expand(&self.poly, &self.img1, dh, dw, &mut self.r1);
 
-            // Initial flow for this level.
-            let n = dh * dw;
-            for b in 0..2 {
-                self.u[b].clear();
-                self.u[b].resize(n, 0.0);
-                self.v[b].clear();
-                self.v[b].resize(n, 0.0);
+            // Initial flow for this level (dense, or on the grid).
+            if use_grid {
+                self.grid_start(g, prev_geom, init);
+            } else {
+                let n = dh * dw;
+                for b in 0..2 {
+                    self.u[b].clear();
+                    self.u[b].resize(n, 0.0);
+                    self.v[b].clear();
+                    self.v[b].resize(n, 0.0);
+                }
+                if let Some(pg) = prev_geom {
+                    upsample(
+                        &self.prev_u,
+                        &self.prev_v,
+                        pg,
+                        *g,
+                        1.0 / self.params.pyr_scale,
+                        &mut self.u[0],
+                        &mut self.v[0],
+                    );
+                } else if let Some(f) = init {
+                    sample_init(f, g, &mut self.u[0], &mut self.v[0]);
+                }
             }
-            if let (true, Some(pg)) = (have_prev, prev_geom) {
-                upsample(
-                    &self.prev_u,
-                    &self.prev_v,
-                    pg,
-                    *g,
-                    1.0 / self.params.pyr_scale,
-                    &mut self.u[0],
-                    &mut self.v[0],
-                );
-            } else if let Some(f) = init {
-                sample_init(f, g, &mut self.u[0], &mut self.v[0]);
-            }
+            prev_geom = Some(*g);
 
-            let t = solve::typical_trace(&self.r0, n);
-            let col_taper = solve::column_taper(dom.x0, dw, g.w);
+            let t = solve::typical_trace(&self.r0, dh * dw);
             if !(t > 0.0 && t.is_finite()) {
                 // No usable texture at this level: keep the flow as it is.
                 std::mem::swap(&mut self.prev_u, &mut self.u[0]);
                 std::mem::swap(&mut self.prev_v, &mut self.v[0]);
-                have_prev = true;
-                prev_geom = Some(*g);
+                if use_grid {
+                    std::mem::swap(&mut self.prev_grid_xs, &mut self.grid_xs);
+                    std::mem::swap(&mut self.prev_grid_ys, &mut self.grid_ys);
+                }
                 continue;
             }
+            let col_taper = solve::column_taper(dom.x0, dw, g.w);
             let lv = solve::Level {
                 h: dh,
                 w: dw,
@@ -441,9 +519,28 @@ impl Farneback {
                 reg_rel: 1e-9,
                 empty_trace: 1e-9 * t,
             };
+            let iters = match (k, self.options.finest_iterations) {
+                (0, Some(n)) => n,
+                _ => self.params.iterations,
+            };
+            let (xtaps, ytaps) = if use_grid {
+                (
+                    grid::taps(&self.grid_xs, dw),
+                    grid::taps(&self.grid_ys, dh),
+                )
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let gr = grid::Grid {
+                xs: &self.grid_xs,
+                ys: &self.grid_ys,
+                xtaps: &xtaps,
+                ytaps: &ytaps,
+                affine: self.options.model == WindowModel::Affine,
+            };
             let mut cur = 0;
-            for it in 0..self.params.iterations {
-                let last = k == 0 && it + 1 == self.params.iterations;
+            for it in 0..iters {
+                let last = k == 0 && it + 1 == iters;
                 let (ua, ub) = self.u.split_at_mut(1);
                 let (va, vb) = self.v.split_at_mut(1);
                 let (u_old, u_new, v_old, v_new) = if cur == 0 {
@@ -451,18 +548,39 @@ impl Farneback {
                 } else {
                     (&ub[0], &mut ua[0], &vb[0], &mut va[0])
                 };
-                solve::iterate(&lv, u_old, v_old, u_new, v_new, &mut self.scratch, last);
+                if use_grid {
+                    u_new.resize(u_old.len(), 0.0);
+                    v_new.resize(v_old.len(), 0.0);
+                    grid::iterate(
+                        &lv,
+                        &gr,
+                        u_old,
+                        v_old,
+                        u_new,
+                        v_new,
+                        &mut self.grid_scratch,
+                        last,
+                    );
+                } else {
+                    solve::iterate(&lv, u_old, v_old, u_new, v_new, &mut self.scratch, last);
+                }
                 cur = 1 - cur;
             }
             std::mem::swap(&mut self.prev_u, &mut self.u[cur]);
             std::mem::swap(&mut self.prev_v, &mut self.v[cur]);
-            have_prev = true;
-            prev_geom = Some(*g);
+            if use_grid {
+                std::mem::swap(&mut self.prev_grid_xs, &mut self.grid_xs);
+                std::mem::swap(&mut self.prev_grid_ys, &mut self.grid_ys);
+            }
         }
 
         // Copy the ROI out of the finest domain.
         let d0 = geoms[0].dom;
         let dw = d0.width();
+        if self.options.uses_grid() {
+            self.densify(d0, roi_rect, prev, &mut out_u, &mut out_v);
+            return Ok(Flow { u: out_u, v: out_v });
+        }
         for y in roi_rect.y0..roi_rect.y1 {
             for x in roi_rect.x0..roi_rect.x1 {
                 if !prev[[y, x]].is_finite() {
@@ -474,6 +592,90 @@ impl Farneback {
             }
         }
         Ok(Flow { u: out_u, v: out_v })
+    }
+}
+
+impl Farneback {
+    /// Grid flow for level `g` at its start: from the coarser level's grid, from `init`, or 0.
+    fn grid_start(&mut self, g: &LevelGeom, from: Option<LevelGeom>, init: Option<&Flow>) {
+        let s = self.options.grid_stride;
+        let xs = grid::axis(g.dom.width(), s);
+        let ys = grid::axis(g.dom.height(), s);
+        let (nx, ny) = (xs.len(), ys.len());
+        for b in 0..2 {
+            self.u[b].clear();
+            self.u[b].resize(nx * ny, 0.0);
+            self.v[b].clear();
+            self.v[b].resize(nx * ny, 0.0);
+        }
+        if let Some(c) = from {
+            let f = (1.0 / self.params.pyr_scale) as f32;
+            let (rx, ry) = (c.w as f64 / g.w as f64, c.h as f64 / g.h as f64);
+            for (i, &y) in ys.iter().enumerate() {
+                let cy = ((g.dom.y0 + y) as f64 + 0.5) * ry - 0.5 - c.dom.y0 as f64;
+                for (j, &x) in xs.iter().enumerate() {
+                    let cx = ((g.dom.x0 + x) as f64 + 0.5) * rx - 0.5 - c.dom.x0 as f64;
+                    let (pxs, pys) = (&self.prev_grid_xs, &self.prev_grid_ys);
+                    self.u[0][i * nx + j] = grid::sample(&self.prev_u, pxs, pys, cx, cy) * f;
+                    self.v[0][i * nx + j] = grid::sample(&self.prev_v, pxs, pys, cx, cy) * f;
+                }
+            }
+        } else if let Some(fl) = init {
+            let (dw, dh) = (g.dom.width(), g.dom.height());
+            let mut du = vec![0f32; dw * dh];
+            let mut dv = vec![0f32; dw * dh];
+            sample_init(fl, g, &mut du, &mut dv);
+            for (i, &y) in ys.iter().enumerate() {
+                for (j, &x) in xs.iter().enumerate() {
+                    self.u[0][i * nx + j] = du[y * dw + x];
+                    self.v[0][i * nx + j] = dv[y * dw + x];
+                }
+            }
+        }
+        self.grid_xs = xs;
+        self.grid_ys = ys;
+    }
+
+    /// Interpolate the finest level's grid flow onto the ROI's pixels (NaN where a grid node
+    /// with weight is NaN, or `prev` is NaN).
+    fn densify(
+        &self,
+        d0: Rect,
+        roi: Rect,
+        prev: ArrayView2<f32>,
+        out_u: &mut Array2<f32>,
+        out_v: &mut Array2<f32>,
+    ) {
+        let (xs, ys) = (&self.prev_grid_xs, &self.prev_grid_ys);
+        let xt = grid::taps(xs, d0.width());
+        let yt = grid::taps(ys, d0.height());
+        let nx = xs.len();
+        let lerp = |g: &[f32], y: usize, x: usize| -> f32 {
+            let (i0, i1, wy) = yt[y - d0.y0];
+            let (j0, j1, wx) = xt[x - d0.x0];
+            let at = |i: u32, j: u32| g[i as usize * nx + j as usize];
+            let pick = |a: f32, b: f32, t: f32| {
+                if t == 0.0 {
+                    a
+                } else if t == 1.0 {
+                    b
+                } else {
+                    a + t * (b - a)
+                }
+            };
+            let top = pick(at(i0, j0), at(i0, j1), wx);
+            let bot = pick(at(i1, j0), at(i1, j1), wx);
+            pick(top, bot, wy)
+        };
+        for y in roi.y0..roi.y1 {
+            for x in roi.x0..roi.x1 {
+                if !prev[[y, x]].is_finite() {
+                    continue;
+                }
+                out_u[[y, x]] = lerp(&self.prev_u, y, x);
+                out_v[[y, x]] = lerp(&self.prev_v, y, x);
+            }
+        }
     }
 }
 

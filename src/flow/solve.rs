@@ -76,7 +76,7 @@ const LANES: usize = 8;
 /// usual case: flow is smooth) the bilinear taps are contiguous loads and the group is
 /// computed as straight-line lane arithmetic the compiler vectorises.
 #[inline(always)]
-fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut [f32]) {
+pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut [f32]) {
     let (w, h) = (lv.w, lv.h);
     let plane = w * h;
     let gy = lv.y0 + y;

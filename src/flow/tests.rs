@@ -141,3 +141,35 @@ fn bad_input_is_an_error() {
     let f = farneback(a.view(), a.view(), &FarnebackParams::default(), None).expect("flow");
     assert!(f.u.iter().all(|x| x.is_nan()));
 }
+
+/// Grid solver with stride 1 and the constant model reproduces the dense solver away from the
+/// borders (where it truncates windows instead of replicating rows).
+#[test]
+fn grid_constant_stride1_matches_dense_inside() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("warp_next.f32");
+    let p = small_params();
+    let dense = farneback(prev.view(), next.view(), &p, None).expect("flow");
+    let stride: usize = std::env::var("STRIDE").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    let affine = std::env::var("AFFINE").is_ok();
+    let g = Farneback::new(p)
+        .and_then(|f| {
+            f.with_options(FlowOptions {
+                grid_stride: stride,
+                model: if affine { WindowModel::Affine } else { WindowModel::Constant },
+                ..Default::default()
+            })
+        })
+        .expect("solver")
+        .compute(prev.view(), next.view(), None, None)
+        .expect("flow");
+    let mut worst = 0f32;
+    for y in 80..176 {
+        for x in 80..176 {
+            worst = worst.max((g.u[[y, x]] - dense.u[[y, x]]).abs());
+            worst = worst.max((g.v[[y, x]] - dense.v[[y, x]]).abs());
+        }
+    }
+    eprintln!("grid stride 2 vs dense: max {worst}");
+    assert!(worst < 0.02, "max |grid − dense| = {worst} px");
+}
