@@ -1,0 +1,175 @@
+//! Unit tests on the real TRACE crop (fixtures made by tools/make_flow_fixtures.py).
+
+use super::*;
+use ndarray::Array2;
+
+pub(crate) fn load_fixture(name: &str) -> Array2<f32> {
+    let path = format!("{}/tests/data/flow/{name}", env!("CARGO_MANIFEST_DIR"));
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let v: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let n = (v.len() as f64).sqrt() as usize;
+    Array2::from_shape_vec((n, n), v).expect("square fixture")
+}
+
+fn median(mut v: Vec<f32>) -> f32 {
+    v.retain(|x| x.is_finite());
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[v.len() / 2]
+}
+
+fn small_params() -> FarnebackParams {
+    FarnebackParams {
+        levels: 3,
+        winsize: 33,
+        ..Default::default()
+    }
+}
+
+/// Injected translation (+0.30, −0.45) px (scipy spline, tools/make_flow_fixtures.py): the
+/// median flow equals it to 0.01 px.
+#[test]
+fn recovers_subpixel_translation_on_trace() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("shift_next.f32");
+    for gaussian_window in [false, true] {
+        let p = FarnebackParams {
+            gaussian_window,
+            ..small_params()
+        };
+        let f = farneback(prev.view(), next.view(), &p, None).expect("flow");
+        let mu = median(f.u.iter().copied().collect());
+        let mv = median(f.v.iter().copied().collect());
+        assert!(
+            (mu - 0.30).abs() < 0.01 && (mv + 0.45).abs() < 0.01,
+            "gaussian={gaussian_window}: median flow ({mu}, {mv}) vs (0.30, -0.45)"
+        );
+    }
+}
+
+/// The flow does not depend on intensity units: ×1e-3 and ×1e4 give the same field.
+#[test]
+fn flow_is_independent_of_intensity_scale() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("shift_next.f32");
+    let p = small_params();
+    let base = farneback(prev.view(), next.view(), &p, None).expect("flow");
+    for k in [1e-3f32, 1e4] {
+        let (a, b) = (prev.mapv(|x| x * k), next.mapv(|x| x * k));
+        let f = farneback(a.view(), b.view(), &p, None).expect("flow");
+        let worst = f
+            .u
+            .iter()
+            .zip(base.u.iter())
+            .chain(f.v.iter().zip(base.v.iter()))
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-3, "scale {k}: max |Δflow| = {worst} px");
+        let mu = median(f.u.iter().copied().collect());
+        assert!((mu - 0.30).abs() < 0.01, "scale {k}: median u = {mu}");
+    }
+}
+
+/// NaN blocks are missing data: flow elsewhere still recovers the shift, NaN pixels stay NaN.
+#[test]
+fn nan_is_missing_data_not_poison() {
+    let mut prev = load_fixture("prev.f32");
+    let mut next = load_fixture("shift_next.f32");
+    prev.slice_mut(ndarray::s![100..140, 20..90]).fill(f32::NAN);
+    next.slice_mut(ndarray::s![180..256, 180..256]).fill(f32::NAN);
+    let f = farneback(prev.view(), next.view(), &small_params(), None).expect("flow");
+    assert!(f.u[[120, 50]].is_nan());
+    let finite = f.u.iter().filter(|x| x.is_finite()).count();
+    assert!(finite > 256 * 256 * 8 / 10, "only {finite} finite vectors");
+    let mu = median(f.u.iter().copied().collect());
+    let mv = median(f.v.iter().copied().collect());
+    assert!(
+        (mu - 0.30).abs() < 0.01 && (mv + 0.45).abs() < 0.01,
+        "median flow ({mu}, {mv}) vs (0.30, -0.45)"
+    );
+}
+
+/// A ROI computes the same flow as the whole image inside it (to a small tolerance from the
+/// truncated margin) and NaN outside.
+#[test]
+fn roi_matches_whole_image_inside() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("warp_next.f32");
+    let p = small_params();
+    let full = farneback(prev.view(), next.view(), &p, None).expect("flow");
+    let roi = Roi {
+        x: 96,
+        y: 80,
+        width: 64,
+        height: 90,
+    };
+    let part = farneback(prev.view(), next.view(), &p, Some(roi)).expect("flow");
+    assert!(part.u[[10, 10]].is_nan() && part.u[[200, 200]].is_nan());
+    let mut worst = 0f32;
+    for y in roi.y..roi.y + roi.height {
+        for x in roi.x..roi.x + roi.width {
+            worst = worst.max((part.u[[y, x]] - full.u[[y, x]]).abs());
+            worst = worst.max((part.v[[y, x]] - full.v[[y, x]]).abs());
+        }
+    }
+    assert!(worst < 0.01, "max |roi − full| = {worst} px");
+}
+
+#[test]
+fn winsize_from_arcsec_is_odd_and_bounded() {
+    // Paper: 63″ at TRACE's 0.5″/px = 126 px → 127; at AIA's 0.6″/px = 105.
+    assert_eq!(winsize_from_arcsec(63.0, 0.5), 127);
+    assert_eq!(winsize_from_arcsec(63.0, 0.6), 105);
+    assert_eq!(winsize_from_arcsec(63.0, 21.0), MIN_WINSIZE);
+    assert_eq!(winsize_from_arcsec(f64::NAN, 0.5), MIN_WINSIZE);
+    assert_eq!(winsize_from_arcsec(63.0, 0.0), MIN_WINSIZE);
+}
+
+#[test]
+fn bad_input_is_an_error() {
+    let a = Array2::<f32>::zeros((10, 12));
+    let b = Array2::<f32>::zeros((12, 10));
+    assert!(farneback(a.view(), b.view(), &FarnebackParams::default(), None).is_err());
+    let bad = FarnebackParams {
+        pyr_scale: 1.5,
+        ..Default::default()
+    };
+    assert!(farneback(a.view(), a.view(), &bad, None).is_err());
+    // Constant images carry no motion information: all NaN, no panic.
+    let f = farneback(a.view(), a.view(), &FarnebackParams::default(), None).expect("flow");
+    assert!(f.u.iter().all(|x| x.is_nan()));
+}
+
+/// Grid solver with stride 1 and the constant model reproduces the dense solver away from the
+/// borders (where it truncates windows instead of replicating rows).
+#[test]
+fn grid_constant_stride1_matches_dense_inside() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("warp_next.f32");
+    let p = small_params();
+    let dense = farneback(prev.view(), next.view(), &p, None).expect("flow");
+    let stride: usize = std::env::var("STRIDE").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
+    let affine = std::env::var("AFFINE").is_ok();
+    let g = Farneback::new(p)
+        .and_then(|f| {
+            f.with_options(FlowOptions {
+                grid_stride: stride,
+                model: if affine { WindowModel::Affine } else { WindowModel::Constant },
+                ..Default::default()
+            })
+        })
+        .expect("solver")
+        .compute(prev.view(), next.view(), None, None)
+        .expect("flow");
+    let mut worst = 0f32;
+    for y in 80..176 {
+        for x in 80..176 {
+            worst = worst.max((g.u[[y, x]] - dense.u[[y, x]]).abs());
+            worst = worst.max((g.v[[y, x]] - dense.v[[y, x]]).abs());
+        }
+    }
+    eprintln!("grid stride 2 vs dense: max {worst}");
+    assert!(worst < 0.02, "max |grid − dense| = {worst} px");
+}
