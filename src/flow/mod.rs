@@ -94,6 +94,9 @@ pub struct FlowOptions {
     /// Iterations on the finest level (`None`: `FarnebackParams::iterations`). The finest
     /// level starts from the upsampled coarse flow and needs few Gauss–Newton steps.
     pub finest_iterations: Option<usize>,
+    /// Iterations on every coarser level (`None`: `FarnebackParams::iterations`). Coarse levels
+    /// only seed the next one; their flow is refined again below.
+    pub coarse_iterations: Option<usize>,
 }
 
 impl Default for FlowOptions {
@@ -102,6 +105,7 @@ impl Default for FlowOptions {
             model: WindowModel::Constant,
             grid_stride: 1,
             finest_iterations: None,
+            coarse_iterations: None,
         }
     }
 }
@@ -305,9 +309,12 @@ impl Farneback {
 
     /// Use `options` (see [`FlowOptions`]); errors on a zero stride or zero iterations.
     pub fn with_options(mut self, options: FlowOptions) -> Result<Self> {
-        if options.grid_stride == 0 || options.finest_iterations == Some(0) {
+        if options.grid_stride == 0
+            || options.finest_iterations == Some(0)
+            || options.coarse_iterations == Some(0)
+        {
             return Err(Error::Usage(
-                "flow: grid_stride and finest_iterations must be ≥ 1".into(),
+                "flow: grid_stride and iteration counts must be ≥ 1".into(),
             ));
         }
         self.options = options;
@@ -519,8 +526,9 @@ impl Farneback {
                 reg_rel: 1e-9,
                 empty_trace: 1e-9 * t,
             };
-            let iters = match (k, self.options.finest_iterations) {
-                (0, Some(n)) => n,
+            let iters = match (k, self.options.finest_iterations, self.options.coarse_iterations) {
+                (0, Some(n), _) => n,
+                (1.., _, Some(n)) => n,
                 _ => self.params.iterations,
             };
             let (xtaps, ytaps) = if use_grid {
