@@ -22,7 +22,10 @@ use rayon::prelude::*;
 /// Positions of grid nodes along one axis of a domain of `len` pixels: `s/2, s/2 + s, …` plus
 /// the last pixel, so that every pixel is interpolated, never extrapolated.
 pub(crate) fn axis(len: usize, s: usize) -> Vec<usize> {
-    let mut v: Vec<usize> = (0..).map(|j| s / 2 + j * s).take_while(|&p| p < len).collect();
+    let mut v: Vec<usize> = (0..)
+        .map(|j| s / 2 + j * s)
+        .take_while(|&p| p < len)
+        .collect();
     if v.is_empty() {
         v.push(0);
     }
@@ -257,12 +260,7 @@ fn grid_strip(
     let y_first = grid.ys[ia];
     let lo = y_first.saturating_sub(m);
     // Ring holds every row between the oldest still-needed and the newest added.
-    let max_step = grid
-        .ys
-        .windows(2)
-        .map(|p| p[1] - p[0])
-        .max()
-        .unwrap_or(1);
+    let max_step = grid.ys.windows(2).map(|p| p[1] - p[0]).max().unwrap_or(1);
     let slots = 2 * m + 2 + max_step;
     sc.ring.resize(slots * rw, 0.0);
     sc.ring_row.clear();
@@ -442,7 +440,11 @@ fn solve_const(lv: &Level, s: &[f64; 5], norm: f64, last: bool) -> (f32, f32) {
     );
     let tr = g11 + g22;
     if tr <= lv.empty_trace {
-        return if last { (f32::NAN, f32::NAN) } else { (0.0, 0.0) };
+        return if last {
+            (f32::NAN, f32::NAN)
+        } else {
+            (0.0, 0.0)
+        };
     }
     let l = lv.reg_abs + lv.reg_rel * tr;
     let (a, c) = (g11 + l, g22 + l);
@@ -469,7 +471,11 @@ fn solve_affine(
 ) -> (f32, f32) {
     let tr = (g11[0] + g22[0]) * norm;
     if tr <= lv.empty_trace {
-        return if last { (f32::NAN, f32::NAN) } else { (0.0, 0.0) };
+        return if last {
+            (f32::NAN, f32::NAN)
+        } else {
+            (0.0, 0.0)
+        };
     }
     // Moment index of φ_i·φ_j for φ = (1, ξ, η): into [1, ξ, ξ², η, ξη, η²].
     const IDX: [[usize; 3]; 3] = [[0, 1, 3], [1, 2, 4], [3, 4, 5]];

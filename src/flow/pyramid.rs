@@ -118,7 +118,11 @@ pub(crate) fn build_level(
     let ytaps: Vec<Tap> = (dom.y0..dom.y1)
         .map(|d| {
             if lh == src_h {
-                Tap { i0: d, i1: d, w1: 0.0 }
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
             } else {
                 resize_tap(d, src_h, lh)
             }
@@ -127,7 +131,11 @@ pub(crate) fn build_level(
     let xtaps: Vec<Tap> = (dom.x0..dom.x1)
         .map(|d| {
             if lw == src_w {
-                Tap { i0: d, i1: d, w1: 0.0 }
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
             } else {
                 resize_tap(d, src_w, lw)
             }
@@ -179,9 +187,17 @@ pub(crate) fn build_level(
                 }
                 for (d, &cx) in dst.iter_mut().zip(&need_cols) {
                     let mut s = 0f32;
-                    for (t, &kw) in kernel.iter().enumerate() {
-                        let xx = reflect101(cx as isize + t as isize - r as isize, src_w);
-                        s += kw * vrow[xx - vlo];
+                    if cx >= r && cx + r < src_w {
+                        // Interior: contiguous taps, no reflection.
+                        let taps = &vrow[cx - r - vlo..][..kernel.len()];
+                        for (&kw, &v) in kernel.iter().zip(taps) {
+                            s += kw * v;
+                        }
+                    } else {
+                        for (t, &kw) in kernel.iter().enumerate() {
+                            let xx = reflect101(cx as isize + t as isize - r as isize, src_w);
+                            s += kw * vrow[xx - vlo];
+                        }
                     }
                     *d = s;
                 }
@@ -213,7 +229,11 @@ pub(crate) fn build_level(
             for (o, &(c0, c1, wx)) in orow.iter_mut().zip(&col_pos) {
                 let top = a[c0] + wx * (a[c1] - a[c0]);
                 let bot = b[c0] + wx * (b[c1] - b[c0]);
-                *o = if wy == 0.0 { top } else { top + wy * (bot - top) };
+                *o = if wy == 0.0 {
+                    top
+                } else {
+                    top + wy * (bot - top)
+                };
             }
         });
 }

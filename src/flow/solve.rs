@@ -220,7 +220,11 @@ fn solve_row(lv: &Level, sums: &[f64], scale: f64, u: &mut [f32], v: &mut [f32],
         &sums[3 * w..4 * w],
         &sums[4 * w..5 * w],
     );
-    let empty = if last { lv.empty_trace } else { f64::NEG_INFINITY };
+    let empty = if last {
+        lv.empty_trace
+    } else {
+        f64::NEG_INFINITY
+    };
     for x in 0..w {
         let g11 = s0[x] * scale;
         let g12 = s1[x] * scale;

@@ -59,13 +59,12 @@ fn flow_is_independent_of_intensity_scale() {
     for k in [1e-3f32, 1e4] {
         let (a, b) = (prev.mapv(|x| x * k), next.mapv(|x| x * k));
         let f = farneback(a.view(), b.view(), &p, None).expect("flow");
-        let worst = f
-            .u
-            .iter()
-            .zip(base.u.iter())
-            .chain(f.v.iter().zip(base.v.iter()))
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let worst =
+            f.u.iter()
+                .zip(base.u.iter())
+                .chain(f.v.iter().zip(base.v.iter()))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
         assert!(worst < 1e-3, "scale {k}: max |Δflow| = {worst} px");
         let mu = median(f.u.iter().copied().collect());
         assert!((mu - 0.30).abs() < 0.01, "scale {k}: median u = {mu}");
@@ -78,7 +77,8 @@ fn nan_is_missing_data_not_poison() {
     let mut prev = load_fixture("prev.f32");
     let mut next = load_fixture("shift_next.f32");
     prev.slice_mut(ndarray::s![100..140, 20..90]).fill(f32::NAN);
-    next.slice_mut(ndarray::s![180..256, 180..256]).fill(f32::NAN);
+    next.slice_mut(ndarray::s![180..256, 180..256])
+        .fill(f32::NAN);
     let f = farneback(prev.view(), next.view(), &small_params(), None).expect("flow");
     assert!(f.u[[120, 50]].is_nan());
     let finite = f.u.iter().filter(|x| x.is_finite()).count();
@@ -163,11 +163,17 @@ fn affine_window_recovers_rotation_and_scale() {
             .expect("flow")
     };
     // Truth (tools/make_flow_fixtures.py): d(p) = A (p − c) + c + t − p.
-    let a = [[1.0029755575975108, 0.007002204078855437], [-0.007002204078855437, 1.0029755575975108]];
+    let a = [
+        [1.0029755575975108, 0.007002204078855437],
+        [-0.007002204078855437, 1.0029755575975108],
+    ];
     let (c, t) = (127.5, [0.37, -0.61]);
     let truth = |x: f64, y: f64| {
         let (px, py) = (x - c, y - c);
-        (a[0][0] * px + a[0][1] * py + c + t[0] - x, a[1][0] * px + a[1][1] * py + c + t[1] - y)
+        (
+            a[0][0] * px + a[0][1] * py + c + t[0] - x,
+            a[1][0] * px + a[1][1] * py + c + t[1] - y,
+        )
     };
     let fit = |f: &Flow| {
         // Least squares u, v = k0 + k1 (x − c) + k2 (y − c) over pixels ≥ winsize from the edge.
@@ -201,7 +207,13 @@ fn affine_window_recovers_rotation_and_scale() {
     let (sg_c, rg_c, rms_c) = fit(&run(opts(WindowModel::Constant)));
     let (sg_a, rg_a, rms_a) = fit(&run(opts(WindowModel::Affine)));
     eprintln!("constant: gains scale {sg_c:.4} rot {rg_c:.4} rms {rms_c:.4}; affine: {sg_a:.4} {rg_a:.4} {rms_a:.4}");
-    assert!((sg_a - 1.0).abs() < 0.01 && (rg_a - 1.0).abs() < 0.01, "affine gains {sg_a} {rg_a}");
+    assert!(
+        (sg_a - 1.0).abs() < 0.01 && (rg_a - 1.0).abs() < 0.01,
+        "affine gains {sg_a} {rg_a}"
+    );
     assert!(rms_a < 0.025, "affine RMS vs truth {rms_a}");
-    assert!(rg_c < 0.98, "constant window should under-measure rotation here: {rg_c}");
+    assert!(
+        rg_c < 0.98,
+        "constant window should under-measure rotation here: {rg_c}"
+    );
 }
