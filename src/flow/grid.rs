@@ -82,7 +82,6 @@ pub(crate) fn sample(g: &[f32], xs: &[usize], ys: &[usize], x: f64, y: f64) -> f
 pub(crate) struct Grid<'a> {
     pub xs: &'a [usize],
     pub ys: &'a [usize],
-    pub xtaps: &'a [(u32, u32, f32)],
     pub ytaps: &'a [(u32, u32, f32)],
     pub affine: bool,
 }
@@ -197,11 +196,15 @@ pub(crate) fn iterate(
         .zip(scratch.par_iter_mut())
         .zip(u_parts.into_par_iter().zip(v_parts.into_par_iter()))
         .for_each(|((&(ia, ib), sc), (uo, vo))| {
-            grid_strip_mv(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            if grid.affine {
+                grid_strip_affine(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            } else {
+                grid_strip_const(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            }
         });
 }
 
-simd::multiversion!(fn grid_strip_mv(
+simd::multiversion!(fn grid_strip_affine(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
@@ -212,29 +215,52 @@ simd::multiversion!(fn grid_strip_mv(
     v_out: &mut [f32],
     sc: &mut GridScratch,
     last: bool,
-) => grid_strip);
+) => grid_strip::<true>);
 
-/// Interpolate the grid flow onto pixel row `y`.
+simd::multiversion!(fn grid_strip_const(
+    lv: &Level,
+    grid: &Grid,
+    gu: &[f32],
+    gv: &[f32],
+    ia: usize,
+    ib: usize,
+    u_out: &mut [f32],
+    v_out: &mut [f32],
+    sc: &mut GridScratch,
+    last: bool,
+) => grid_strip::<false>);
+
+/// Interpolate the grid flow onto pixel row `y`: vertical blend of the two grid rows, then a
+/// linear ramp across each grid interval (contiguous, vectorisable).
 #[inline(always)]
 fn flow_row(grid: &Grid, gu: &[f32], gv: &[f32], y: usize, u: &mut [f32], v: &mut [f32]) {
     let nx = grid.xs.len();
     let (i0, i1, wy) = grid.ytaps[y];
     let (ua, ub) = (&gu[i0 as usize * nx..][..nx], &gu[i1 as usize * nx..][..nx]);
     let (va, vb) = (&gv[i0 as usize * nx..][..nx], &gv[i1 as usize * nx..][..nx]);
-    for (x, &(j0, j1, wx)) in grid.xtaps.iter().enumerate() {
-        let (j0, j1) = (j0 as usize, j1 as usize);
-        let t = ua[j0] + wx * (ua[j1] - ua[j0]);
-        let b = ub[j0] + wx * (ub[j1] - ub[j0]);
-        u[x] = t + wy * (b - t);
-        let t = va[j0] + wx * (va[j1] - va[j0]);
-        let b = vb[j0] + wx * (vb[j1] - vb[j0]);
-        v[x] = t + wy * (b - t);
+    let node = |a: &[f32], b: &[f32], j: usize| a[j] + wy * (b[j] - a[j]);
+    for j in 0..nx {
+        let (x0, cu, cv) = (grid.xs[j], node(ua, ub, j), node(va, vb, j));
+        if j + 1 == nx {
+            u[x0] = cu;
+            v[x0] = cv;
+            break;
+        }
+        let x1 = grid.xs[j + 1];
+        let inv = 1.0 / (x1 - x0) as f32;
+        let su = (node(ua, ub, j + 1) - cu) * inv;
+        let sv = (node(va, vb, j + 1) - cv) * inv;
+        let (us, vs) = (&mut u[x0..x1], &mut v[x0..x1]);
+        for (k, (uo, vo)) in us.iter_mut().zip(vs.iter_mut()).enumerate() {
+            *uo = cu + su * k as f32;
+            *vo = cv + sv * k as f32;
+        }
     }
 }
 
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn grid_strip(
+fn grid_strip<const AFF: bool>(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
@@ -249,7 +275,8 @@ fn grid_strip(
     let (w, h, m) = (lv.w, lv.h, lv.m);
     let nx = grid.xs.len();
     let rw = 5 * w;
-    let (vch, hch): (&[(usize, usize)], &[(usize, usize)]) = if grid.affine {
+    // Constant tables per model, so the channel loops unroll with fixed indices.
+    let (vch, hch): (&[(usize, usize)], &[(usize, usize)]) = if AFF {
         (&VCH_AFFINE, &HCH_AFFINE)
     } else {
         (&VCH_CONST, &HCH_CONST)
@@ -273,7 +300,7 @@ fn grid_strip(
     sc.pre.resize(nh * (w + 1), 0.0);
 
     let apply = |sc: &mut GridScratch, y: usize, sign: f64| {
-        apply_row(lv, grid, gu, gv, sc, y, sign, lo, slots, vch)
+        apply_row::<AFF>(lv, grid, gu, gv, sc, y, sign, lo, slots)
     };
 
     let norm = 1.0 / ((2 * m + 1) * (2 * m + 1)) as f64;
@@ -293,54 +320,51 @@ fn grid_strip(
             apply(sc, top, -1.0);
             top += 1;
         }
-        // Centre the vertical moments on yc.
+        // Centre the vertical moments on yc, stored pixel-major (`cm[x·nv + k]`) so that the
+        // prefix pass below updates all channels of a pixel together (independent chains).
         let c = yc as f64 - lo as f64;
         for (k, &(_, ord)) in vch.iter().enumerate() {
+            let s0 = &sc.vs[k.saturating_sub(ord) * w..][..w];
             match ord {
                 0 => {
-                    let (src, dst) = (&sc.vs[k * w..][..w], &mut sc.cm[k * w..][..w]);
-                    dst.copy_from_slice(src);
+                    for x in 0..w {
+                        sc.cm[x * nv + k] = s0[x];
+                    }
                 }
                 1 => {
+                    let s1 = &sc.vs[k * w..][..w];
                     for x in 0..w {
-                        sc.cm[k * w + x] = sc.vs[k * w + x] - c * sc.vs[(k - 1) * w + x];
+                        sc.cm[x * nv + k] = s1[x] - c * s0[x];
                     }
                 }
                 _ => {
+                    let s1 = &sc.vs[(k - 1) * w..][..w];
+                    let s2 = &sc.vs[k * w..][..w];
                     for x in 0..w {
-                        let (s0, s1, s2) = (
-                            sc.vs[(k - 2) * w + x],
-                            sc.vs[(k - 1) * w + x],
-                            sc.vs[k * w + x],
-                        );
-                        sc.cm[k * w + x] = s2 - 2.0 * c * s1 + c * c * s0;
+                        sc.cm[x * nv + k] = s2[x] - 2.0 * c * s1[x] + c * c * s0[x];
                     }
                 }
             }
         }
-        // Prefix sums along the row of cm·X^order.
-        for (k, &(vk, ord)) in hch.iter().enumerate() {
-            let src = &sc.cm[vk * w..][..w];
-            let dst = &mut sc.pre[k * (w + 1)..][..w + 1];
-            dst[0] = 0.0;
-            let mut acc = 0f64;
-            match ord {
-                0 => {
-                    for x in 0..w {
-                        acc += src[x];
-                        dst[x + 1] = acc;
+        // Prefix sums along the row of cm·X^order, pixel-major (`pre[x·nh + k]`).
+        {
+            let mut acc = [0f64; 24];
+            let acc = &mut acc[..nh];
+            sc.pre[..nh].iter_mut().for_each(|p| *p = 0.0);
+            for x in 0..w {
+                let xf = x as f64;
+                let pw = [1.0, xf, xf * xf];
+                let src = &sc.cm[x * nv..][..nv];
+                let dst = &mut sc.pre[(x + 1) * nh..][..nh];
+                if AFF {
+                    for (k, &(vk, ord)) in HCH_AFFINE.iter().enumerate() {
+                        acc[k] += src[vk] * pw[ord];
+                        dst[k] = acc[k];
                     }
-                }
-                1 => {
-                    for x in 0..w {
-                        acc += src[x] * x as f64;
-                        dst[x + 1] = acc;
-                    }
-                }
-                _ => {
-                    for x in 0..w {
-                        acc += src[x] * (x * x) as f64;
-                        dst[x + 1] = acc;
+                } else {
+                    for (k, &(vk, ord)) in HCH_CONST.iter().enumerate() {
+                        acc[k] += src[vk] * pw[ord];
+                        dst[k] = acc[k];
                     }
                 }
             }
@@ -352,8 +376,8 @@ fn grid_strip(
             let r = (xc + m + 1).min(w);
             let xf = xc as f64;
             // Window sum of prefix channel k, centred in ξ up to the channel's order.
-            let ws = |k: usize| sc.pre[k * (w + 1) + r] - sc.pre[k * (w + 1) + l];
-            let (uu, vv) = if grid.affine {
+            let ws = |k: usize| sc.pre[r * nh + k] - sc.pre[l * nh + k];
+            let (uu, vv) = if AFF {
                 // Per matrix channel: [ξ⁰η⁰, ξ¹η⁰, ξ²η⁰, ξ⁰η¹, ξ¹η¹, ξ⁰η²] (centred).
                 let mom = |base: usize| -> [f64; 6] {
                     let (a0, a1, a2) = (ws(base), ws(base + 1), ws(base + 2));
@@ -391,7 +415,7 @@ fn grid_strip(
 /// Add (sign +1) or remove (−1) pixel row `y` to the vertical moment sums.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn apply_row(
+fn apply_row<const AFF: bool>(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
@@ -401,8 +425,8 @@ fn apply_row(
     sign: f64,
     lo: usize,
     slots: usize,
-    vch: &[(usize, usize)],
 ) {
+    let vch: &[(usize, usize)] = if AFF { &VCH_AFFINE } else { &VCH_CONST };
     let w = lv.w;
     let rw = 5 * w;
     let slot = y % slots;

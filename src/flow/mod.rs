@@ -201,6 +201,8 @@ pub struct Farneback {
     prev_grid_ys: Vec<usize>,
     poly: poly::PolyKernel,
     gauss: Option<Vec<f32>>,
+    norm0: Vec<f32>,
+    norm1: Vec<f32>,
     img0: Vec<f32>,
     img1: Vec<f32>,
     rows_buf: Vec<f32>,
@@ -304,6 +306,8 @@ impl Farneback {
             prev_grid_ys: Vec::new(),
             poly,
             gauss,
+            norm0: Vec::new(),
+            norm1: Vec::new(),
             img0: Vec::new(),
             img1: Vec::new(),
             rows_buf: Vec::new(),
@@ -457,6 +461,8 @@ impl Farneback {
             return Ok(Flow { u: out_u, v: out_v });
         };
         let (offset, gain) = (mean as f32, (1.0 / sd) as f32);
+        normalise(prev, offset, gain, &mut self.norm0);
+        normalise(next, offset, gain, &mut self.norm1);
 
         let m = self.params.winsize / 2;
         let use_grid = self.options.uses_grid();
@@ -465,9 +471,9 @@ impl Farneback {
             let dom = g.dom;
             let (dh, dw) = (dom.height(), dom.width());
             pyramid::build_level(
-                prev,
-                offset,
-                gain,
+                &self.norm0,
+                h,
+                w,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -475,9 +481,9 @@ impl Farneback {
                 &mut self.rows_buf,
             );
             pyramid::build_level(
-                next,
-                offset,
-                gain,
+                &self.norm1,
+                h,
+                w,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -549,15 +555,14 @@ impl Farneback {
                 (1.., _, Some(n)) => n,
                 _ => self.params.iterations,
             };
-            let (xtaps, ytaps) = if use_grid {
-                (grid::taps(&self.grid_xs, dw), grid::taps(&self.grid_ys, dh))
+            let ytaps = if use_grid {
+                grid::taps(&self.grid_ys, dh)
             } else {
-                (Vec::new(), Vec::new())
+                Vec::new()
             };
             let gr = grid::Grid {
                 xs: &self.grid_xs,
                 ys: &self.grid_ys,
-                xtaps: &xtaps,
                 ytaps: &ytaps,
                 affine: self.options.model == WindowModel::Affine,
             };
@@ -700,6 +705,20 @@ impl Farneback {
             }
         }
     }
+}
+
+/// `(v − offset)·gain` of every pixel, row-major (NaN stays NaN): pyramid input in units
+/// where f32 keeps full precision whatever the data's offset and scale.
+fn normalise(img: ArrayView2<f32>, offset: f32, gain: f32, out: &mut Vec<f32>) {
+    use rayon::prelude::*;
+    let (h, w) = img.dim();
+    out.clear();
+    out.resize(h * w, 0.0);
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (o, &v) in row.iter_mut().zip(img.row(y).iter()) {
+            *o = (v - offset) * gain;
+        }
+    });
 }
 
 /// Bilinear upsampling of the coarser level's flow into this level's domain (OpenCV's
