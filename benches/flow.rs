@@ -10,7 +10,7 @@
 //! Parameters: the paper's (levels 5, winsize 101, iterations 10, poly_n 5, poly_sigma 1.1,
 //! pyr_scale 0.5, box window), 1 and 2 rayon threads. Cases:
 //! - `opencv_semantics_N`: OpenCV's algorithm (what tools/bench_opencv_flow.py times);
-//! - `affine_grid_N`: `FlowOptions::affine_grid` (unbiased affine window, grid stride 6,
+//! - `affine_grid_N`: `FlowOptions::affine_grid` (unbiased affine window, grid stride 12,
 //!   3 coarse / 2 finest iterations), whole frame;
 //! - `affine_grid_disk_roi_N`: the same inside a full-disk mask's bounding box (0.49 of the
 //!   frame's area, see `disk_roi`), as the engine runs it.
