@@ -19,11 +19,14 @@ use super::simd;
 use super::solve::{matrices_row, Level};
 use rayon::prelude::*;
 
-/// Positions of grid nodes along one axis of a domain of `len` pixels: `s/2, s/2 + s, …` plus
-/// the last pixel, so that every pixel is interpolated, never extrapolated.
-pub(crate) fn axis(len: usize, s: usize) -> Vec<usize> {
+/// Positions of grid nodes along one axis of a domain of `len` pixels starting at level pixel
+/// `origin`: the level pixels `s/2 + j·s` (the same nodes whatever the domain, so a ROI run
+/// matches a whole-image run) plus the domain's first and last pixels, so that every pixel is
+/// interpolated, never extrapolated.
+pub(crate) fn axis(origin: usize, len: usize, s: usize) -> Vec<usize> {
+    let first = (s / 2 + s - origin % s) % s;
     let mut v: Vec<usize> = (0..)
-        .map(|j| s / 2 + j * s)
+        .map(|j| first + j * s)
         .take_while(|&p| p < len)
         .collect();
     if v.is_empty() {
@@ -236,7 +239,14 @@ simd::multiversion!(fn grid_strip_const(
 /// Interpolate the grid flow onto pixel row `y`: vertical blend of the two grid rows, then a
 /// linear ramp across each grid interval (contiguous, vectorisable).
 #[inline(always)]
-fn flow_row(grid: &Grid, gu: &[f32], gv: &[f32], y: usize, u: &mut [f32], v: &mut [f32]) {
+pub(crate) fn flow_row(
+    grid: &Grid,
+    gu: &[f32],
+    gv: &[f32],
+    y: usize,
+    u: &mut [f32],
+    v: &mut [f32],
+) {
     let nx = grid.xs.len();
     let (i0, i1, wy) = grid.ytaps[y];
     let (ua, ub) = (&gu[i0 as usize * nx..][..nx], &gu[i1 as usize * nx..][..nx]);
@@ -581,9 +591,10 @@ mod tests {
 
     #[test]
     fn axis_covers_every_pixel() {
-        assert_eq!(axis(10, 4), vec![0, 2, 6, 9]);
-        assert_eq!(axis(5, 1), vec![0, 1, 2, 3, 4]);
-        let t = taps(&axis(10, 4), 10);
+        assert_eq!(axis(0, 10, 4), vec![0, 2, 6, 9]);
+        assert_eq!(axis(3, 10, 4), vec![0, 3, 7, 9]);
+        assert_eq!(axis(7, 5, 1), vec![0, 1, 2, 3, 4]);
+        let t = taps(&axis(0, 10, 4), 10);
         assert_eq!(t[4], (1, 2, 0.5));
         assert_eq!(t[9], (3, 3, 0.0));
     }

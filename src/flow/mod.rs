@@ -627,8 +627,8 @@ impl Farneback {
     /// Grid flow for level `g` at its start: from the coarser level's grid, from `init`, or 0.
     fn grid_start(&mut self, g: &LevelGeom, from: Option<LevelGeom>, init: Option<&Flow>) {
         let s = self.options.grid_stride;
-        let xs = grid::axis(g.dom.width(), s);
-        let ys = grid::axis(g.dom.height(), s);
+        let xs = grid::axis(g.dom.x0, g.dom.width(), s);
+        let ys = grid::axis(g.dom.y0, g.dom.height(), s);
         let (nx, ny) = (xs.len(), ys.len());
         for b in 0..2 {
             self.u[b].clear();
@@ -664,8 +664,8 @@ impl Farneback {
         self.grid_ys = ys;
     }
 
-    /// Interpolate the finest level's grid flow onto the ROI's pixels (NaN where a grid node
-    /// with weight is NaN, or `prev` is NaN).
+    /// Interpolate the finest level's grid flow onto the ROI's pixels (NaN next to a NaN grid
+    /// node, and where `prev` is NaN).
     fn densify(
         &self,
         d0: Rect,
@@ -674,36 +674,36 @@ impl Farneback {
         out_u: &mut Array2<f32>,
         out_v: &mut Array2<f32>,
     ) {
+        use rayon::prelude::*;
         let (xs, ys) = (&self.prev_grid_xs, &self.prev_grid_ys);
-        let xt = grid::taps(xs, d0.width());
-        let yt = grid::taps(ys, d0.height());
-        let nx = xs.len();
-        let lerp = |g: &[f32], y: usize, x: usize| -> f32 {
-            let (i0, i1, wy) = yt[y - d0.y0];
-            let (j0, j1, wx) = xt[x - d0.x0];
-            let at = |i: u32, j: u32| g[i as usize * nx + j as usize];
-            let pick = |a: f32, b: f32, t: f32| {
-                if t == 0.0 {
-                    a
-                } else if t == 1.0 {
-                    b
-                } else {
-                    a + t * (b - a)
-                }
-            };
-            let top = pick(at(i0, j0), at(i0, j1), wx);
-            let bot = pick(at(i1, j0), at(i1, j1), wx);
-            pick(top, bot, wy)
+        let ytaps = grid::taps(ys, d0.height());
+        let gr = grid::Grid {
+            xs,
+            ys,
+            ytaps: &ytaps,
+            affine: false,
         };
-        for y in roi.y0..roi.y1 {
-            for x in roi.x0..roi.x1 {
-                if !prev[[y, x]].is_finite() {
-                    continue;
-                }
-                out_u[[y, x]] = lerp(&self.prev_u, y, x);
-                out_v[[y, x]] = lerp(&self.prev_v, y, x);
-            }
-        }
+        let (gu, gv) = (&self.prev_u, &self.prev_v);
+        let dw = d0.width();
+        out_u
+            .axis_iter_mut(ndarray::Axis(0))
+            .into_par_iter()
+            .zip(out_v.axis_iter_mut(ndarray::Axis(0)).into_par_iter())
+            .enumerate()
+            .filter(|(y, _)| (roi.y0..roi.y1).contains(y))
+            .for_each_init(
+                || (vec![0f32; dw], vec![0f32; dw]),
+                |(ru, rv), (y, (mut ou, mut ov))| {
+                    grid::flow_row(&gr, gu, gv, y - d0.y0, ru, rv);
+                    let p = prev.row(y);
+                    for x in roi.x0..roi.x1 {
+                        if p[x].is_finite() {
+                            ou[x] = ru[x - d0.x0];
+                            ov[x] = rv[x - d0.x0];
+                        }
+                    }
+                },
+            );
     }
 }
 
