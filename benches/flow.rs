@@ -8,13 +8,18 @@
 //! (pixel-centre aligned), `next` = the same sampled at (x − 0.37, y + 0.61), i.e. moved by
 //! (+0.37, −0.61) px — both made by the formula in `make_pair`, mirrored in the Python script.
 //! Parameters: the paper's (levels 5, winsize 101, iterations 10, poly_n 5, poly_sigma 1.1,
-//! pyr_scale 0.5, box window), 1 and 2 rayon threads.
+//! pyr_scale 0.5, box window), 1 and 2 rayon threads. Cases:
+//! - `opencv_semantics_N`: OpenCV's algorithm (what tools/bench_opencv_flow.py times);
+//! - `affine_grid_N`: `FlowOptions::affine_grid` (unbiased affine window, grid stride 12,
+//!   3 coarse / 2 finest iterations), whole frame;
+//! - `affine_grid_disk_roi_N`: the same inside a full-disk mask's bounding box (0.49 of the
+//!   frame's area, see `disk_roi`), as the engine runs it.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use fitsio::FitsFile;
 use ndarray::Array2;
 use std::hint::black_box;
-use sunjitter::flow::{Farneback, FarnebackParams};
+use sunjitter::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
 
 const SHIFT: (f64, f64) = (0.37, -0.61);
 
@@ -47,37 +52,87 @@ pub fn make_pair(src: &Array2<f32>, n: usize) -> (Array2<f32>, Array2<f32>) {
     let r = src.dim().0 as f64 / n as f64;
     let at = |x: f64, y: f64| bilinear(src, (x + 0.5) * r - 0.5, (y + 0.5) * r - 0.5);
     let prev = Array2::from_shape_fn((n, n), |(y, x)| at(x as f64, y as f64));
-    let next = Array2::from_shape_fn((n, n), |(y, x)| {
-        at(x as f64 - SHIFT.0, y as f64 - SHIFT.1)
-    });
+    let next = Array2::from_shape_fn((n, n), |(y, x)| at(x as f64 - SHIFT.0, y as f64 - SHIFT.1));
     (prev, next)
+}
+
+/// The bounding box of a full-disk mask: AIA's disk radius is ≈ 0.39 of the frame width
+/// (1600 of 4096 px), the engine's mask keeps 0.9 of it → box side 0.70·n, 0.49 of the area.
+fn disk_roi(n: usize) -> Roi {
+    let r = (0.9 * 0.39 * n as f64).ceil() as usize;
+    let c = n / 2;
+    Roi {
+        x: c - r,
+        y: c - r,
+        width: 2 * r,
+        height: 2 * r,
+    }
+}
+
+fn run(
+    c: &mut Criterion,
+    name: &str,
+    pair: &(Array2<f32>, Array2<f32>),
+    options: FlowOptions,
+    roi: Option<Roi>,
+    threads: usize,
+) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool");
+    let mut solver = Farneback::new(FarnebackParams::default())
+        .and_then(|f| f.with_options(options))
+        .expect("params");
+    let mut group = c.benchmark_group(name);
+    group.sample_size(10);
+    group.bench_function(format!("{threads}_threads"), |b| {
+        b.iter(|| {
+            pool.install(|| {
+                black_box(
+                    solver
+                        .compute(pair.0.view(), pair.1.view(), roi, None)
+                        .expect("flow"),
+                )
+            })
+        })
+    });
+    group.finish();
 }
 
 fn bench(c: &mut Criterion) {
     let src = trace();
-    let params = FarnebackParams::default();
-    for n in [1024usize, 2048] {
-        let (prev, next) = make_pair(&src, n);
+    let fast = FlowOptions::affine_grid(FarnebackParams::default().winsize);
+    for n in [1024usize, 2048, 4096] {
+        let pair = make_pair(&src, n);
         for threads in [1usize, 2] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("thread pool");
-            let mut solver = Farneback::new(params.clone()).expect("params");
-            let mut group = c.benchmark_group(format!("farneback_{n}"));
-            group.sample_size(10);
-            group.bench_function(format!("{threads}_threads"), |b| {
-                b.iter(|| {
-                    pool.install(|| {
-                        black_box(
-                            solver
-                                .compute(prev.view(), next.view(), None, None)
-                                .expect("flow"),
-                        )
-                    })
-                })
-            });
-            group.finish();
+            if n <= 2048 {
+                // OpenCV's algorithm (dense, constant window, 10 iterations on every level).
+                run(
+                    c,
+                    &format!("opencv_semantics_{n}"),
+                    &pair,
+                    FlowOptions::default(),
+                    None,
+                    threads,
+                );
+            }
+            run(
+                c,
+                &format!("affine_grid_{n}"),
+                &pair,
+                fast.clone(),
+                None,
+                threads,
+            );
+            run(
+                c,
+                &format!("affine_grid_disk_roi_{n}"),
+                &pair,
+                fast.clone(),
+                Some(disk_roi(n)),
+                threads,
+            );
         }
     }
 }

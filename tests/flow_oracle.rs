@@ -59,7 +59,10 @@ fn compare(gaussian_window: bool) -> Figures {
     let prev = load("prev.f32");
     let next = load("warp_next.f32");
     let tag = if gaussian_window { "gauss" } else { "box" };
-    let (cu, cv) = (load(&format!("cv_{tag}_u.f32")), load(&format!("cv_{tag}_v.f32")));
+    let (cu, cv) = (
+        load(&format!("cv_{tag}_u.f32")),
+        load(&format!("cv_{tag}_v.f32")),
+    );
     let f = farneback(prev.view(), next.view(), &params(gaussian_window), None).expect("flow");
     let m = params(gaussian_window).winsize;
     let (mut s_cv, mut s_t, mut s_ct, mut worst, mut n) = (0.0, 0.0, 0.0, 0f64, 0.0);
@@ -94,12 +97,20 @@ fn compare(gaussian_window: bool) -> Figures {
 fn box_window_agrees_with_opencv_and_truth() {
     let f = compare(false);
     assert!(f.rms_vs_opencv < 0.005, "RMS vs OpenCV {}", f.rms_vs_opencv);
-    assert!(f.rms_ours_vs_truth < 0.07, "RMS vs truth {}", f.rms_ours_vs_truth);
+    assert!(
+        f.rms_ours_vs_truth < 0.07,
+        "RMS vs truth {}",
+        f.rms_ours_vs_truth
+    );
 }
 
 #[test]
 fn gaussian_window_agrees_with_opencv_and_truth() {
     let f = compare(true);
     assert!(f.rms_vs_opencv < 0.005, "RMS vs OpenCV {}", f.rms_vs_opencv);
-    assert!(f.rms_ours_vs_truth < 0.05, "RMS vs truth {}", f.rms_ours_vs_truth);
+    assert!(
+        f.rms_ours_vs_truth < 0.05,
+        "RMS vs truth {}",
+        f.rms_ours_vs_truth
+    );
 }

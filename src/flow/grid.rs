@@ -19,10 +19,16 @@ use super::simd;
 use super::solve::{matrices_row, Level};
 use rayon::prelude::*;
 
-/// Positions of grid nodes along one axis of a domain of `len` pixels: `s/2, s/2 + s, …` plus
-/// the last pixel, so that every pixel is interpolated, never extrapolated.
-pub(crate) fn axis(len: usize, s: usize) -> Vec<usize> {
-    let mut v: Vec<usize> = (0..).map(|j| s / 2 + j * s).take_while(|&p| p < len).collect();
+/// Positions of grid nodes along one axis of a domain of `len` pixels starting at level pixel
+/// `origin`: the level pixels `s/2 + j·s` (the same nodes whatever the domain, so a ROI run
+/// matches a whole-image run) plus the domain's first and last pixels, so that every pixel is
+/// interpolated, never extrapolated.
+pub(crate) fn axis(origin: usize, len: usize, s: usize) -> Vec<usize> {
+    let first = (s / 2 + s - origin % s) % s;
+    let mut v: Vec<usize> = (0..)
+        .map(|j| first + j * s)
+        .take_while(|&p| p < len)
+        .collect();
     if v.is_empty() {
         v.push(0);
     }
@@ -79,15 +85,17 @@ pub(crate) fn sample(g: &[f32], xs: &[usize], ys: &[usize], x: f64, y: f64) -> f
 pub(crate) struct Grid<'a> {
     pub xs: &'a [usize],
     pub ys: &'a [usize],
-    pub xtaps: &'a [(u32, u32, f32)],
     pub ytaps: &'a [(u32, u32, f32)],
     pub affine: bool,
 }
 
 #[derive(Default)]
 pub(crate) struct GridScratch {
+    /// One row of normal matrices (5 planes).
     ring: Vec<f32>,
-    ring_row: Vec<usize>,
+    /// Cumulative vertical moment sums down the strip, and snapshots at window tops.
+    cum: Vec<f64>,
+    snaps: Vec<f64>,
     /// Vertical moment sums, channel-major (`nch` planes of `w`).
     vs: Vec<f64>,
     /// Centred vertical moments at the current grid row.
@@ -194,11 +202,15 @@ pub(crate) fn iterate(
         .zip(scratch.par_iter_mut())
         .zip(u_parts.into_par_iter().zip(v_parts.into_par_iter()))
         .for_each(|((&(ia, ib), sc), (uo, vo))| {
-            grid_strip_mv(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            if grid.affine {
+                grid_strip_affine(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            } else {
+                grid_strip_const(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+            }
         });
 }
 
-simd::multiversion!(fn grid_strip_mv(
+simd::multiversion!(fn grid_strip_affine(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
@@ -209,29 +221,59 @@ simd::multiversion!(fn grid_strip_mv(
     v_out: &mut [f32],
     sc: &mut GridScratch,
     last: bool,
-) => grid_strip);
+) => grid_strip::<true>);
 
-/// Interpolate the grid flow onto pixel row `y`.
+simd::multiversion!(fn grid_strip_const(
+    lv: &Level,
+    grid: &Grid,
+    gu: &[f32],
+    gv: &[f32],
+    ia: usize,
+    ib: usize,
+    u_out: &mut [f32],
+    v_out: &mut [f32],
+    sc: &mut GridScratch,
+    last: bool,
+) => grid_strip::<false>);
+
+/// Interpolate the grid flow onto pixel row `y`: vertical blend of the two grid rows, then a
+/// linear ramp across each grid interval (contiguous, vectorisable).
 #[inline(always)]
-fn flow_row(grid: &Grid, gu: &[f32], gv: &[f32], y: usize, u: &mut [f32], v: &mut [f32]) {
+pub(crate) fn flow_row(
+    grid: &Grid,
+    gu: &[f32],
+    gv: &[f32],
+    y: usize,
+    u: &mut [f32],
+    v: &mut [f32],
+) {
     let nx = grid.xs.len();
     let (i0, i1, wy) = grid.ytaps[y];
     let (ua, ub) = (&gu[i0 as usize * nx..][..nx], &gu[i1 as usize * nx..][..nx]);
     let (va, vb) = (&gv[i0 as usize * nx..][..nx], &gv[i1 as usize * nx..][..nx]);
-    for (x, &(j0, j1, wx)) in grid.xtaps.iter().enumerate() {
-        let (j0, j1) = (j0 as usize, j1 as usize);
-        let t = ua[j0] + wx * (ua[j1] - ua[j0]);
-        let b = ub[j0] + wx * (ub[j1] - ub[j0]);
-        u[x] = t + wy * (b - t);
-        let t = va[j0] + wx * (va[j1] - va[j0]);
-        let b = vb[j0] + wx * (vb[j1] - vb[j0]);
-        v[x] = t + wy * (b - t);
+    let node = |a: &[f32], b: &[f32], j: usize| a[j] + wy * (b[j] - a[j]);
+    for j in 0..nx {
+        let (x0, cu, cv) = (grid.xs[j], node(ua, ub, j), node(va, vb, j));
+        if j + 1 == nx {
+            u[x0] = cu;
+            v[x0] = cv;
+            break;
+        }
+        let x1 = grid.xs[j + 1];
+        let inv = 1.0 / (x1 - x0) as f32;
+        let su = (node(ua, ub, j + 1) - cu) * inv;
+        let sv = (node(va, vb, j + 1) - cv) * inv;
+        let (us, vs) = (&mut u[x0..x1], &mut v[x0..x1]);
+        for (k, (uo, vo)) in us.iter_mut().zip(vs.iter_mut()).enumerate() {
+            *uo = cu + su * k as f32;
+            *vo = cv + sv * k as f32;
+        }
     }
 }
 
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn grid_strip(
+fn grid_strip<const AFF: bool>(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
@@ -246,184 +288,180 @@ fn grid_strip(
     let (w, h, m) = (lv.w, lv.h, lv.m);
     let nx = grid.xs.len();
     let rw = 5 * w;
-    let (vch, hch): (&[(usize, usize)], &[(usize, usize)]) = if grid.affine {
+    // Constant tables per model, so the channel loops unroll with fixed indices.
+    let (vch, hch): (&[(usize, usize)], &[(usize, usize)]) = if AFF {
         (&VCH_AFFINE, &HCH_AFFINE)
     } else {
         (&VCH_CONST, &HCH_CONST)
     };
     let nv = vch.len();
     let nh = hch.len();
-    // Rows covered: first grid row's window top to last grid row's window bottom.
-    let y_first = grid.ys[ia];
-    let lo = y_first.saturating_sub(m);
-    // Ring holds every row between the oldest still-needed and the newest added.
-    let max_step = grid
-        .ys
-        .windows(2)
-        .map(|p| p[1] - p[0])
-        .max()
-        .unwrap_or(1);
-    let slots = 2 * m + 2 + max_step;
-    sc.ring.resize(slots * rw, 0.0);
-    sc.ring_row.clear();
-    sc.ring_row.resize(slots, usize::MAX);
+    // Vertical window sums come from cumulative sums down the strip: every matrix row is
+    // computed and added once; the cumulative sums are snapshotted at each grid row's window
+    // top and subtracted at its bottom (f64: the cancellation costs a few digits of 16).
+    let top_of = |i: usize| grid.ys[i].saturating_sub(m);
+    let bot_of = |i: usize| (grid.ys[i] + m).min(h - 1);
+    let lo = top_of(ia);
+    // Most windows open at once (snapshots pending).
+    let mut pending = 1;
+    {
+        let mut j = ia;
+        for i in ia..ib {
+            while j < ib && top_of(j) <= bot_of(i) {
+                j += 1;
+            }
+            pending = pending.max(j - i);
+        }
+    }
+    sc.ring.resize(rw, 0.0);
     sc.urow.resize(w, 0.0);
     sc.vrow.resize(w, 0.0);
-    sc.vs.clear();
+    sc.cum.clear();
+    sc.cum.resize(nv * w, 0.0);
+    sc.snaps.resize(pending * nv * w, 0.0);
     sc.vs.resize(nv * w, 0.0);
     sc.cm.resize(nv * w, 0.0);
     sc.pre.resize(nh * (w + 1), 0.0);
 
-    let apply = |sc: &mut GridScratch, y: usize, sign: f64| {
-        apply_row(lv, grid, gu, gv, sc, y, sign, lo, slots, vch)
-    };
-
     let norm = 1.0 / ((2 * m + 1) * (2 * m + 1)) as f64;
     let sig2 = (m * (m + 1)) as f64 / 3.0;
-    // Window rows currently summed: [top, bot] (inclusive), empty at start.
-    let (mut top, mut bot): (usize, isize) = (lo, lo as isize - 1);
-    for i in ia..ib {
-        let yc = grid.ys[i];
-        let want_top = yc.saturating_sub(m);
-        let want_bot = (yc + m).min(h - 1);
-        // Add new rows first (the ring keeps the ones to remove).
-        while bot < want_bot as isize {
-            bot += 1;
-            apply(sc, bot as usize, 1.0);
+    let (mut next_top, mut next_bot) = (ia, ia);
+    let last_bot = bot_of(ib - 1);
+    for y in lo..=last_bot {
+        while next_top < ib && top_of(next_top) == y {
+            let slot = next_top % pending;
+            sc.snaps[slot * nv * w..][..nv * w].copy_from_slice(&sc.cum);
+            next_top += 1;
         }
-        while top < want_top {
-            apply(sc, top, -1.0);
-            top += 1;
-        }
-        // Centre the vertical moments on yc.
-        let c = yc as f64 - lo as f64;
-        for (k, &(_, ord)) in vch.iter().enumerate() {
-            match ord {
-                0 => {
-                    let (src, dst) = (&sc.vs[k * w..][..w], &mut sc.cm[k * w..][..w]);
-                    dst.copy_from_slice(src);
+        add_row::<AFF>(lv, grid, gu, gv, sc, y, lo);
+        while next_bot < ib && bot_of(next_bot) == y {
+            let i = next_bot;
+            next_bot += 1;
+            {
+                let slot = i % pending;
+                let snap = &sc.snaps[slot * nv * w..][..nv * w];
+                for ((d, &c), &p) in sc.vs.iter_mut().zip(&sc.cum).zip(snap) {
+                    *d = c - p;
                 }
-                1 => {
-                    for x in 0..w {
-                        sc.cm[k * w + x] = sc.vs[k * w + x] - c * sc.vs[(k - 1) * w + x];
+            }
+            let yc = grid.ys[i];
+            // Centre the vertical moments on yc, stored pixel-major (`cm[x·nv + k]`) so that the
+            // prefix pass below updates all channels of a pixel together (independent chains).
+            let c = yc as f64 - lo as f64;
+            for (k, &(_, ord)) in vch.iter().enumerate() {
+                let s0 = &sc.vs[k.saturating_sub(ord) * w..][..w];
+                match ord {
+                    0 => {
+                        for x in 0..w {
+                            sc.cm[x * nv + k] = s0[x];
+                        }
                     }
-                }
-                _ => {
-                    for x in 0..w {
-                        let (s0, s1, s2) = (
-                            sc.vs[(k - 2) * w + x],
-                            sc.vs[(k - 1) * w + x],
-                            sc.vs[k * w + x],
-                        );
-                        sc.cm[k * w + x] = s2 - 2.0 * c * s1 + c * c * s0;
+                    1 => {
+                        let s1 = &sc.vs[k * w..][..w];
+                        for x in 0..w {
+                            sc.cm[x * nv + k] = s1[x] - c * s0[x];
+                        }
+                    }
+                    _ => {
+                        let s1 = &sc.vs[(k - 1) * w..][..w];
+                        let s2 = &sc.vs[k * w..][..w];
+                        for x in 0..w {
+                            sc.cm[x * nv + k] = s2[x] - 2.0 * c * s1[x] + c * c * s0[x];
+                        }
                     }
                 }
             }
-        }
-        // Prefix sums along the row of cm·X^order.
-        for (k, &(vk, ord)) in hch.iter().enumerate() {
-            let src = &sc.cm[vk * w..][..w];
-            let dst = &mut sc.pre[k * (w + 1)..][..w + 1];
-            dst[0] = 0.0;
-            let mut acc = 0f64;
-            match ord {
-                0 => {
-                    for x in 0..w {
-                        acc += src[x];
-                        dst[x + 1] = acc;
-                    }
-                }
-                1 => {
-                    for x in 0..w {
-                        acc += src[x] * x as f64;
-                        dst[x + 1] = acc;
-                    }
-                }
-                _ => {
-                    for x in 0..w {
-                        acc += src[x] * (x * x) as f64;
-                        dst[x + 1] = acc;
+            // Prefix sums along the row of cm·X^order, pixel-major (`pre[x·nh + k]`).
+            {
+                let mut acc = [0f64; 24];
+                let acc = &mut acc[..nh];
+                sc.pre[..nh].iter_mut().for_each(|p| *p = 0.0);
+                for x in 0..w {
+                    let xf = x as f64;
+                    let pw = [1.0, xf, xf * xf];
+                    let src = &sc.cm[x * nv..][..nv];
+                    let dst = &mut sc.pre[(x + 1) * nh..][..nh];
+                    if AFF {
+                        for (k, &(vk, ord)) in HCH_AFFINE.iter().enumerate() {
+                            acc[k] += src[vk] * pw[ord];
+                            dst[k] = acc[k];
+                        }
+                    } else {
+                        for (k, &(vk, ord)) in HCH_CONST.iter().enumerate() {
+                            acc[k] += src[vk] * pw[ord];
+                            dst[k] = acc[k];
+                        }
                     }
                 }
             }
-        }
-        // Solve at every grid column.
-        let row = i - ia;
-        for (j, &xc) in grid.xs.iter().enumerate() {
-            let l = xc.saturating_sub(m);
-            let r = (xc + m + 1).min(w);
-            let xf = xc as f64;
-            // Window sum of prefix channel k, centred in ξ up to the channel's order.
-            let ws = |k: usize| sc.pre[k * (w + 1) + r] - sc.pre[k * (w + 1) + l];
-            let (uu, vv) = if grid.affine {
-                // Per matrix channel: [ξ⁰η⁰, ξ¹η⁰, ξ²η⁰, ξ⁰η¹, ξ¹η¹, ξ⁰η²] (centred).
-                let mom = |base: usize| -> [f64; 6] {
-                    let (a0, a1, a2) = (ws(base), ws(base + 1), ws(base + 2));
-                    let (b0, b1) = (ws(base + 3), ws(base + 4));
-                    let c0 = ws(base + 5);
-                    [
-                        a0,
-                        a1 - xf * a0,
-                        a2 - 2.0 * xf * a1 + xf * xf * a0,
-                        b0,
-                        b1 - xf * b0,
-                        c0,
-                    ]
+            // Solve at every grid column.
+            let row = i - ia;
+            for (j, &xc) in grid.xs.iter().enumerate() {
+                let l = xc.saturating_sub(m);
+                let r = (xc + m + 1).min(w);
+                let xf = xc as f64;
+                // Window sum of prefix channel k, centred in ξ up to the channel's order.
+                let ws = |k: usize| sc.pre[r * nh + k] - sc.pre[l * nh + k];
+                let (uu, vv) = if AFF {
+                    // Per matrix channel: [ξ⁰η⁰, ξ¹η⁰, ξ²η⁰, ξ⁰η¹, ξ¹η¹, ξ⁰η²] (centred).
+                    let mom = |base: usize| -> [f64; 6] {
+                        let (a0, a1, a2) = (ws(base), ws(base + 1), ws(base + 2));
+                        let (b0, b1) = (ws(base + 3), ws(base + 4));
+                        let c0 = ws(base + 5);
+                        [
+                            a0,
+                            a1 - xf * a0,
+                            a2 - 2.0 * xf * a1 + xf * xf * a0,
+                            b0,
+                            b1 - xf * b0,
+                            c0,
+                        ]
+                    };
+                    let g11 = mom(0);
+                    let g12 = mom(6);
+                    let g22 = mom(12);
+                    let hm = |base: usize| -> [f64; 3] {
+                        let (a0, a1, b0) = (ws(base), ws(base + 1), ws(base + 2));
+                        [a0, a1 - xf * a0, b0]
+                    };
+                    let h1 = hm(18);
+                    let h2 = hm(21);
+                    solve_affine(lv, &g11, &g12, &g22, &h1, &h2, norm, sig2, last)
+                } else {
+                    let g = [ws(0), ws(1), ws(2), ws(3), ws(4)];
+                    solve_const(lv, &g, norm, last)
                 };
-                let g11 = mom(0);
-                let g12 = mom(6);
-                let g22 = mom(12);
-                let hm = |base: usize| -> [f64; 3] {
-                    let (a0, a1, b0) = (ws(base), ws(base + 1), ws(base + 2));
-                    [a0, a1 - xf * a0, b0]
-                };
-                let h1 = hm(18);
-                let h2 = hm(21);
-                solve_affine(lv, &g11, &g12, &g22, &h1, &h2, norm, sig2, last)
-            } else {
-                let g = [ws(0), ws(1), ws(2), ws(3), ws(4)];
-                solve_const(lv, &g, norm, last)
-            };
-            u_out[row * nx + j] = uu;
-            v_out[row * nx + j] = vv;
+                u_out[row * nx + j] = uu;
+                v_out[row * nx + j] = vv;
+            }
         }
     }
 }
 
-/// Add (sign +1) or remove (−1) pixel row `y` to the vertical moment sums.
+/// Add pixel row `y` (its normal matrices at the interpolated grid flow) to the cumulative
+/// vertical moment sums, with row weight `(y − lo)^order`.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn apply_row(
+fn add_row<const AFF: bool>(
     lv: &Level,
     grid: &Grid,
     gu: &[f32],
     gv: &[f32],
     sc: &mut GridScratch,
     y: usize,
-    sign: f64,
     lo: usize,
-    slots: usize,
-    vch: &[(usize, usize)],
 ) {
+    let vch: &[(usize, usize)] = if AFF { &VCH_AFFINE } else { &VCH_CONST };
     let w = lv.w;
-    let rw = 5 * w;
-    let slot = y % slots;
-    if sc.ring_row[slot] != y {
-        flow_row(grid, gu, gv, y, &mut sc.urow, &mut sc.vrow);
-        matrices_row(lv, y, &sc.urow, &sc.vrow, &mut sc.ring[slot * rw..][..rw]);
-        sc.ring_row[slot] = y;
-    }
-    let yy = (y as f64 - lo as f64) * sign;
-    let yy2 = (y as f64 - lo as f64) * yy;
-    let row = &sc.ring[slot * rw..][..rw];
+    flow_row(grid, gu, gv, y, &mut sc.urow, &mut sc.vrow);
+    matrices_row(lv, y, &sc.urow, &sc.vrow, &mut sc.ring[..5 * w]);
+    let yy = y as f64 - lo as f64;
+    let pw = [1.0, yy, yy * yy];
+    let row = &sc.ring[..5 * w];
     for (k, &(c, ord)) in vch.iter().enumerate() {
-        let f = match ord {
-            0 => sign,
-            1 => yy,
-            _ => yy2,
-        };
+        let f = pw[ord];
         let src = &row[c * w..][..w];
-        let dst = &mut sc.vs[k * w..][..w];
+        let dst = &mut sc.cum[k * w..][..w];
         for (d, &s) in dst.iter_mut().zip(src) {
             *d += f * s as f64;
         }
@@ -442,7 +480,11 @@ fn solve_const(lv: &Level, s: &[f64; 5], norm: f64, last: bool) -> (f32, f32) {
     );
     let tr = g11 + g22;
     if tr <= lv.empty_trace {
-        return if last { (f32::NAN, f32::NAN) } else { (0.0, 0.0) };
+        return if last {
+            (f32::NAN, f32::NAN)
+        } else {
+            (0.0, 0.0)
+        };
     }
     let l = lv.reg_abs + lv.reg_rel * tr;
     let (a, c) = (g11 + l, g22 + l);
@@ -469,7 +511,11 @@ fn solve_affine(
 ) -> (f32, f32) {
     let tr = (g11[0] + g22[0]) * norm;
     if tr <= lv.empty_trace {
-        return if last { (f32::NAN, f32::NAN) } else { (0.0, 0.0) };
+        return if last {
+            (f32::NAN, f32::NAN)
+        } else {
+            (0.0, 0.0)
+        };
     }
     // Moment index of φ_i·φ_j for φ = (1, ξ, η): into [1, ξ, ξ², η, ξη, η²].
     const IDX: [[usize; 3]; 3] = [[0, 1, 3], [1, 2, 4], [3, 4, 5]];
@@ -545,9 +591,10 @@ mod tests {
 
     #[test]
     fn axis_covers_every_pixel() {
-        assert_eq!(axis(10, 4), vec![0, 2, 6, 9]);
-        assert_eq!(axis(5, 1), vec![0, 1, 2, 3, 4]);
-        let t = taps(&axis(10, 4), 10);
+        assert_eq!(axis(0, 10, 4), vec![0, 2, 6, 9]);
+        assert_eq!(axis(3, 10, 4), vec![0, 3, 7, 9]);
+        assert_eq!(axis(7, 5, 1), vec![0, 1, 2, 3, 4]);
+        let t = taps(&axis(0, 10, 4), 10);
         assert_eq!(t[4], (1, 2, 0.5));
         assert_eq!(t[9], (3, 3, 0.0));
     }

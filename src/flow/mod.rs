@@ -94,6 +94,9 @@ pub struct FlowOptions {
     /// Iterations on the finest level (`None`: `FarnebackParams::iterations`). The finest
     /// level starts from the upsampled coarse flow and needs few Gauss–Newton steps.
     pub finest_iterations: Option<usize>,
+    /// Iterations on every coarser level (`None`: `FarnebackParams::iterations`). Coarse levels
+    /// only seed the next one; their flow is refined again below.
+    pub coarse_iterations: Option<usize>,
 }
 
 impl Default for FlowOptions {
@@ -102,11 +105,26 @@ impl Default for FlowOptions {
             model: WindowModel::Constant,
             grid_stride: 1,
             finest_iterations: None,
+            coarse_iterations: None,
         }
     }
 }
 
 impl FlowOptions {
+    /// The unbiased fast setting: affine window model, solved on a grid of stride
+    /// `winsize/8` (the flow is smooth on the window's scale: strides from winsize/17 to
+    /// winsize/4 gave the same accuracy), 3 iterations on coarse levels and 2 on the finest. Measured on TRACE 1024² (winsize 127, rotation 0.3°, scale 0.998,
+    /// shift (4.3, −3.7) px): rotation/scale gains 0.9997/0.9991 and RMS flow error 0.006 px,
+    /// against 0.966/0.968 and 0.15 px for OpenCV's algorithm with 10 iterations everywhere.
+    pub fn affine_grid(winsize: usize) -> Self {
+        FlowOptions {
+            model: WindowModel::Affine,
+            grid_stride: (winsize / 8).max(1),
+            finest_iterations: Some(2),
+            coarse_iterations: Some(3),
+        }
+    }
+
     fn uses_grid(&self) -> bool {
         self.model == WindowModel::Affine || self.grid_stride > 1
     }
@@ -183,6 +201,8 @@ pub struct Farneback {
     prev_grid_ys: Vec<usize>,
     poly: poly::PolyKernel,
     gauss: Option<Vec<f32>>,
+    norm0: Vec<f32>,
+    norm1: Vec<f32>,
     img0: Vec<f32>,
     img1: Vec<f32>,
     rows_buf: Vec<f32>,
@@ -286,6 +306,8 @@ impl Farneback {
             prev_grid_ys: Vec::new(),
             poly,
             gauss,
+            norm0: Vec::new(),
+            norm1: Vec::new(),
             img0: Vec::new(),
             img1: Vec::new(),
             rows_buf: Vec::new(),
@@ -305,9 +327,12 @@ impl Farneback {
 
     /// Use `options` (see [`FlowOptions`]); errors on a zero stride or zero iterations.
     pub fn with_options(mut self, options: FlowOptions) -> Result<Self> {
-        if options.grid_stride == 0 || options.finest_iterations == Some(0) {
+        if options.grid_stride == 0
+            || options.finest_iterations == Some(0)
+            || options.coarse_iterations == Some(0)
+        {
             return Err(Error::Usage(
-                "flow: grid_stride and finest_iterations must be ≥ 1".into(),
+                "flow: grid_stride and iteration counts must be ≥ 1".into(),
             ));
         }
         self.options = options;
@@ -436,6 +461,8 @@ impl Farneback {
             return Ok(Flow { u: out_u, v: out_v });
         };
         let (offset, gain) = (mean as f32, (1.0 / sd) as f32);
+        normalise(prev, offset, gain, &mut self.norm0);
+        normalise(next, offset, gain, &mut self.norm1);
 
         let m = self.params.winsize / 2;
         let use_grid = self.options.uses_grid();
@@ -444,9 +471,9 @@ impl Farneback {
             let dom = g.dom;
             let (dh, dw) = (dom.height(), dom.width());
             pyramid::build_level(
-                prev,
-                offset,
-                gain,
+                &self.norm0,
+                h,
+                w,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -454,9 +481,9 @@ impl Farneback {
                 &mut self.rows_buf,
             );
             pyramid::build_level(
-                next,
-                offset,
-                gain,
+                &self.norm1,
+                h,
+                w,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -519,22 +546,23 @@ impl Farneback {
                 reg_rel: 1e-9,
                 empty_trace: 1e-9 * t,
             };
-            let iters = match (k, self.options.finest_iterations) {
-                (0, Some(n)) => n,
+            let iters = match (
+                k,
+                self.options.finest_iterations,
+                self.options.coarse_iterations,
+            ) {
+                (0, Some(n), _) => n,
+                (1.., _, Some(n)) => n,
                 _ => self.params.iterations,
             };
-            let (xtaps, ytaps) = if use_grid {
-                (
-                    grid::taps(&self.grid_xs, dw),
-                    grid::taps(&self.grid_ys, dh),
-                )
+            let ytaps = if use_grid {
+                grid::taps(&self.grid_ys, dh)
             } else {
-                (Vec::new(), Vec::new())
+                Vec::new()
             };
             let gr = grid::Grid {
                 xs: &self.grid_xs,
                 ys: &self.grid_ys,
-                xtaps: &xtaps,
                 ytaps: &ytaps,
                 affine: self.options.model == WindowModel::Affine,
             };
@@ -599,8 +627,8 @@ impl Farneback {
     /// Grid flow for level `g` at its start: from the coarser level's grid, from `init`, or 0.
     fn grid_start(&mut self, g: &LevelGeom, from: Option<LevelGeom>, init: Option<&Flow>) {
         let s = self.options.grid_stride;
-        let xs = grid::axis(g.dom.width(), s);
-        let ys = grid::axis(g.dom.height(), s);
+        let xs = grid::axis(g.dom.x0, g.dom.width(), s);
+        let ys = grid::axis(g.dom.y0, g.dom.height(), s);
         let (nx, ny) = (xs.len(), ys.len());
         for b in 0..2 {
             self.u[b].clear();
@@ -636,8 +664,8 @@ impl Farneback {
         self.grid_ys = ys;
     }
 
-    /// Interpolate the finest level's grid flow onto the ROI's pixels (NaN where a grid node
-    /// with weight is NaN, or `prev` is NaN).
+    /// Interpolate the finest level's grid flow onto the ROI's pixels (NaN next to a NaN grid
+    /// node, and where `prev` is NaN).
     fn densify(
         &self,
         d0: Rect,
@@ -646,37 +674,51 @@ impl Farneback {
         out_u: &mut Array2<f32>,
         out_v: &mut Array2<f32>,
     ) {
+        use rayon::prelude::*;
         let (xs, ys) = (&self.prev_grid_xs, &self.prev_grid_ys);
-        let xt = grid::taps(xs, d0.width());
-        let yt = grid::taps(ys, d0.height());
-        let nx = xs.len();
-        let lerp = |g: &[f32], y: usize, x: usize| -> f32 {
-            let (i0, i1, wy) = yt[y - d0.y0];
-            let (j0, j1, wx) = xt[x - d0.x0];
-            let at = |i: u32, j: u32| g[i as usize * nx + j as usize];
-            let pick = |a: f32, b: f32, t: f32| {
-                if t == 0.0 {
-                    a
-                } else if t == 1.0 {
-                    b
-                } else {
-                    a + t * (b - a)
-                }
-            };
-            let top = pick(at(i0, j0), at(i0, j1), wx);
-            let bot = pick(at(i1, j0), at(i1, j1), wx);
-            pick(top, bot, wy)
+        let ytaps = grid::taps(ys, d0.height());
+        let gr = grid::Grid {
+            xs,
+            ys,
+            ytaps: &ytaps,
+            affine: false,
         };
-        for y in roi.y0..roi.y1 {
-            for x in roi.x0..roi.x1 {
-                if !prev[[y, x]].is_finite() {
-                    continue;
-                }
-                out_u[[y, x]] = lerp(&self.prev_u, y, x);
-                out_v[[y, x]] = lerp(&self.prev_v, y, x);
-            }
-        }
+        let (gu, gv) = (&self.prev_u, &self.prev_v);
+        let dw = d0.width();
+        out_u
+            .axis_iter_mut(ndarray::Axis(0))
+            .into_par_iter()
+            .zip(out_v.axis_iter_mut(ndarray::Axis(0)).into_par_iter())
+            .enumerate()
+            .filter(|(y, _)| (roi.y0..roi.y1).contains(y))
+            .for_each_init(
+                || (vec![0f32; dw], vec![0f32; dw]),
+                |(ru, rv), (y, (mut ou, mut ov))| {
+                    grid::flow_row(&gr, gu, gv, y - d0.y0, ru, rv);
+                    let p = prev.row(y);
+                    for x in roi.x0..roi.x1 {
+                        if p[x].is_finite() {
+                            ou[x] = ru[x - d0.x0];
+                            ov[x] = rv[x - d0.x0];
+                        }
+                    }
+                },
+            );
     }
+}
+
+/// `(v − offset)·gain` of every pixel, row-major (NaN stays NaN): pyramid input in units
+/// where f32 keeps full precision whatever the data's offset and scale.
+fn normalise(img: ArrayView2<f32>, offset: f32, gain: f32, out: &mut Vec<f32>) {
+    use rayon::prelude::*;
+    let (h, w) = img.dim();
+    out.clear();
+    out.resize(h * w, 0.0);
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (o, &v) in row.iter_mut().zip(img.row(y).iter()) {
+            *o = (v - offset) * gain;
+        }
+    });
 }
 
 /// Bilinear upsampling of the coarser level's flow into this level's domain (OpenCV's

@@ -5,8 +5,8 @@
 //! Borders replicate the edge pixel, as OpenCV does. A pixel whose support touches missing
 //! data (NaN) gets NaN in all five channels.
 
-use nalgebra::SMatrix;
 use super::simd;
+use nalgebra::SMatrix;
 use rayon::prelude::*;
 
 /// Separable kernels and the entries of the inverse Gram matrix the expansion needs.
@@ -36,10 +36,7 @@ impl PolyKernel {
         g.iter_mut().for_each(|v| *v /= s);
         // OpenCV keeps the kernels in f32 and builds the Gram matrix from those values.
         let g32: Vec<f32> = g.iter().map(|&v| v as f32).collect();
-        let xg: Vec<f32> = (-ni..=ni)
-            .zip(&g32)
-            .map(|(x, &v)| x as f32 * v)
-            .collect();
+        let xg: Vec<f32> = (-ni..=ni).zip(&g32).map(|(x, &v)| x as f32 * v).collect();
         let xxg: Vec<f32> = (-ni..=ni)
             .zip(&g32)
             .map(|(x, &v)| (x * x) as f32 * v)
@@ -215,9 +212,8 @@ mod tests {
     #[test]
     fn recovers_quadratic_coefficients() {
         let (h, w) = (21, 23);
-        let f = |x: f32, y: f32| {
-            3.0 + 0.5 * x - 0.25 * y + 0.1 * x * x - 0.05 * y * y + 0.02 * x * y
-        };
+        let f =
+            |x: f32, y: f32| 3.0 + 0.5 * x - 0.25 * y + 0.1 * x * x - 0.05 * y * y + 0.02 * x * y;
         let img: Vec<f32> = (0..h * w)
             .map(|i| f((i % w) as f32, (i / w) as f32))
             .collect();

@@ -7,7 +7,6 @@
 //! missing when any pixel it was made from is missing.
 
 use super::Rect;
-use ndarray::ArrayView2;
 use rayon::prelude::*;
 
 /// OpenCV's `cvRound` (round half to even).
@@ -97,19 +96,69 @@ pub(crate) fn resize_taps(
         .collect()
 }
 
-/// Fill `out` (domain-sized, row-major) with level pixels of `img` normalised as `(v − offset)·gain`.
+/// What one blurred source row needs.
+struct RowJob<'a> {
+    img: &'a [f32],
+    src_h: usize,
+    src_w: usize,
+    kernel: &'a [f32],
+    vlo: usize,
+    need_cols: &'a [usize],
+}
+
+super::simd::multiversion!(fn blur_row_mv(
+    job: &RowJob,
+    sy: usize,
+    vrow: &mut [f32],
+    dst: &mut [f32],
+) => blur_row);
+
+/// Vertical blur of source row `sy` over `vrow`'s columns, then the horizontal blur at the
+/// needed columns into `dst`.
+#[inline(always)]
+fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
+    let (kernel, vlo) = (job.kernel, job.vlo);
+    let r = kernel.len() / 2;
+    let vw = vrow.len();
+    vrow.iter_mut().for_each(|v| *v = 0.0);
+    for (t, &kw) in kernel.iter().enumerate() {
+        let yy = reflect101(sy as isize + t as isize - r as isize, job.src_h);
+        let row = &job.img[yy * job.src_w + vlo..][..vw];
+        for (acc, &v) in vrow.iter_mut().zip(row) {
+            *acc += kw * v;
+        }
+    }
+    for (d, &cx) in dst.iter_mut().zip(job.need_cols) {
+        let mut s = 0f32;
+        if cx >= r && cx + r < job.src_w {
+            // Interior: contiguous taps, no reflection.
+            let taps = &vrow[cx - r - vlo..][..kernel.len()];
+            for (&kw, &v) in kernel.iter().zip(taps) {
+                s += kw * v;
+            }
+        } else {
+            for (t, &kw) in kernel.iter().enumerate() {
+                let xx = reflect101(cx as isize + t as isize - r as isize, job.src_w);
+                s += kw * vrow[xx - vlo];
+            }
+        }
+        *d = s;
+    }
+}
+
+/// Fill `out` (domain-sized, row-major) with level pixels of `img` (`src_h × src_w`, already
+/// normalised).
 /// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
 pub(crate) fn build_level(
-    img: ArrayView2<f32>,
-    offset: f32,
-    gain: f32,
+    img: &[f32],
+    src_h: usize,
+    src_w: usize,
     scale: f64,
     level_size: (usize, usize),
     dom: Rect,
     out: &mut Vec<f32>,
     rows_buf: &mut Vec<f32>,
 ) {
-    let (src_h, src_w) = img.dim();
     let kernel = level_kernel(scale);
     let r = kernel.len() / 2;
     let (lh, lw) = level_size;
@@ -118,7 +167,11 @@ pub(crate) fn build_level(
     let ytaps: Vec<Tap> = (dom.y0..dom.y1)
         .map(|d| {
             if lh == src_h {
-                Tap { i0: d, i1: d, w1: 0.0 }
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
             } else {
                 resize_tap(d, src_h, lh)
             }
@@ -127,7 +180,11 @@ pub(crate) fn build_level(
     let xtaps: Vec<Tap> = (dom.x0..dom.x1)
         .map(|d| {
             if lw == src_w {
-                Tap { i0: d, i1: d, w1: 0.0 }
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
             } else {
                 resize_tap(d, src_w, lw)
             }
@@ -154,37 +211,21 @@ pub(crate) fn build_level(
     let ncols = need_cols.len();
     rows_buf.clear();
     rows_buf.resize(need_rows.len() * ncols, 0.0);
-    let src_stride_ok = img.is_standard_layout();
-    let src = img;
     rows_buf
         .par_chunks_mut(ncols.max(1))
         .zip(need_rows.par_iter())
         .for_each_init(
             || vec![0f32; vw],
             |vrow, (dst, &sy)| {
-                vrow.iter_mut().for_each(|v| *v = 0.0);
-                for (t, &kw) in kernel.iter().enumerate() {
-                    let yy = reflect101(sy as isize + t as isize - r as isize, src_h);
-                    if src_stride_ok {
-                        let row = src.row(yy);
-                        let row = row.as_slice().unwrap_or(&[]);
-                        for (acc, &v) in vrow.iter_mut().zip(&row[vlo..=vhi]) {
-                            *acc += kw * ((v - offset) * gain);
-                        }
-                    } else {
-                        for (j, acc) in vrow.iter_mut().enumerate() {
-                            *acc += kw * ((src[[yy, vlo + j]] - offset) * gain);
-                        }
-                    }
-                }
-                for (d, &cx) in dst.iter_mut().zip(&need_cols) {
-                    let mut s = 0f32;
-                    for (t, &kw) in kernel.iter().enumerate() {
-                        let xx = reflect101(cx as isize + t as isize - r as isize, src_w);
-                        s += kw * vrow[xx - vlo];
-                    }
-                    *d = s;
-                }
+                let job = RowJob {
+                    img,
+                    src_h,
+                    src_w,
+                    kernel: &kernel,
+                    vlo,
+                    need_cols: &need_cols,
+                };
+                blur_row_mv(&job, sy, vrow, dst)
             },
         );
 
@@ -213,7 +254,11 @@ pub(crate) fn build_level(
             for (o, &(c0, c1, wx)) in orow.iter_mut().zip(&col_pos) {
                 let top = a[c0] + wx * (a[c1] - a[c0]);
                 let bot = b[c0] + wx * (b[c1] - b[c0]);
-                *o = if wy == 0.0 { top } else { top + wy * (bot - top) };
+                *o = if wy == 0.0 {
+                    top
+                } else {
+                    top + wy * (bot - top)
+                };
             }
         });
 }

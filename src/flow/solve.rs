@@ -149,28 +149,49 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
                 }
             }
         }
-        for i in 0..n {
-            let j = x + i;
-            let (dx, dy) = (u[j], v[j]);
-            let r4 = (q[2][j] + s[2][i]) * 0.5;
-            let r5 = (q[3][j] + s[3][i]) * 0.5;
-            let r6 = (q[4][j] + s[4][i]) * 0.25;
-            let r2 = (q[0][j] - s[0][i]) * 0.5 + r4 * dy + r6 * dx;
-            let r3 = (q[1][j] - s[1][i]) * 0.5 + r6 * dy + r5 * dx;
-            let t = row_taper * lv.col_taper[j];
+        // Lane arithmetic on fixed-size arrays (vectorised), then store the valid lanes.
+        let mut q8 = [[0f32; LANES]; 5];
+        let mut du = [0f32; LANES];
+        let mut dv = [0f32; LANES];
+        let mut tp = [0f32; LANES];
+        for i in 0..LANES {
+            let j = (x + i).min(w - 1);
+            for c in 0..5 {
+                q8[c][i] = q[c][j];
+            }
+            du[i] = u[j];
+            dv[i] = v[j];
+            tp[i] = row_taper * lv.col_taper[j];
+        }
+        let mut mo = [[0f32; LANES]; 5];
+        for i in 0..LANES {
+            let (dx, dy) = (du[i], dv[i]);
+            let r4 = (q8[2][i] + s[2][i]) * 0.5;
+            let r5 = (q8[3][i] + s[3][i]) * 0.5;
+            let r6 = (q8[4][i] + s[4][i]) * 0.25;
+            let r2 = (q8[0][i] - s[0][i]) * 0.5 + r4 * dy + r6 * dx;
+            let r3 = (q8[1][i] - s[1][i]) * 0.5 + r6 * dy + r5 * dx;
+            let t = tp[i];
             let (r2, r3, r4, r5, r6) = (r2 * t, r3 * t, r4 * t, r5 * t, r6 * t);
-            let m0 = r4 * r4 + r6 * r6;
-            let m1 = (r4 + r5) * r6;
-            let m2 = r5 * r5 + r6 * r6;
-            let m3 = r4 * r2 + r6 * r3;
-            let m4 = r6 * r2 + r5 * r3;
+            let m = [
+                r4 * r4 + r6 * r6,
+                (r4 + r5) * r6,
+                r5 * r5 + r6 * r6,
+                r4 * r2 + r6 * r3,
+                r6 * r2 + r5 * r3,
+            ];
             // NaN anywhere (missing data, outside) means zero weight.
-            let bad = (m0 + m1 + m2 + m3 + m4).is_nan();
-            o0[j] = if bad { 0.0 } else { m0 };
-            o1[j] = if bad { 0.0 } else { m1 };
-            o2[j] = if bad { 0.0 } else { m2 };
-            o3[j] = if bad { 0.0 } else { m3 };
-            o4[j] = if bad { 0.0 } else { m4 };
+            let sum = m[0] + m[1] + m[2] + m[3] + m[4];
+            let keep = sum == sum;
+            for c in 0..5 {
+                mo[c][i] = if keep { m[c] } else { 0.0 };
+            }
+        }
+        for (c, o) in [&mut *o0, &mut *o1, &mut *o2, &mut *o3, &mut *o4]
+            .into_iter()
+            .enumerate()
+        {
+            o[x..x + n].copy_from_slice(&mo[c][..n]);
         }
         x += n;
     }
@@ -220,7 +241,11 @@ fn solve_row(lv: &Level, sums: &[f64], scale: f64, u: &mut [f32], v: &mut [f32],
         &sums[3 * w..4 * w],
         &sums[4 * w..5 * w],
     );
-    let empty = if last { lv.empty_trace } else { f64::NEG_INFINITY };
+    let empty = if last {
+        lv.empty_trace
+    } else {
+        f64::NEG_INFINITY
+    };
     for x in 0..w {
         let g11 = s0[x] * scale;
         let g12 = s1[x] * scale;

@@ -59,13 +59,12 @@ fn flow_is_independent_of_intensity_scale() {
     for k in [1e-3f32, 1e4] {
         let (a, b) = (prev.mapv(|x| x * k), next.mapv(|x| x * k));
         let f = farneback(a.view(), b.view(), &p, None).expect("flow");
-        let worst = f
-            .u
-            .iter()
-            .zip(base.u.iter())
-            .chain(f.v.iter().zip(base.v.iter()))
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let worst =
+            f.u.iter()
+                .zip(base.u.iter())
+                .chain(f.v.iter().zip(base.v.iter()))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
         assert!(worst < 1e-3, "scale {k}: max |Δflow| = {worst} px");
         let mu = median(f.u.iter().copied().collect());
         assert!((mu - 0.30).abs() < 0.01, "scale {k}: median u = {mu}");
@@ -78,7 +77,8 @@ fn nan_is_missing_data_not_poison() {
     let mut prev = load_fixture("prev.f32");
     let mut next = load_fixture("shift_next.f32");
     prev.slice_mut(ndarray::s![100..140, 20..90]).fill(f32::NAN);
-    next.slice_mut(ndarray::s![180..256, 180..256]).fill(f32::NAN);
+    next.slice_mut(ndarray::s![180..256, 180..256])
+        .fill(f32::NAN);
     let f = farneback(prev.view(), next.view(), &small_params(), None).expect("flow");
     assert!(f.u[[120, 50]].is_nan());
     let finite = f.u.iter().filter(|x| x.is_finite()).count();
@@ -142,34 +142,125 @@ fn bad_input_is_an_error() {
     assert!(f.u.iter().all(|x| x.is_nan()));
 }
 
-/// Grid solver with stride 1 and the constant model reproduces the dense solver away from the
-/// borders (where it truncates windows instead of replicating rows).
+/// Affine-window grid solver on the TRACE warp fixture (rotation 0.4°, scale 1.003, shift
+/// (+0.37, −0.61), scipy spline): the least-squares affine fit of the flow over the interior
+/// recovers the injected rotation and scale to within 1 % (the constant window, as OpenCV,
+/// under-measures them by 3–5 % here: see tests/flow_oracle.rs), and the RMS flow error
+/// against the truth drops from 0.055 px to 0.019 px (asserted < 0.025).
 #[test]
-fn grid_constant_stride1_matches_dense_inside() {
+fn affine_window_recovers_rotation_and_scale() {
     let prev = load_fixture("prev.f32");
     let next = load_fixture("warp_next.f32");
+    let opts = |model| FlowOptions {
+        model,
+        grid_stride: 4,
+        ..Default::default()
+    };
+    let run = |o: FlowOptions| {
+        Farneback::new(small_params())
+            .and_then(|f| f.with_options(o))
+            .and_then(|mut f| f.compute(prev.view(), next.view(), None, None))
+            .expect("flow")
+    };
+    // Truth (tools/make_flow_fixtures.py): d(p) = A (p − c) + c + t − p.
+    let a = [
+        [1.0029755575975108, 0.007002204078855437],
+        [-0.007002204078855437, 1.0029755575975108],
+    ];
+    let (c, t) = (127.5, [0.37, -0.61]);
+    let truth = |x: f64, y: f64| {
+        let (px, py) = (x - c, y - c);
+        (
+            a[0][0] * px + a[0][1] * py + c + t[0] - x,
+            a[1][0] * px + a[1][1] * py + c + t[1] - y,
+        )
+    };
+    let fit = |f: &Flow| {
+        // Least squares u, v = k0 + k1 (x − c) + k2 (y − c) over pixels ≥ winsize from the edge.
+        let (mut ata, mut atu, mut atv) = ([[0f64; 3]; 3], [0f64; 3], [0f64; 3]);
+        let mut se = 0.0;
+        let mut n = 0.0;
+        for y in 33..256 - 33 {
+            for x in 33..256 - 33 {
+                let (u, v) = (f.u[[y, x]] as f64, f.v[[y, x]] as f64);
+                let r = [1.0, x as f64 - c, y as f64 - c];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        ata[i][j] += r[i] * r[j];
+                    }
+                    atu[i] += r[i] * u;
+                    atv[i] += r[i] * v;
+                }
+                let (tu, tv) = truth(x as f64, y as f64);
+                se += (u - tu).powi(2) + (v - tv).powi(2);
+                n += 1.0;
+            }
+        }
+        let m = nalgebra::Matrix3::from_fn(|i, j| ata[i][j]);
+        let inv = m.try_inverse().expect("well-posed fit");
+        let ku = inv * nalgebra::Vector3::from(atu);
+        let kv = inv * nalgebra::Vector3::from(atv);
+        let scale_gain = (ku[1] + kv[2]) / 2.0 / ((a[0][0] + a[1][1]) / 2.0 - 1.0);
+        let rot_gain = (ku[2] - kv[1]) / 2.0 / ((a[0][1] - a[1][0]) / 2.0);
+        (scale_gain, rot_gain, (se / n).sqrt())
+    };
+    let (sg_c, rg_c, rms_c) = fit(&run(opts(WindowModel::Constant)));
+    let (sg_a, rg_a, rms_a) = fit(&run(opts(WindowModel::Affine)));
+    eprintln!("constant: gains scale {sg_c:.4} rot {rg_c:.4} rms {rms_c:.4}; affine: {sg_a:.4} {rg_a:.4} {rms_a:.4}");
+    assert!(
+        (sg_a - 1.0).abs() < 0.01 && (rg_a - 1.0).abs() < 0.01,
+        "affine gains {sg_a} {rg_a}"
+    );
+    assert!(rms_a < 0.025, "affine RMS vs truth {rms_a}");
+    assert!(
+        rg_c < 0.98,
+        "constant window should under-measure rotation here: {rg_c}"
+    );
+}
+
+/// The unbiased preset (`FlowOptions::affine_grid`) on the real crop: recovers the injected
+/// translation with NaN holes present, and a ROI run agrees with the whole-image run inside it.
+#[test]
+fn affine_grid_preset_handles_nan_and_roi() {
+    let mut prev = load_fixture("prev.f32");
+    let mut next = load_fixture("shift_next.f32");
+    prev.slice_mut(ndarray::s![100..140, 20..90]).fill(f32::NAN);
+    next.slice_mut(ndarray::s![180..256, 180..256])
+        .fill(f32::NAN);
     let p = small_params();
-    let dense = farneback(prev.view(), next.view(), &p, None).expect("flow");
-    let stride: usize = std::env::var("STRIDE").ok().and_then(|s| s.parse().ok()).unwrap_or(2);
-    let affine = std::env::var("AFFINE").is_ok();
-    let g = Farneback::new(p)
-        .and_then(|f| {
-            f.with_options(FlowOptions {
-                grid_stride: stride,
-                model: if affine { WindowModel::Affine } else { WindowModel::Constant },
-                ..Default::default()
-            })
-        })
-        .expect("solver")
+    let solver = || {
+        Farneback::new(p.clone())
+            .and_then(|f| f.with_options(FlowOptions::affine_grid(p.winsize)))
+            .expect("solver")
+    };
+    let full = solver()
         .compute(prev.view(), next.view(), None, None)
         .expect("flow");
+    assert!(full.u[[120, 50]].is_nan());
+    let mu = median(full.u.iter().copied().collect());
+    let mv = median(full.v.iter().copied().collect());
+    assert!(
+        (mu - 0.30).abs() < 0.01 && (mv + 0.45).abs() < 0.01,
+        "median flow ({mu}, {mv}) vs (0.30, -0.45)"
+    );
+    let roi = Roi {
+        x: 60,
+        y: 70,
+        width: 100,
+        height: 80,
+    };
+    let part = solver()
+        .compute(prev.view(), next.view(), Some(roi), None)
+        .expect("flow");
     let mut worst = 0f32;
-    for y in 80..176 {
-        for x in 80..176 {
-            worst = worst.max((g.u[[y, x]] - dense.u[[y, x]]).abs());
-            worst = worst.max((g.v[[y, x]] - dense.v[[y, x]]).abs());
+    for y in roi.y..roi.y + roi.height {
+        for x in roi.x..roi.x + roi.width {
+            let (a, b) = (part.u[[y, x]], full.u[[y, x]]);
+            if a.is_finite() || b.is_finite() {
+                worst = worst.max((a - b).abs());
+            }
         }
     }
-    eprintln!("grid stride 2 vs dense: max {worst}");
-    assert!(worst < 0.02, "max |grid − dense| = {worst} px");
+    assert!(part.u[[5, 5]].is_nan());
+    assert!(worst < 0.01, "max |roi − full| = {worst} px");
 }
