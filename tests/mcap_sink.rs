@@ -85,7 +85,7 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
     FrameAlignment {
         align,
         channel: channel.to_string(),
-        obs_time: format!("2014-03-29T14:{:02}:{:02}.{:03}Z", 9 + i / 5, (i * 12) % 60, i),
+        obs_time: iso_time(times(i).0),
         sequence: i,
         reference_kind: if i == 0 { "self" } else { "keyframe" }.to_string(),
         chained_dx_px: chained(rng, 5.0),
@@ -102,6 +102,15 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
 fn frames(channel: &str, n: u64, seed: u64) -> Vec<FrameAlignment> {
     let mut rng = Rng(seed);
     (0..n).map(|i| frame(channel, i, &mut rng)).collect()
+}
+
+/// ISO 8601 UTC with ns, for times on 2014-03-29 after T0 (as `date -u -d @1396102178`
+/// gives 2014-03-29T14:09:38Z).
+fn iso_time(ns: u64) -> String {
+    let secs = (ns - T0) / 1_000_000_000 + 14 * 3600 + 9 * 60 + 38;
+    assert!(secs < 86_400, "test times stay on 2014-03-29");
+    let (h, m, s) = (secs / 3600, secs / 60 % 60, secs % 60);
+    format!("2014-03-29T{h:02}:{m:02}:{s:02}.{:09}Z", ns % 1_000_000_000)
 }
 
 /// Observation and processing times of frame `i` (processing 3.5 s after observation).
@@ -431,8 +440,10 @@ fn truncation_at_any_offset_recovers_a_clean_prefix() {
     // Before the first flush only the header and metadata (written and flushed at open).
     let mut bounds = vec![(0u64, 0usize)];
     bounds.extend(flushes.iter().copied());
-    for t in 0..=bytes.len() {
-        std::fs::write(&cut_path, &bytes[..t]).unwrap();
+    std::fs::write(&cut_path, &bytes).unwrap();
+    let cut_file = std::fs::OpenOptions::new().write(true).open(&cut_path).unwrap();
+    for t in (0..=bytes.len()).rev() {
+        cut_file.set_len(t as u64).unwrap();
         let log = read_logs(&[cut_path.clone()])
             .unwrap_or_else(|e| panic!("cut at {t}: {e}"));
         let got: Vec<_> = log.jitter.iter().map(|m| m.record.clone()).collect();
@@ -621,7 +632,8 @@ fn writes_fixture_for_the_python_reader_check() {
     sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS", T0, T0).unwrap();
     sink.finish().unwrap();
     // A third segment from a crashed run, then recovered.
-    let c = frames("SJI_1400", 8, 15);
+    let mut rng = Rng(15);
+    let c: Vec<_> = (100..108).map(|i| frame("SJI_1400", i, &mut rng)).collect();
     let mut crashed = McapSink::new(&dir, config(0, 3), CONFIG_JSON.into()).unwrap();
     for (i, f) in c.iter().enumerate() {
         crashed.write_frame(f, times(100 + i as u64).0, times(100 + i as u64).1).unwrap();
