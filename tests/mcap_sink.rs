@@ -21,13 +21,42 @@ const CONFIG_JSON: &str = r#"{"reference":"keyframe","sink":{"segment_frames":10
 
 /// The contract's `/jitter` fields: `align --json` plus the stream context (CONTRACT.md).
 const CONTRACT_FIELDS: &[&str] = &[
-    "reference", "frame", "scale", "rotation_arcsec", "dx_px", "dy_px", "dx_arcsec", "dy_arcsec",
-    "sigma_scale", "sigma_rotation_arcsec", "sigma_dx_px", "sigma_dy_px", "uabjm_sigma_scale",
-    "uabjm_sigma_rotation_arcsec", "uabjm_sigma_dx_px", "uabjm_sigma_dy_px", "header_residual",
-    "points", "inliers", "residual_rms_px", "similarity", "status", "message", "elapsed_ms",
-    "channel", "obs_time", "sequence", "reference_kind", "chained_dx_px", "chained_dy_px",
-    "chained_rotation_arcsec", "chained_scale", "sigma_chained_dx_px", "sigma_chained_dy_px",
-    "sigma_chained_rotation_arcsec", "sigma_chained_scale",
+    "reference",
+    "frame",
+    "scale",
+    "rotation_arcsec",
+    "dx_px",
+    "dy_px",
+    "dx_arcsec",
+    "dy_arcsec",
+    "sigma_scale",
+    "sigma_rotation_arcsec",
+    "sigma_dx_px",
+    "sigma_dy_px",
+    "uabjm_sigma_scale",
+    "uabjm_sigma_rotation_arcsec",
+    "uabjm_sigma_dx_px",
+    "uabjm_sigma_dy_px",
+    "header_residual",
+    "points",
+    "inliers",
+    "residual_rms_px",
+    "similarity",
+    "status",
+    "message",
+    "elapsed_ms",
+    "channel",
+    "obs_time",
+    "sequence",
+    "reference_kind",
+    "chained_dx_px",
+    "chained_dy_px",
+    "chained_rotation_arcsec",
+    "chained_scale",
+    "sigma_chained_dx_px",
+    "sigma_chained_dy_px",
+    "sigma_chained_rotation_arcsec",
+    "sigma_chained_scale",
 ];
 
 /// splitmix64: full-mantissa values that a lossy float encoding would not round-trip.
@@ -77,8 +106,18 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         inliers: if failed { 0 } else { 380 - i as usize % 50 },
         residual_rms_px: v(0.1),
         similarity: v(0.2).map(|d| 0.8 + d),
-        status: if failed { Status::Failed } else if i % 5 == 4 { Status::Degraded } else { Status::Ok },
-        message: if failed { "no usable structure: 3 inliers < 10 — “quoted” ☉".into() } else { String::new() },
+        status: if failed {
+            Status::Failed
+        } else if i % 5 == 4 {
+            Status::Degraded
+        } else {
+            Status::Ok
+        },
+        message: if failed {
+            "no usable structure: 3 inliers < 10 — “quoted” ☉".into()
+        } else {
+            String::new()
+        },
         elapsed_ms: 100.0 + rng.f(10.0),
     };
     let chained = |rng: &mut Rng, s: f64| if failed { None } else { Some(rng.f(s)) };
@@ -125,7 +164,11 @@ fn reference_change(i: u64) -> ReferenceChange {
         file: format!("/data/SJI_1400/f{i:04}.fits"),
         frame: (i % 2 == 1).then_some(i as usize),
         obs_time: format!("2014-03-29T14:09:{:02}Z", 38 + i),
-        reason: if i == 0 { "first frame".into() } else { format!("refresh after {i} frames") },
+        reason: if i == 0 {
+            "first frame".into()
+        } else {
+            format!("refresh after {i} frames")
+        },
         reference_kind: "keyframe".into(),
         sequence: i,
         replaces: (i > 0).then(|| "/data/SJI_1400/f0000.fits".into()),
@@ -152,7 +195,10 @@ fn mcap_files(dir: &Path) -> Vec<PathBuf> {
 }
 
 fn names(files: &[PathBuf]) -> Vec<String> {
-    files.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect()
+    files
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect()
 }
 
 /// The whole series read back equals what was written: records, topics, both timestamps.
@@ -162,18 +208,34 @@ fn messages_read_back_exactly() {
     let a = frames("SJI_1400", 23, 1);
     let b = frames("SJI_2796", 23, 2);
     let mut sink = McapSink::new(dir.path(), config(0, 5), CONFIG_JSON.into()).unwrap();
-    sink.write_reference_change(&reference_change(0), times(0).0, times(0).1).unwrap();
+    sink.write_reference_change(&reference_change(0), times(0).0, times(0).1)
+        .unwrap();
     for i in 0..23u64 {
         let (obs, publish) = times(i);
         sink.write_frame(&a[i as usize], obs, publish).unwrap();
-        sink.write_frame(&b[i as usize], obs + 1, publish + 1).unwrap();
+        sink.write_frame(&b[i as usize], obs + 1, publish + 1)
+            .unwrap();
         if i == 9 {
-            sink.write_reference_change(&reference_change(10), obs, publish).unwrap();
-            sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS: bad magic", obs, publish)
+            sink.write_reference_change(&reference_change(10), obs, publish)
                 .unwrap();
+            sink.write_log(
+                LogLevel::Error,
+                "/data/bad.fits",
+                "not FITS: bad magic",
+                obs,
+                publish,
+            )
+            .unwrap();
         }
     }
-    sink.write_log(LogLevel::Warning, "/data/SJI_1400/f0006.fits", "degraded", T0, T0 + 1).unwrap();
+    sink.write_log(
+        LogLevel::Warning,
+        "/data/SJI_1400/f0006.fits",
+        "degraded",
+        T0,
+        T0 + 1,
+    )
+    .unwrap();
     sink.finish().unwrap();
 
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
@@ -186,15 +248,38 @@ fn messages_read_back_exactly() {
         let (ma, mb) = (&log.jitter[2 * i], &log.jitter[2 * i + 1]);
         assert_eq!(ma.record, a[i], "SJI_1400 frame {i}");
         assert_eq!(mb.record, b[i], "SJI_2796 frame {i}");
-        assert_eq!((ma.topic.as_str(), ma.log_time_ns, ma.publish_time_ns), ("/jitter/SJI_1400", obs, publish));
-        assert_eq!((mb.topic.as_str(), mb.log_time_ns, mb.publish_time_ns), ("/jitter/SJI_2796", obs + 1, publish + 1));
+        assert_eq!(
+            (ma.topic.as_str(), ma.log_time_ns, ma.publish_time_ns),
+            ("/jitter/SJI_1400", obs, publish)
+        );
+        assert_eq!(
+            (mb.topic.as_str(), mb.log_time_ns, mb.publish_time_ns),
+            ("/jitter/SJI_2796", obs + 1, publish + 1)
+        );
     }
-    let refs: Vec<_> = log.references.iter().map(|m| (m.topic.as_str(), &m.change)).collect();
-    assert_eq!(refs, vec![("/reference/SJI_1400", &reference_change(0)), ("/reference/SJI_1400", &reference_change(10))]);
+    let refs: Vec<_> = log
+        .references
+        .iter()
+        .map(|m| (m.topic.as_str(), &m.change))
+        .collect();
+    assert_eq!(
+        refs,
+        vec![
+            ("/reference/SJI_1400", &reference_change(0)),
+            ("/reference/SJI_1400", &reference_change(10))
+        ]
+    );
     assert_eq!(log.references[1].log_time_ns, times(9).0);
     assert_eq!(log.logs.len(), 2);
     let e = &log.logs[0];
-    assert_eq!((e.entry.level, e.entry.file.as_str(), e.entry.message.as_str()), (LogLevel::Error, "/data/bad.fits", "not FITS: bad magic"));
+    assert_eq!(
+        (
+            e.entry.level,
+            e.entry.file.as_str(),
+            e.entry.message.as_str()
+        ),
+        (LogLevel::Error, "/data/bad.fits", "not FITS: bad magic")
+    );
     assert_eq!((e.entry.name.as_str(), e.entry.line), ("sunjitter", 0));
     assert_eq!(e.entry.timestamp.sec, times(9).0 / 1_000_000_000);
     assert_eq!(e.entry.timestamp.nsec as u64, times(9).0 % 1_000_000_000);
@@ -202,7 +287,10 @@ fn messages_read_back_exactly() {
     assert_eq!(log.logs[1].entry.level, LogLevel::Warning);
     assert_eq!(log.metadata.len(), 1);
     assert_eq!(log.metadata[0].name, "sunjitter");
-    assert_eq!(log.metadata[0].metadata["version"], env!("CARGO_PKG_VERSION"));
+    assert_eq!(
+        log.metadata[0].metadata["version"],
+        env!("CARGO_PKG_VERSION")
+    );
     assert_eq!(log.metadata[0].metadata["config"], CONFIG_JSON);
 }
 
@@ -213,38 +301,79 @@ fn layout_follows_the_contract() {
     let dir = tempfile::tempdir().unwrap();
     let a = frames("AIA_171", 12, 3);
     let mut sink = McapSink::new(dir.path(), config(0, 4), CONFIG_JSON.into()).unwrap();
-    sink.write_reference_change(&reference_change(0), T0, T0).unwrap();
+    sink.write_reference_change(&reference_change(0), T0, T0)
+        .unwrap();
     for (i, f) in a.iter().enumerate() {
         let (obs, publish) = times(i as u64);
         sink.write_frame(f, obs, publish).unwrap();
     }
-    sink.write_log(LogLevel::Error, "/data/x.fits", "unreadable", T0, T0).unwrap();
+    sink.write_log(LogLevel::Error, "/data/x.fits", "unreadable", T0, T0)
+        .unwrap();
     sink.finish().unwrap();
     let files = mcap_files(dir.path());
     assert_eq!(files.len(), 1);
     let bytes = std::fs::read(&files[0]).unwrap();
 
-    let summary = mcap::read::Summary::read(&bytes).unwrap().expect("summary section");
+    let summary = mcap::read::Summary::read(&bytes)
+        .unwrap()
+        .expect("summary section");
     let mut topics: BTreeMap<String, (String, String, String)> = BTreeMap::new();
     for c in summary.channels.values() {
         let s = c.schema.as_ref().expect("every channel has a schema");
-        topics.insert(c.topic.clone(), (s.name.clone(), s.encoding.clone(), c.message_encoding.clone()));
+        topics.insert(
+            c.topic.clone(),
+            (
+                s.name.clone(),
+                s.encoding.clone(),
+                c.message_encoding.clone(),
+            ),
+        );
         let schema: serde_json::Value = serde_json::from_slice(&s.data).expect("schema is JSON");
         assert_eq!(schema["type"], "object");
         assert_eq!(schema["title"], s.name.as_str());
     }
-    let expect = |schema: &str| (schema.to_string(), "jsonschema".to_string(), "json".to_string());
-    assert_eq!(topics, BTreeMap::from([
-        ("/jitter/AIA_171".to_string(), expect("sunjitter.FrameAlignment")),
-        ("/log".to_string(), expect("foxglove.Log")),
-        ("/reference/SJI_1400".to_string(), expect("sunjitter.ReferenceChange")),
-    ]));
+    let expect = |schema: &str| {
+        (
+            schema.to_string(),
+            "jsonschema".to_string(),
+            "json".to_string(),
+        )
+    };
+    assert_eq!(
+        topics,
+        BTreeMap::from([
+            (
+                "/jitter/AIA_171".to_string(),
+                expect("sunjitter.FrameAlignment")
+            ),
+            ("/log".to_string(), expect("foxglove.Log")),
+            (
+                "/reference/SJI_1400".to_string(),
+                expect("sunjitter.ReferenceChange")
+            ),
+        ])
+    );
 
     // The FrameAlignment schema describes exactly the contract's fields, all required.
-    let jitter = summary.channels.values().find(|c| c.topic == "/jitter/AIA_171").unwrap();
-    let schema: serde_json::Value = serde_json::from_slice(&jitter.schema.as_ref().unwrap().data).unwrap();
-    let mut props: Vec<&str> = schema["properties"].as_object().unwrap().keys().map(String::as_str).collect();
-    let mut required: Vec<&str> = schema["required"].as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect();
+    let jitter = summary
+        .channels
+        .values()
+        .find(|c| c.topic == "/jitter/AIA_171")
+        .unwrap();
+    let schema: serde_json::Value =
+        serde_json::from_slice(&jitter.schema.as_ref().unwrap().data).unwrap();
+    let mut props: Vec<&str> = schema["properties"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
+    let mut required: Vec<&str> = schema["required"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
     let mut contract = CONTRACT_FIELDS.to_vec();
     props.sort();
     required.sort();
@@ -253,18 +382,37 @@ fn layout_follows_the_contract() {
     assert_eq!(required, contract);
 
     // foxglove.Log fields and types as Foxglove publishes them (docs.foxglove.dev, Log schema).
-    let log = summary.channels.values().find(|c| c.topic == "/log").unwrap();
-    let log_schema: serde_json::Value = serde_json::from_slice(&log.schema.as_ref().unwrap().data).unwrap();
-    let mut log_props: Vec<&str> = log_schema["properties"].as_object().unwrap().keys().map(String::as_str).collect();
+    let log = summary
+        .channels
+        .values()
+        .find(|c| c.topic == "/log")
+        .unwrap();
+    let log_schema: serde_json::Value =
+        serde_json::from_slice(&log.schema.as_ref().unwrap().data).unwrap();
+    let mut log_props: Vec<&str> = log_schema["properties"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(String::as_str)
+        .collect();
     log_props.sort();
-    assert_eq!(log_props, ["file", "level", "line", "message", "name", "timestamp"]);
-    assert_eq!(log_schema["properties"]["timestamp"]["properties"]["nsec"]["maximum"], 999_999_999);
+    assert_eq!(
+        log_props,
+        ["file", "level", "line", "message", "name", "timestamp"]
+    );
+    assert_eq!(
+        log_schema["properties"]["timestamp"]["properties"]["nsec"]["maximum"],
+        999_999_999
+    );
 
     // zstd chunks, each with a message index; statistics; the metadata record through its index.
     assert!(!summary.chunk_indexes.is_empty());
     for ci in &summary.chunk_indexes {
         assert_eq!(ci.compression, "zstd");
-        assert!(!ci.message_index_offsets.is_empty(), "chunk without message index");
+        assert!(
+            !ci.message_index_offsets.is_empty(),
+            "chunk without message index"
+        );
     }
     let stats = summary.stats.as_ref().expect("statistics");
     assert_eq!(stats.message_count, 14);
@@ -304,31 +452,46 @@ fn rotation_by_frame_count() {
     for (i, f) in a.iter().enumerate() {
         let (obs, _) = times(i as u64);
         // Processing all within the same second of 2014-03-29T14:10:00Z, except the last 5.
-        let publish = if i < 20 { T0 + 22_000_000_000 + i as u64 } else { T0 + 3_600_000_000_000 };
+        let publish = if i < 20 {
+            T0 + 22_000_000_000 + i as u64
+        } else {
+            T0 + 3_600_000_000_000
+        };
         sink.write_frame(f, obs, publish).unwrap();
     }
     sink.finish().unwrap();
     let files = mcap_files(dir.path());
-    assert_eq!(names(&files), [
-        "sunjitter-20140329T141000Z-0000.mcap",
-        "sunjitter-20140329T141000Z-0001.mcap",
-        "sunjitter-20140329T150938Z-0002.mcap",
-    ]);
+    assert_eq!(
+        names(&files),
+        [
+            "sunjitter-20140329T141000Z-0000.mcap",
+            "sunjitter-20140329T141000Z-0001.mcap",
+            "sunjitter-20140329T150938Z-0002.mcap",
+        ]
+    );
     assert_eq!(sink.segment_paths(), files.as_slice());
     for (file, count) in files.iter().zip([10u64, 10, 5]) {
         let bytes = std::fs::read(file).unwrap();
-        let summary = mcap::read::Summary::read(&bytes).unwrap().expect("finished segment");
+        let summary = mcap::read::Summary::read(&bytes)
+            .unwrap()
+            .expect("finished segment");
         assert_eq!(summary.stats.as_ref().unwrap().message_count, count);
         assert_eq!(summary.channels.len(), 1);
         assert_eq!(summary.metadata_indexes.len(), 1, "{}", file.display());
         let meta = mcap::read::metadata(&bytes, &summary.metadata_indexes[0]).unwrap();
-        assert_eq!((meta.name.as_str(), meta.metadata["config"].as_str()), ("sunjitter", CONFIG_JSON));
+        assert_eq!(
+            (meta.name.as_str(), meta.metadata["config"].as_str()),
+            ("sunjitter", CONFIG_JSON)
+        );
     }
     // Read as one series, in order.
     let log = read_logs(&files.iter().rev().cloned().collect::<Vec<_>>()).unwrap();
     let read: Vec<_> = log.jitter.iter().map(|m| m.record.clone()).collect();
     assert_eq!(read, a);
-    assert_eq!(log.jitter.iter().map(|m| m.segment).collect::<Vec<_>>(), [[0; 10].as_slice(), &[1; 10], &[2; 5]].concat());
+    assert_eq!(
+        log.jitter.iter().map(|m| m.segment).collect::<Vec<_>>(),
+        [[0; 10].as_slice(), &[1; 10], &[2; 5]].concat()
+    );
     assert_eq!(log.metadata.len(), 3);
 }
 
@@ -338,20 +501,38 @@ fn rotation_by_frame_count() {
 fn rotation_by_time() {
     let dir = tempfile::tempdir().unwrap();
     let a = frames("SJI_1400", 8, 5);
-    let cfg = SinkConfig { segment_frames: 0, segment_minutes: 1.0, flush_every_frames: 2, ..SinkConfig::default() };
+    let cfg = SinkConfig {
+        segment_frames: 0,
+        segment_minutes: 1.0,
+        flush_every_frames: 2,
+        ..SinkConfig::default()
+    };
     let mut sink = McapSink::new(dir.path(), cfg, CONFIG_JSON.into()).unwrap();
     for (i, f) in a.iter().enumerate() {
-        sink.write_frame(f, times(i as u64).0, T0 + i as u64 * 25_000_000_000).unwrap();
+        sink.write_frame(f, times(i as u64).0, T0 + i as u64 * 25_000_000_000)
+            .unwrap();
     }
     sink.finish().unwrap();
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
-    assert_eq!(names(&mcap_files(dir.path())), [
-        "sunjitter-20140329T140938Z-0000.mcap",
-        "sunjitter-20140329T141053Z-0001.mcap",
-        "sunjitter-20140329T141208Z-0002.mcap",
-    ]);
-    assert_eq!(log.segments.iter().map(|s| s.messages).collect::<Vec<_>>(), [3, 3, 2]);
-    assert_eq!(log.jitter.iter().map(|m| m.record.clone()).collect::<Vec<_>>(), a);
+    assert_eq!(
+        names(&mcap_files(dir.path())),
+        [
+            "sunjitter-20140329T140938Z-0000.mcap",
+            "sunjitter-20140329T141053Z-0001.mcap",
+            "sunjitter-20140329T141208Z-0002.mcap",
+        ]
+    );
+    assert_eq!(
+        log.segments.iter().map(|s| s.messages).collect::<Vec<_>>(),
+        [3, 3, 2]
+    );
+    assert_eq!(
+        log.jitter
+            .iter()
+            .map(|m| m.record.clone())
+            .collect::<Vec<_>>(),
+        a
+    );
 }
 
 /// A file with the name the sink would pick is never overwritten; new names sort after every
@@ -364,18 +545,31 @@ fn never_overwrites_and_sorts_after_existing_segments() {
     std::fs::write(&taken, b"someone else's file").unwrap();
     std::fs::write(&later, b"").unwrap();
     let mut sink = McapSink::new(dir.path(), config(0, 1), CONFIG_JSON.into()).unwrap();
-    sink.write_frame(&frames("SJI_1400", 1, 6)[0], T0, T0).unwrap();
+    sink.write_frame(&frames("SJI_1400", 1, 6)[0], T0, T0)
+        .unwrap();
     sink.finish().unwrap();
     assert_eq!(std::fs::read(&taken).unwrap(), b"someone else's file");
-    assert_eq!(names(sink.segment_paths()), ["sunjitter-20140329T150000Z-0008.mcap"]);
+    assert_eq!(
+        names(sink.segment_paths()),
+        ["sunjitter-20140329T150000Z-0008.mcap"]
+    );
 
     // And in a directory where only the clash exists, the number is bumped.
     let dir2 = tempfile::tempdir().unwrap();
     let mut sink2 = McapSink::new(dir2.path(), config(0, 1), CONFIG_JSON.into()).unwrap();
-    std::fs::write(dir2.path().join("sunjitter-20140329T140938Z-0000.mcap"), b"x").unwrap();
-    sink2.write_frame(&frames("SJI_1400", 1, 6)[0], T0, T0).unwrap();
+    std::fs::write(
+        dir2.path().join("sunjitter-20140329T140938Z-0000.mcap"),
+        b"x",
+    )
+    .unwrap();
+    sink2
+        .write_frame(&frames("SJI_1400", 1, 6)[0], T0, T0)
+        .unwrap();
     sink2.finish().unwrap();
-    assert_eq!(names(sink2.segment_paths()), ["sunjitter-20140329T140938Z-0001.mcap"]);
+    assert_eq!(
+        names(sink2.segment_paths()),
+        ["sunjitter-20140329T140938Z-0001.mcap"]
+    );
 }
 
 /// Writes `n` frames flushing every `every`, then abandons the sink as a crash would.
@@ -403,28 +597,59 @@ fn crash_keeps_every_flushed_message() {
     let dir = tempfile::tempdir().unwrap();
     let (a, flushes) = crashed_segment(dir.path(), 10, 4);
     let file = &mcap_files(dir.path())[0];
-    assert_eq!(std::fs::metadata(file).unwrap().len(), flushes.last().unwrap().0);
+    assert_eq!(
+        std::fs::metadata(file).unwrap().len(),
+        flushes.last().unwrap().0
+    );
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
-    assert_eq!(log.jitter.iter().map(|m| m.record.clone()).collect::<Vec<_>>(), a[..8].to_vec());
+    assert_eq!(
+        log.jitter
+            .iter()
+            .map(|m| m.record.clone())
+            .collect::<Vec<_>>(),
+        a[..8].to_vec()
+    );
     let seg = &log.segments[0];
     assert!(!seg.complete);
     assert_eq!(seg.messages, 8);
-    assert!(seg.notes[0].contains("unfinished segment") && seg.notes[0].contains("recovered 8 messages"), "{:?}", seg.notes);
+    assert!(
+        seg.notes[0].contains("unfinished segment")
+            && seg.notes[0].contains("recovered 8 messages"),
+        "{:?}",
+        seg.notes
+    );
     assert_eq!(log.metadata.len(), 1);
     // The strict official reader refuses it...
     let bytes = std::fs::read(file).unwrap();
-    assert!(mcap::read::Summary::read(&bytes).is_err() || mcap::read::Summary::read(&bytes).unwrap().is_none());
+    assert!(
+        mcap::read::Summary::read(&bytes).is_err()
+            || mcap::read::Summary::read(&bytes).unwrap().is_none()
+    );
     // ...until it is recovered: then it is a finished file with the same messages.
     let outcome = recover_segment(file).unwrap();
-    assert!(matches!(outcome, RecoveryOutcome::Recovered { messages: 8, dropped_bytes: 0 }), "{outcome:?}");
+    assert!(
+        matches!(
+            outcome,
+            RecoveryOutcome::Recovered {
+                messages: 8,
+                dropped_bytes: 0
+            }
+        ),
+        "{outcome:?}"
+    );
     let bytes = std::fs::read(file).unwrap();
-    let summary = mcap::read::Summary::read(&bytes).unwrap().expect("summary after recovery");
+    let summary = mcap::read::Summary::read(&bytes)
+        .unwrap()
+        .expect("summary after recovery");
     assert_eq!(summary.stats.unwrap().message_count, 8);
-    let log2 = read_logs(&[file.clone()]).unwrap();
+    let log2 = read_logs(std::slice::from_ref(file)).unwrap();
     assert!(log2.segments[0].complete);
     assert_eq!(log2.jitter, log.jitter);
     assert_eq!(log2.metadata, log.metadata);
-    assert_eq!(recover_segment(file).unwrap(), RecoveryOutcome::AlreadyComplete);
+    assert_eq!(
+        recover_segment(file).unwrap(),
+        RecoveryOutcome::AlreadyComplete
+    );
 }
 
 /// The file cut at every byte offset: the reader returns exactly the frames of the complete
@@ -441,20 +666,33 @@ fn truncation_at_any_offset_recovers_a_clean_prefix() {
     let mut bounds = vec![(0u64, 0usize)];
     bounds.extend(flushes.iter().copied());
     std::fs::write(&cut_path, &bytes).unwrap();
-    let cut_file = std::fs::OpenOptions::new().write(true).open(&cut_path).unwrap();
+    let cut_file = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&cut_path)
+        .unwrap();
     for t in (0..=bytes.len()).rev() {
         cut_file.set_len(t as u64).unwrap();
-        let log = read_logs(&[cut_path.clone()])
+        let log = read_logs(std::slice::from_ref(&cut_path))
             .unwrap_or_else(|e| panic!("cut at {t}: {e}"));
         let got: Vec<_> = log.jitter.iter().map(|m| m.record.clone()).collect();
         let k = got.len();
-        assert_eq!(got, a[..k].to_vec(), "cut at {t}: not a prefix of the input");
+        assert_eq!(
+            got,
+            a[..k].to_vec(),
+            "cut at {t}: not a prefix of the input"
+        );
         // The last flush whose data lies entirely before the cut bounds k from below,
         // the next flush from above.
-        let j = bounds.iter().rposition(|&(len, _)| len <= t as u64).unwrap();
+        let j = bounds
+            .iter()
+            .rposition(|&(len, _)| len <= t as u64)
+            .unwrap();
         let lo = bounds[j].1;
         let hi = bounds.get(j + 1).map_or(lo, |b| b.1);
-        assert!(lo <= k && k <= hi, "cut at {t}: {k} frames, expected {lo}..={hi}");
+        assert!(
+            lo <= k && k <= hi,
+            "cut at {t}: {k} frames, expected {lo}..={hi}"
+        );
         assert_eq!(log.segments[0].skipped, 0);
     }
 }
@@ -480,7 +718,11 @@ fn full_disk_loses_nothing_and_doubles_nothing() {
                 Err(e) => {
                     errors += 1;
                     assert_eq!(e.exit_code(), 1);
-                    assert!(sink.pending_messages() <= 4, "pending grew to {}", sink.pending_messages());
+                    assert!(
+                        sink.pending_messages() <= 4,
+                        "pending grew to {}",
+                        sink.pending_messages()
+                    );
                     if budget.is_some() {
                         // Lift the limit for the retry, as an operator freeing space would.
                         sink.set_write_budget(None);
@@ -491,9 +733,16 @@ fn full_disk_loses_nothing_and_doubles_nothing() {
     }
     assert_eq!(next, 30);
     sink.finish().unwrap();
-    assert!(errors >= 2, "the budgets should have caused errors, got {errors}");
+    assert!(
+        errors >= 2,
+        "the budgets should have caused errors, got {errors}"
+    );
     let files = mcap_files(dir.path());
-    assert!(files.len() >= 2, "an error abandons the segment: {:?}", names(&files));
+    assert!(
+        files.len() >= 2,
+        "an error abandons the segment: {:?}",
+        names(&files)
+    );
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
     let got: Vec<_> = log.jitter.iter().map(|m| m.record.clone()).collect();
     assert_eq!(got, a, "every accepted frame exactly once, in order");
@@ -512,7 +761,7 @@ fn persistently_full_disk_keeps_failing_without_growing() {
     sink.write_frame(&a[1], times(1).0, times(1).1).unwrap(); // flushed
     sink.set_write_budget(Some(0));
     sink.write_frame(&a[2], times(2).0, times(2).1).unwrap(); // accepted in memory
-    // The automatic flush after a[3] fails; a[3] is accepted all the same.
+                                                              // The automatic flush after a[3] fails; a[3] is accepted all the same.
     sink.write_frame(&a[3], times(3).0, times(3).1).unwrap();
     for _ in 0..5 {
         assert!(sink.write_frame(&a[4], times(4).0, times(4).1).is_err());
@@ -524,7 +773,13 @@ fn persistently_full_disk_keeps_failing_without_growing() {
     sink.write_frame(&a[5], times(5).0, times(5).1).unwrap();
     sink.finish().unwrap();
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
-    assert_eq!(log.jitter.iter().map(|m| m.record.clone()).collect::<Vec<_>>(), a);
+    assert_eq!(
+        log.jitter
+            .iter()
+            .map(|m| m.record.clone())
+            .collect::<Vec<_>>(),
+        a
+    );
 }
 
 /// Restart-resume: the frames accounted for are the /jitter frames and /log errors (not
@@ -536,15 +791,29 @@ fn logged_frames_for_resume() {
     a[2].align.frame = "/data/cube.fits[7]".into();
     let mut sink = McapSink::new(dir.path(), config(2, 1), CONFIG_JSON.into()).unwrap();
     for (i, f) in a.iter().enumerate() {
-        sink.write_frame(f, times(i as u64).0, times(i as u64).1).unwrap();
+        sink.write_frame(f, times(i as u64).0, times(i as u64).1)
+            .unwrap();
     }
-    sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS", T0, T0).unwrap();
-    sink.write_log(LogLevel::Fatal, "/data/cube.fits[8]", "NaN only", T0, T0).unwrap();
-    sink.write_log(LogLevel::Warning, "/data/slow.fits", "incomplete, retrying", T0, T0).unwrap();
-    sink.write_log(LogLevel::Error, "", "output disk full", T0, T0).unwrap();
+    sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS", T0, T0)
+        .unwrap();
+    sink.write_log(LogLevel::Fatal, "/data/cube.fits[8]", "NaN only", T0, T0)
+        .unwrap();
+    sink.write_log(
+        LogLevel::Warning,
+        "/data/slow.fits",
+        "incomplete, retrying",
+        T0,
+        T0,
+    )
+    .unwrap();
+    sink.write_log(LogLevel::Error, "", "output disk full", T0, T0)
+        .unwrap();
     sink.abandon(); // flushed after every message: a crash loses nothing here
     let got = logged_frames(&[dir.path().to_path_buf()]).unwrap();
-    let spec = |p: &str, f: Option<usize>| FrameSpec { path: PathBuf::from(p), frame: f };
+    let spec = |p: &str, f: Option<usize>| FrameSpec {
+        path: PathBuf::from(p),
+        frame: f,
+    };
     let expect: HashSet<FrameSpec> = [
         spec("/data/SJI_1400/f0000.fits", None),
         spec("/data/SJI_1400/f0001.fits", None),
@@ -557,7 +826,9 @@ fn logged_frames_for_resume() {
     assert_eq!(got, expect);
     // An output directory with no log yet.
     let empty = tempfile::tempdir().unwrap();
-    assert!(logged_frames(&[empty.path().to_path_buf()]).unwrap().is_empty());
+    assert!(logged_frames(&[empty.path().to_path_buf()])
+        .unwrap()
+        .is_empty());
 }
 
 /// A sink dropped without `finish` still closes its segment cleanly.
@@ -568,7 +839,8 @@ fn dropping_the_sink_finishes_the_segment() {
     {
         let mut sink = McapSink::new(dir.path(), config(0, 100), CONFIG_JSON.into()).unwrap();
         for (i, f) in a.iter().enumerate() {
-            sink.write_frame(f, times(i as u64).0, times(i as u64).1).unwrap();
+            sink.write_frame(f, times(i as u64).0, times(i as u64).1)
+                .unwrap();
         }
     }
     let log = read_logs(&[dir.path().to_path_buf()]).unwrap();
@@ -583,16 +855,27 @@ fn reader_bad_input() {
     let dir = tempfile::tempdir().unwrap();
     let garbage = dir.path().join("notes.mcap");
     std::fs::write(&garbage, b"this is not an mcap file at all").unwrap();
-    let err = read_logs(&[garbage.clone()]).unwrap_err();
+    let err = read_logs(std::slice::from_ref(&garbage)).unwrap_err();
     assert_eq!(err.exit_code(), 2);
-    assert!(err.to_string().contains("notes.mcap") && err.to_string().contains("not an MCAP"), "{err}");
+    assert!(
+        err.to_string().contains("notes.mcap") && err.to_string().contains("not an MCAP"),
+        "{err}"
+    );
 
     let dir2 = tempfile::tempdir().unwrap();
-    std::fs::write(dir2.path().join("sunjitter-20140329T140938Z-0000.mcap"), &mcap::MAGIC[..3]).unwrap();
+    std::fs::write(
+        dir2.path().join("sunjitter-20140329T140938Z-0000.mcap"),
+        &mcap::MAGIC[..3],
+    )
+    .unwrap();
     std::fs::write(dir2.path().join("readme.txt"), b"not a segment").unwrap();
     let log = read_logs(&[dir2.path().to_path_buf()]).unwrap();
     assert_eq!(log.segments.len(), 1);
-    assert!(log.segments[0].notes[0].contains("empty segment"), "{:?}", log.segments[0].notes);
+    assert!(
+        log.segments[0].notes[0].contains("empty segment"),
+        "{:?}",
+        log.segments[0].notes
+    );
     assert!(log.jitter.is_empty());
 
     let missing = dir.path().join("missing");
@@ -611,7 +894,10 @@ fn unencodable_record_is_refused() {
     assert_eq!(err.exit_code(), 1);
     assert_eq!(sink.pending_messages(), 0);
     sink.finish().unwrap();
-    assert!(read_logs(&[dir.path().to_path_buf()]).unwrap().jitter.is_empty());
+    assert!(read_logs(&[dir.path().to_path_buf()])
+        .unwrap()
+        .jitter
+        .is_empty());
 }
 
 /// Writes the fixture `tools/check_mcap.py` checks in CI (see the script's docstring):
@@ -623,24 +909,31 @@ fn writes_fixture_for_the_python_reader_check() {
     let a = frames("SJI_1400", 20, 13);
     let b = frames("SJI_2796", 20, 14);
     let mut sink = McapSink::new(&dir, config(15, 5), CONFIG_JSON.into()).unwrap();
-    sink.write_reference_change(&reference_change(0), T0, T0).unwrap();
+    sink.write_reference_change(&reference_change(0), T0, T0)
+        .unwrap();
     for i in 0..20 {
         let (obs, publish) = times(i as u64);
         sink.write_frame(&a[i], obs, publish).unwrap();
         sink.write_frame(&b[i], obs, publish).unwrap();
     }
-    sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS", T0, T0).unwrap();
+    sink.write_log(LogLevel::Error, "/data/bad.fits", "not FITS", T0, T0)
+        .unwrap();
     sink.finish().unwrap();
     // A third segment from a crashed run, then recovered.
     let mut rng = Rng(15);
     let c: Vec<_> = (100..108).map(|i| frame("SJI_1400", i, &mut rng)).collect();
     let mut crashed = McapSink::new(&dir, config(0, 3), CONFIG_JSON.into()).unwrap();
     for (i, f) in c.iter().enumerate() {
-        crashed.write_frame(f, times(100 + i as u64).0, times(100 + i as u64).1).unwrap();
+        crashed
+            .write_frame(f, times(100 + i as u64).0, times(100 + i as u64).1)
+            .unwrap();
     }
     crashed.abandon();
     // 40 /jitter messages at 15 per segment: 15, 15, 10 (+ the /reference and /log ones).
     let files = mcap_files(&dir);
     assert_eq!(files.len(), 4);
-    assert!(matches!(recover_segment(&files[3]).unwrap(), RecoveryOutcome::Recovered { messages: 6, .. }));
+    assert!(matches!(
+        recover_segment(&files[3]).unwrap(),
+        RecoveryOutcome::Recovered { messages: 6, .. }
+    ));
 }

@@ -7,8 +7,11 @@ Checks every file (directories: every *.mcap in them) against CONTRACT.md's "MCA
   - topics and schemas: /jitter/<channel> -> sunjitter.FrameAlignment,
     /reference/<channel> -> sunjitter.ReferenceChange, /log -> foxglove.Log; schema encoding
     `jsonschema`, message encoding `json`; no other topic;
-  - every message is JSON and valid against its channel's JSON Schema (with the `jsonschema`
-    package; without it, only the schema's `required` keys are checked, and a line says so);
+  - every schema loads in Foxglove: its JSON Schema parser takes one `type` per field (or a
+    `oneOf` of numeric consts), so nullable fields are `"nullable": true` (OpenAPI style);
+  - every message is JSON and valid against its channel's JSON Schema, `nullable` fields also
+    accepting null (with the `jsonschema` package; without it, only the schema's `required`
+    keys are checked, and a line says so);
   - /jitter: log_time equals the message's obs_time (ISO 8601 UTC) within --time-tolerance-ns;
     /log: log_time equals the foxglove timestamp;
   - file names `sunjitter-YYYYMMDDTHHMMSSZ-NNNN.mcap` (for files named sunjitter-*).
@@ -63,6 +66,48 @@ def iso_to_ns(text):
     return secs * 1_000_000_000 + int(frac or 0)
 
 
+def foxglove_problems(schema, path):
+    """What Foxglove's JSON Schema parser (studio parseJsonSchema.ts) would reject."""
+    if schema.get("type") != "object":
+        return [f"{path}: type must be \"object\", got {schema.get('type')!r}"]
+    out = []
+    for name, field in (schema.get("properties") or {}).items():
+        here = f"{path}.{name}"
+        if isinstance(field.get("oneOf"), list):
+            if not all(isinstance(a.get("const"), (int, float)) for a in field["oneOf"]):
+                out.append(f"{here}: oneOf alternatives must be numeric consts")
+            continue
+        t = field.get("type")
+        if t in ("boolean", "number", "integer"):
+            pass
+        elif t == "string":
+            if field.get("contentEncoding") not in (None, "base64"):
+                out.append(f"{here}: contentEncoding {field['contentEncoding']!r}")
+        elif t == "object":
+            out.extend(foxglove_problems(field, here))
+        elif t == "array":
+            it = (field.get("items") or {}).get("type")
+            if it == "object":
+                out.extend(foxglove_problems(field["items"], here))
+            elif it not in ("boolean", "string", "number", "integer"):
+                out.append(f"{here}: array items of type {it!r}")
+        else:
+            out.append(f"{here}: unsupported type {t!r} (Foxglove takes a single type)")
+    return out
+
+
+def widen_nullable(node):
+    """A copy of a schema where `"nullable": true` fields also accept null."""
+    if isinstance(node, dict):
+        out = {k: widen_nullable(v) for k, v in node.items()}
+        if out.get("nullable") is True and isinstance(out.get("type"), str):
+            out["type"] = [out["type"], "null"]
+        return out
+    if isinstance(node, list):
+        return [widen_nullable(v) for v in node]
+    return node
+
+
 class Checker:
     def __init__(self, tolerance_ns):
         self.problems = []
@@ -76,7 +121,7 @@ class Checker:
     def validator(self, schema):
         key = (schema.id, schema.name, schema.data)
         if key not in self.validators:
-            doc = json.loads(schema.data)
+            doc = widen_nullable(json.loads(schema.data))
             if jsonschema is not None:
                 cls = jsonschema.validators.validator_for(doc)
                 cls.check_schema(doc)
@@ -119,6 +164,11 @@ class Checker:
                     self.fail(path, f"{channel.topic}: schema encoding {schema.encoding!r}")
                 if channel.message_encoding != "json":
                     self.fail(path, f"{channel.topic}: message encoding {channel.message_encoding!r}")
+                try:
+                    for p in foxglove_problems(json.loads(schema.data), schema.name):
+                        self.fail(path, f"{channel.topic}: Foxglove cannot load the schema: {p}")
+                except ValueError as e:
+                    self.fail(path, f"{channel.topic}: schema is not JSON: {e}")
 
             metas = [m for m in reader.iter_metadata() if m.name == "sunjitter"]
             if not metas:

@@ -29,6 +29,13 @@
 //! accepted message that was not yet on disk. An error from an automatic flush is not returned
 //! by the write that triggered it (that message was accepted); the next call reports it if it
 //! persists.
+//!
+//! # Use in a daemon
+//! One writer thread owns the sink. Call [`McapSink::tick`] when idle (flush, time rotation)
+//! and [`McapSink::finish`] at shutdown. On restart: [`read_logs`] on the output directory,
+//! [`recover_segment`] for each segment that is not `complete` (optional: this reader reads
+//! them anyway, the official readers need it), then [`LogContents::logged_frames`] gives the
+//! frames not to process again. [`McapSink::abandon`] simulates a crash in tests.
 
 mod reader;
 mod schemas;
@@ -171,6 +178,11 @@ impl McapSink {
     /// configuration as JSON, stored in every segment's `sunjitter` metadata record.
     pub fn new(dir: &Path, config: SinkConfig, run_config_json: String) -> Result<McapSink> {
         config.validate()?;
+        if let Err(e) = serde_json::from_str::<serde_json::Value>(&run_config_json) {
+            return Err(Error::Usage(format!(
+                "sink: the run configuration is not JSON: {e}"
+            )));
+        }
         std::fs::create_dir_all(dir)
             .map_err(|e| Error::output(dir, format!("cannot create output directory: {e}")))?;
         if !dir.is_dir() {
@@ -208,10 +220,19 @@ impl McapSink {
         if let Err(e) = serde_json::from_slice::<FrameAlignment>(&data) {
             return Err(Error::output(
                 &self.dir,
-                format!("frame {}: record does not survive JSON: {e}", record.align.frame),
+                format!(
+                    "frame {}: record does not survive JSON: {e}",
+                    record.align.frame
+                ),
             ));
         }
-        self.accept(Kind::Jitter, jitter_topic(&record.channel), data, log_time_ns, publish_time_ns)
+        self.accept(
+            Kind::Jitter,
+            jitter_topic(&record.channel),
+            data,
+            log_time_ns,
+            publish_time_ns,
+        )
     }
 
     /// Logs a reference change on `/reference/<change.channel>`.
@@ -245,7 +266,13 @@ impl McapSink {
             line: 0,
         };
         let data = self.encode(&entry)?;
-        self.accept(Kind::Log, LOG_TOPIC.to_string(), data, log_time_ns, publish_time_ns)
+        self.accept(
+            Kind::Log,
+            LOG_TOPIC.to_string(),
+            data,
+            log_time_ns,
+            publish_time_ns,
+        )
     }
 
     /// Writes everything accepted so far to disk (ends the current chunk).
@@ -263,7 +290,10 @@ impl McapSink {
     /// For an idle caller (e.g. every few seconds): closes the open segment if it is due by
     /// time at `now_ns`, else flushes what is not yet on disk.
     pub fn tick(&mut self, now_ns: u64) -> Result<()> {
-        let due = self.open.as_ref().is_some_and(|seg| self.rotation_due(seg, now_ns, false));
+        let due = self
+            .open
+            .as_ref()
+            .is_some_and(|seg| self.rotation_due(seg, now_ns, false));
         if due {
             self.close_open()
         } else if !self.pending.is_empty() || self.broken.is_some() {
@@ -311,8 +341,10 @@ impl McapSink {
     /// write, then `StorageFull`); `None` lifts the limit.
     #[doc(hidden)]
     pub fn set_write_budget(&mut self, bytes: Option<u64>) {
-        self.budget
-            .store(bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)), Ordering::SeqCst);
+        self.budget.store(
+            bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)),
+            Ordering::SeqCst,
+        );
     }
 
     fn encode<T: Serialize>(&self, value: &T) -> Result<Vec<u8>> {
@@ -352,7 +384,8 @@ impl McapSink {
         if kind != Kind::Reference {
             self.unflushed += 1;
         }
-        self.sequences.insert(message.topic.clone(), sequence.wrapping_add(1));
+        self.sequences
+            .insert(message.topic.clone(), sequence.wrapping_add(1));
         self.pending.push(message);
         if self.unflushed >= self.config.flush_every_frames {
             if let Err(e) = self.flush_open() {
@@ -381,9 +414,8 @@ impl McapSink {
     }
 
     fn rotation_due(&self, seg: &OpenSegment, now_ns: u64, by_count: bool) -> bool {
-        let full = by_count
-            && self.config.segment_frames > 0
-            && seg.frames >= self.config.segment_frames;
+        let full =
+            by_count && self.config.segment_frames > 0 && seg.frames >= self.config.segment_frames;
         let minutes = self.config.segment_minutes;
         let old = minutes > 0.0 && now_ns.saturating_sub(seg.started_ns) as f64 >= minutes * 60e9;
         full || old
@@ -446,7 +478,10 @@ impl McapSink {
             self.pending = replay;
             if let Some((path, e)) = failure {
                 self.break_open();
-                return Err(Error::output(path, format!("cannot re-write messages: {e}")));
+                return Err(Error::output(
+                    path,
+                    format!("cannot re-write messages: {e}"),
+                ));
             }
             self.flush_open()?;
         }
@@ -534,12 +569,16 @@ impl McapSink {
         let Some(seg) = self.open.as_mut() else {
             return Ok(());
         };
-        let result = seg.writer.finish().map_err(|e| e.to_string()).and_then(|_| {
-            if self.config.sync_on_flush {
-                seg.handle.sync_all().map_err(|e| e.to_string())?;
-            }
-            Ok(())
-        });
+        let result = seg
+            .writer
+            .finish()
+            .map_err(|e| e.to_string())
+            .and_then(|_| {
+                if self.config.sync_on_flush {
+                    seg.handle.sync_all().map_err(|e| e.to_string())?;
+                }
+                Ok(())
+            });
         match result {
             Ok(()) => {
                 self.open = None;
@@ -613,9 +652,12 @@ fn write_message(seg: &mut OpenSegment, message: &Pending) -> mcap::McapResult<(
     let channel_id = match seg.channel_ids.get(&message.topic) {
         Some(&id) => id,
         None => {
-            let id =
-                seg.writer
-                    .add_channel(schema_id, &message.topic, MESSAGE_ENCODING, &BTreeMap::new())?;
+            let id = seg.writer.add_channel(
+                schema_id,
+                &message.topic,
+                MESSAGE_ENCODING,
+                &BTreeMap::new(),
+            )?;
             seg.channel_ids.insert(message.topic.clone(), id);
             id
         }
@@ -657,7 +699,10 @@ mod tests {
     fn config_defaults_fill_missing_toml_fields() {
         let config: SinkConfig = toml::from_str("segment_frames = 5").unwrap();
         assert_eq!(config.segment_frames, 5);
-        assert_eq!(config.flush_every_frames, SinkConfig::default().flush_every_frames);
+        assert_eq!(
+            config.flush_every_frames,
+            SinkConfig::default().flush_every_frames
+        );
         assert!(toml::from_str::<SinkConfig>("segment_frame = 5").is_err());
     }
 
@@ -665,12 +710,27 @@ mod tests {
     fn bad_config_is_a_usage_error() {
         let dir = tempfile::tempdir().unwrap();
         for config in [
-            SinkConfig { flush_every_frames: 0, ..Default::default() },
-            SinkConfig { segment_minutes: f64::NAN, ..Default::default() },
-            SinkConfig { segment_minutes: -1.0, ..Default::default() },
+            SinkConfig {
+                flush_every_frames: 0,
+                ..Default::default()
+            },
+            SinkConfig {
+                segment_minutes: f64::NAN,
+                ..Default::default()
+            },
+            SinkConfig {
+                segment_minutes: -1.0,
+                ..Default::default()
+            },
         ] {
-            let err = McapSink::new(dir.path(), config, "{}".into()).err().unwrap();
+            let err = McapSink::new(dir.path(), config, "{}".into())
+                .err()
+                .unwrap();
             assert_eq!(err.exit_code(), 2, "{err}");
         }
+        let err = McapSink::new(dir.path(), SinkConfig::default(), "{oops".into())
+            .err()
+            .unwrap();
+        assert_eq!(err.exit_code(), 2, "{err}");
     }
 }

@@ -96,7 +96,11 @@ impl LogContents {
     pub fn notes(&self) -> Vec<String> {
         self.segments
             .iter()
-            .flat_map(|s| s.notes.iter().map(move |n| format!("{}: {n}", s.path.display())))
+            .flat_map(|s| {
+                s.notes
+                    .iter()
+                    .map(move |n| format!("{}: {n}", s.path.display()))
+            })
             .collect()
     }
 }
@@ -222,7 +226,9 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
         let record = match mcap::parse_record(opcode, body) {
             Ok(r) => r,
             Err(e) => {
-                stopped = Some(format!("unreadable record (opcode 0x{opcode:02x}) at byte {pos}: {e}"));
+                stopped = Some(format!(
+                    "unreadable record (opcode 0x{opcode:02x}) at byte {pos}: {e}"
+                ));
                 break;
             }
         };
@@ -319,7 +325,10 @@ fn decode_segment(raw: RawSegment, contents: &mut LogContents) {
         if channel.message_encoding != MESSAGE_ENCODING {
             report.skipped += 1;
             first_error.get_or_insert_with(|| {
-                format!("{}: message encoding {:?}", channel.topic, channel.message_encoding)
+                format!(
+                    "{}: message encoding {:?}",
+                    channel.topic, channel.message_encoding
+                )
             });
             continue;
         }
@@ -405,7 +414,10 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_threads(0)
-            .library(format!("sunjitter {} (recovered)", env!("CARGO_PKG_VERSION")));
+            .library(format!(
+                "sunjitter {} (recovered)",
+                env!("CARGO_PKG_VERSION")
+            ));
         let mut writer = options.create(std::io::BufWriter::new(file))?;
         for m in &raw.metadata {
             writer.write_metadata(m)?;
@@ -414,8 +426,18 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
             writer.add_schema_with_id(*id, name, encoding, data)?;
         }
         for (id, c) in &raw.channels {
-            let schema_id = if raw.schemas.contains_key(&c.schema_id) { c.schema_id } else { 0 };
-            writer.add_channel_with_id(*id, schema_id, &c.topic, &c.message_encoding, &c.metadata)?;
+            let schema_id = if raw.schemas.contains_key(&c.schema_id) {
+                c.schema_id
+            } else {
+                0
+            };
+            writer.add_channel_with_id(
+                *id,
+                schema_id,
+                &c.topic,
+                &c.message_encoding,
+                &c.metadata,
+            )?;
         }
         for (header, data) in &raw.messages {
             if raw.channels.contains_key(&header.channel_id) {
@@ -423,7 +445,10 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
             }
         }
         writer.finish()?;
-        let file = writer.into_inner().into_inner().map_err(|e| e.into_error())?;
+        let file = writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| e.into_error())?;
         file.sync_all()?;
         Ok(file)
     })();

@@ -125,14 +125,18 @@ pub struct LogEntry {
     pub line: u32,
 }
 
+/// A number that is `null` when there is no value (e.g. a failed frame). Foxglove's JSON
+/// Schema parser takes one `type` per field and rejects `["number", "null"]`, so nullability
+/// is marked with OpenAPI's `nullable` keyword, which JSON Schema validators ignore.
 fn number_or_null(description: &str) -> Value {
-    json!({ "type": ["number", "null"], "description": description })
+    json!({ "type": "number", "nullable": true, "description": description })
 }
 
 /// JSON Schema of `sunjitter.FrameAlignment` (fields of `crate::record::FrameAlignment`).
 pub fn frame_alignment_schema() -> Value {
     let transform = json!({
-        "type": ["object", "null"],
+        "type": "object",
+        "nullable": true,
         "description": "The part of the transform the FITS headers did not predict",
         "properties": {
             "scale": { "type": "number" },
@@ -146,40 +150,97 @@ pub fn frame_alignment_schema() -> Value {
     let mut put = |name: &str, v: Value| {
         properties.insert(name.to_string(), v);
     };
-    put("reference", json!({ "type": "string", "description": "Reference image (FILE or FILE[N])" }));
-    put("frame", json!({ "type": "string", "description": "Aligned frame (FILE or FILE[N])" }));
+    put(
+        "reference",
+        json!({ "type": "string", "description": "Reference image (FILE or FILE[N])" }),
+    );
+    put(
+        "frame",
+        json!({ "type": "string", "description": "Aligned frame (FILE or FILE[N])" }),
+    );
     put("scale", number_or_null("Scale s (unitless)"));
-    put("rotation_arcsec", number_or_null("Rotation θ, counter-clockwise, arcsec"));
-    put("dx_px", number_or_null("Shift along x (columns), reference pixels"));
-    put("dy_px", number_or_null("Shift along y (rows), reference pixels"));
-    put("dx_arcsec", number_or_null("dx_px times the reference plate scale"));
-    put("dy_arcsec", number_or_null("dy_px times the reference plate scale"));
+    put(
+        "rotation_arcsec",
+        number_or_null("Rotation θ, counter-clockwise, arcsec"),
+    );
+    put(
+        "dx_px",
+        number_or_null("Shift along x (columns), reference pixels"),
+    );
+    put(
+        "dy_px",
+        number_or_null("Shift along y (rows), reference pixels"),
+    );
+    put(
+        "dx_arcsec",
+        number_or_null("dx_px times the reference plate scale"),
+    );
+    put(
+        "dy_arcsec",
+        number_or_null("dy_px times the reference plate scale"),
+    );
     for p in ["scale", "rotation_arcsec", "dx_px", "dy_px"] {
-        put(&format!("sigma_{p}"), number_or_null("Calibrated 1-σ standard error"));
+        put(
+            &format!("sigma_{p}"),
+            number_or_null("Calibrated 1-σ standard error"),
+        );
     }
     for p in ["scale", "rotation_arcsec", "dx_px", "dy_px"] {
-        put(&format!("uabjm_sigma_{p}"), number_or_null("Plain UABJM 1-σ, (JᵀJ)⁻¹σ²"));
+        put(
+            &format!("uabjm_sigma_{p}"),
+            number_or_null("Plain UABJM 1-σ, (JᵀJ)⁻¹σ²"),
+        );
     }
     put("header_residual", transform);
-    put("points", json!({ "type": "integer", "minimum": 0, "description": "Flow sample points" }));
-    put("inliers", json!({ "type": "integer", "minimum": 0, "description": "RANSAC inliers" }));
-    put("residual_rms_px", number_or_null("RMS residual of the inliers, px"));
-    put("similarity", number_or_null("Bhattacharyya coefficient of the histograms"));
-    put("status", json!({ "type": "string", "enum": ["ok", "degraded", "failed"] }));
-    put("message", json!({ "type": "string", "description": "Why degraded or failed" }));
-    put("elapsed_ms", json!({ "type": "number", "description": "Processing time, ms" }));
+    put(
+        "points",
+        json!({ "type": "integer", "minimum": 0, "description": "Flow sample points" }),
+    );
+    put(
+        "inliers",
+        json!({ "type": "integer", "minimum": 0, "description": "RANSAC inliers" }),
+    );
+    put(
+        "residual_rms_px",
+        number_or_null("RMS residual of the inliers, px"),
+    );
+    put(
+        "similarity",
+        number_or_null("Bhattacharyya coefficient of the histograms"),
+    );
+    put(
+        "status",
+        json!({ "type": "string", "enum": ["ok", "degraded", "failed"] }),
+    );
+    put(
+        "message",
+        json!({ "type": "string", "description": "Why degraded or failed" }),
+    );
+    put(
+        "elapsed_ms",
+        json!({ "type": "number", "description": "Processing time, ms" }),
+    );
     put("channel", json!({ "type": "string" }));
-    put("obs_time", json!({ "type": "string", "description": "Observation time, ISO 8601 UTC" }));
+    put(
+        "obs_time",
+        json!({ "type": "string", "description": "Observation time, ISO 8601 UTC" }),
+    );
     put("sequence", json!({ "type": "integer", "minimum": 0 }));
     put(
         "reference_kind",
         json!({ "type": "string", "enum": ["self", "previous", "keyframe", "fixed", "channel"] }),
     );
     for p in ["dx_px", "dy_px", "rotation_arcsec", "scale"] {
-        put(&format!("chained_{p}"), number_or_null("Relative to the first keyframe"));
+        put(
+            &format!("chained_{p}"),
+            number_or_null("Relative to the first keyframe"),
+        );
     }
     for p in ["dx_px", "dy_px", "rotation_arcsec", "scale"] {
-        put(&format!("sigma_chained_{p}"), number_or_null("1-σ of the chained value"));
+        put(
+            &format!("sigma_chained_{p}"),
+            number_or_null("1-σ of the chained value"),
+        );
     }
     let required: Vec<&String> = properties.keys().collect();
     let required = json!(required);
@@ -201,7 +262,7 @@ pub fn reference_change_schema() -> Value {
         "properties": {
             "channel": { "type": "string" },
             "file": { "type": "string", "description": "The new reference's file" },
-            "frame": { "type": ["integer", "null"], "minimum": 0,
+            "frame": { "type": "integer", "nullable": true, "minimum": 0,
                        "description": "Frame index in a 3-D cube" },
             "obs_time": { "type": "string", "description": "ISO 8601 UTC" },
             "reason": { "type": "string" },
@@ -209,7 +270,8 @@ pub fn reference_change_schema() -> Value {
                                 "enum": ["self", "previous", "keyframe", "fixed", "channel"] },
             "sequence": { "type": "integer", "minimum": 0,
                           "description": "sequence of the first frame aligned to it" },
-            "replaces": { "type": ["string", "null"], "description": "The previous reference" }
+            "replaces": { "type": "string", "nullable": true,
+                          "description": "The previous reference" }
         },
         "required": ["channel", "file", "frame", "obs_time", "reason", "reference_kind",
                      "sequence", "replaces"]
@@ -218,7 +280,8 @@ pub fn reference_change_schema() -> Value {
 
 /// JSON Schema of Foxglove's `foxglove.Log`, as the Foxglove SDK publishes it.
 pub fn log_schema() -> Value {
-    let level = |title: &str, n: u8, d: &str| json!({ "title": title, "const": n, "description": d });
+    let level =
+        |title: &str, n: u8, d: &str| json!({ "title": title, "const": n, "description": d });
     json!({
         "title": LOG_SCHEMA,
         "description": "A log message",
@@ -258,6 +321,54 @@ pub fn log_schema() -> Value {
 mod tests {
     use super::*;
 
+    /// Foxglove's JSON Schema parser (foxglove studio `parseJsonSchema.ts`) accepts per field
+    /// either a `oneOf` of numeric `const`s or one `type` among boolean, string, number,
+    /// integer, object (recursively) and array (of those); anything else fails the channel.
+    fn foxglove_parsable(schema: &Value, path: &str) -> Result<(), String> {
+        if schema["type"] != "object" {
+            return Err(format!("{path}: root/nested type must be \"object\""));
+        }
+        let props = schema["properties"]
+            .as_object()
+            .ok_or(format!("{path}: no properties"))?;
+        for (name, field) in props {
+            let here = format!("{path}.{name}");
+            if let Some(alternatives) = field["oneOf"].as_array() {
+                if alternatives.iter().all(|a| a["const"].is_number()) {
+                    continue;
+                }
+                return Err(format!("{here}: oneOf alternatives must be numeric consts"));
+            }
+            match field["type"].as_str() {
+                Some("boolean" | "number" | "integer") => {}
+                Some("string") if field.get("contentEncoding").is_none() => {}
+                Some("object") => foxglove_parsable(field, &here)?,
+                Some("array") => match field["items"]["type"].as_str() {
+                    Some("boolean" | "string" | "number" | "integer") => {}
+                    Some("object") => foxglove_parsable(&field["items"], &here)?,
+                    other => return Err(format!("{here}: array items of type {other:?}")),
+                },
+                _ => return Err(format!("{here}: unsupported type {}", field["type"])),
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn schemas_load_in_foxglove() {
+        for (name, schema) in [
+            (FRAME_ALIGNMENT_SCHEMA, frame_alignment_schema()),
+            (REFERENCE_CHANGE_SCHEMA, reference_change_schema()),
+            (LOG_SCHEMA, log_schema()),
+        ] {
+            foxglove_parsable(&schema, name).unwrap();
+        }
+        // The check itself rejects what Foxglove rejects.
+        let nullable_union =
+            json!({"type": "object", "properties": {"x": {"type": ["number", "null"]}}});
+        assert!(foxglove_parsable(&nullable_union, "t").is_err());
+    }
+
     #[test]
     fn log_levels_are_foxglove_numbers() {
         // foxglove.LogLevel: UNKNOWN 0, DEBUG 1, INFO 2, WARNING 3, ERROR 4, FATAL 5
@@ -272,7 +383,10 @@ mod tests {
         ];
         for (level, n) in levels {
             assert_eq!(serde_json::to_string(&level).unwrap(), n.to_string());
-            assert_eq!(serde_json::from_str::<LogLevel>(&n.to_string()).unwrap(), level);
+            assert_eq!(
+                serde_json::from_str::<LogLevel>(&n.to_string()).unwrap(),
+                level
+            );
         }
         assert!(serde_json::from_str::<LogLevel>("6").is_err());
     }
@@ -280,7 +394,13 @@ mod tests {
     #[test]
     fn foxglove_time_splits_nanoseconds() {
         let t = FoxgloveTime::from_ns(1_396_102_178_123_456_789);
-        assert_eq!(t, FoxgloveTime { sec: 1_396_102_178, nsec: 123_456_789 });
+        assert_eq!(
+            t,
+            FoxgloveTime {
+                sec: 1_396_102_178,
+                nsec: 123_456_789
+            }
+        );
         assert_eq!(t.to_ns(), 1_396_102_178_123_456_789);
     }
 

@@ -163,9 +163,18 @@ mod tests {
 
     #[test]
     fn names_round_trip_and_sort_in_time_order() {
-        let a = SegmentKey { stamp: "20140329T140938Z".into(), number: 9 };
-        let b = SegmentKey { stamp: "20140329T140938Z".into(), number: 10 };
-        let c = SegmentKey { stamp: "20140329T140939Z".into(), number: 0 };
+        let a = SegmentKey {
+            stamp: "20140329T140938Z".into(),
+            number: 9,
+        };
+        let b = SegmentKey {
+            stamp: "20140329T140938Z".into(),
+            number: 10,
+        };
+        let c = SegmentKey {
+            stamp: "20140329T140939Z".into(),
+            number: 0,
+        };
         assert_eq!(a.file_name(), "sunjitter-20140329T140938Z-0009.mcap");
         for k in [&a, &b, &c] {
             assert_eq!(SegmentKey::parse(&k.file_name()).as_ref(), Some(k));
