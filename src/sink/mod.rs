@@ -25,7 +25,8 @@
 //! successful flush, and until then the sink keeps a copy. `Err` means *this* message was not
 //! accepted (retry it later) — nothing is dropped silently. After an I/O error the open segment
 //! is abandoned: it is truncated back to its last successful flush (so it never holds a message
-//! twice) and left unfinished; the next call opens a new segment and first re-writes every
+//! twice) and rewritten as a finished file (at once if possible, else by `finish`); the next
+//! call opens a new segment and first re-writes every
 //! accepted message that was not yet on disk. An error from an automatic flush is not returned
 //! by the write that triggered it (that message was accepted); the next call reports it if it
 //! persists.
@@ -57,6 +58,7 @@ use segment::{SegmentFile, SegmentKey, UNLIMITED};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap};
 use std::fs::{File, OpenOptions};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
@@ -164,6 +166,8 @@ pub struct McapSink {
     run_config_json: String,
     open: Option<OpenSegment>,
     broken: Option<Broken>,
+    /// Abandoned segments, truncated to their last flush, not yet rewritten as finished files.
+    unfinished: Vec<PathBuf>,
     pending: Vec<Pending>,
     unflushed: u64,
     segments_started: u32,
@@ -196,6 +200,7 @@ impl McapSink {
             run_config_json,
             open: None,
             broken: None,
+            unfinished: Vec::new(),
             pending: Vec::new(),
             unflushed: 0,
             segments_started: 0,
@@ -303,18 +308,21 @@ impl McapSink {
         }
     }
 
-    /// Finishes the open segment (summary and indexes) and closes it. On error nothing
-    /// accepted is lost: call again later. Writing after `finish` starts a new segment.
+    /// Finishes the open segment (summary and indexes) and closes it, and rewrites any segment
+    /// abandoned after an error as a finished file. On error nothing accepted is lost (an
+    /// unfinished segment stays readable by [`read_logs`]): call again later. Writing after
+    /// `finish` starts a new segment.
     pub fn finish(&mut self) -> Result<()> {
         if self.open.is_none() && !self.pending.is_empty() {
             let first = self.pending[0].publish_time_ns;
             self.prepare(first)?;
         }
         if self.open.is_some() {
-            self.close_open()
+            self.close_open()?;
         } else {
-            self.repair_broken()
+            self.repair_broken()?;
         }
+        self.recover_unfinished()
     }
 
     /// Drops the sink as a crash would: the open segment keeps only what was flushed, nothing
@@ -325,6 +333,7 @@ impl McapSink {
         }
         self.pending.clear();
         self.broken = None;
+        self.unfinished.clear();
     }
 
     /// Segment files this sink has created, in order.
@@ -494,12 +503,12 @@ impl McapSink {
         };
         let handle = file.try_clone().map_err(|e| fail("open", &e))?;
         let poisoned = Arc::new(AtomicBool::new(false));
-        let out = SegmentFile {
+        let out = SegmentFile::new(
             file,
-            poisoned: poisoned.clone(),
-            budget: self.budget.clone(),
-            sync_on_flush: self.config.sync_on_flush,
-        };
+            poisoned.clone(),
+            self.budget.clone(),
+            self.config.sync_on_flush,
+        );
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .chunk_size(Some(self.config.chunk_size))
@@ -566,29 +575,49 @@ impl McapSink {
     }
 
     fn close_open(&mut self) -> Result<()> {
-        let Some(seg) = self.open.as_mut() else {
+        let Some(seg) = self.open.take() else {
             return Ok(());
         };
-        let result = seg
-            .writer
-            .finish()
-            .map_err(|e| e.to_string())
-            .and_then(|_| {
+        let OpenSegment {
+            path,
+            mut writer,
+            poisoned,
+            handle,
+            durable_len,
+            ..
+        } = seg;
+        let result = match writer.finish() {
+            // The summary is still in the file buffer: write it out.
+            Ok(_) => writer.into_inner().flush().and_then(|()| {
                 if self.config.sync_on_flush {
-                    seg.handle.sync_all().map_err(|e| e.to_string())?;
+                    handle.sync_all()?;
                 }
                 Ok(())
-            });
+            }),
+            Err(e) => {
+                poisoned.store(true, Ordering::SeqCst);
+                drop(writer);
+                Err(std::io::Error::other(e))
+            }
+        };
         match result {
             Ok(()) => {
-                self.open = None;
                 self.pending.clear();
                 self.unflushed = 0;
                 Ok(())
             }
             Err(e) => {
-                let path = seg.path.clone();
-                self.break_open();
+                poisoned.store(true, Ordering::SeqCst);
+                tracing::warn!(
+                    "{}: cannot finish segment; truncating to its last flush",
+                    path.display()
+                );
+                self.broken = Some(Broken {
+                    path: path.clone(),
+                    handle,
+                    durable_len,
+                });
+                let _ = self.repair_broken();
                 Err(Error::output(path, format!("cannot finish segment: {e}")))
             }
         }
@@ -627,7 +656,12 @@ impl McapSink {
         });
         match result {
             Ok(()) => {
+                self.unfinished.push(broken.path.clone());
                 self.broken = None;
+                // Best effort now (the disk may still be full); `finish` insists.
+                if let Err(e) = self.recover_unfinished() {
+                    tracing::warn!("{e}");
+                }
                 Ok(())
             }
             Err(e) => Err(Error::output(
@@ -635,6 +669,21 @@ impl McapSink {
                 format!("cannot truncate abandoned segment to its last flush: {e}"),
             )),
         }
+    }
+
+    /// Rewrites abandoned (truncated) segments as finished files; see [`recover_segment`].
+    fn recover_unfinished(&mut self) -> Result<()> {
+        let mut first_error = None;
+        let sync = self.config.sync_on_flush;
+        self.unfinished
+            .retain(|path| match reader::recover_segment_with(path, sync) {
+                Ok(_) => false,
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                    true
+                }
+            });
+        first_error.map_or(Ok(()), Err)
     }
 }
 
@@ -676,7 +725,8 @@ fn write_message(seg: &mut OpenSegment, message: &Pending) -> mcap::McapResult<(
 impl Drop for McapSink {
     /// A sink dropped without `finish` still finishes its segment (best effort).
     fn drop(&mut self) {
-        if self.open.is_some() || !self.pending.is_empty() {
+        let busy = self.open.is_some() || self.broken.is_some();
+        if busy || !self.pending.is_empty() || !self.unfinished.is_empty() {
             if let Err(e) = self.finish() {
                 tracing::error!("closing the MCAP log: {e}");
             }

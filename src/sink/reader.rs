@@ -240,10 +240,10 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
                         take_record(&mut raw, r);
                     }
                 }
-                Err(e) => {
-                    stopped = Some(format!("unreadable chunk at byte {pos}: {e}"));
-                    break;
-                }
+                // The framing around it is sound (its length fits): skip just this chunk.
+                Err(e) => raw.report.notes.push(format!(
+                    "damaged chunk at byte {pos} ({len} bytes) skipped with its messages: {e}"
+                )),
             },
             Record::DataEnd(_) => {
                 data_end = true;
@@ -400,6 +400,11 @@ pub enum RecoveryOutcome {
 /// its readable records are rewritten with summary and indexes to `<name>.recovering`, which
 /// then replaces the segment atomically (rename). A crash during recovery leaves the original.
 pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
+    recover_segment_with(path, true)
+}
+
+/// [`recover_segment`], with `fsync` of the new file and its directory only if `sync`.
+pub(super) fn recover_segment_with(path: &Path, sync: bool) -> Result<RecoveryOutcome> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let raw = parse_segment(path, &bytes)?;
     if raw.report.complete {
@@ -449,7 +454,9 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
             .into_inner()
             .into_inner()
             .map_err(|e| e.into_error())?;
-        file.sync_all()?;
+        if sync {
+            file.sync_all()?;
+        }
         Ok(file)
     })();
     if let Err(e) = written {
@@ -457,7 +464,7 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
         return Err(fail(&e));
     }
     std::fs::rename(&tmp, path).map_err(|e| fail(&e))?;
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+    if let Some(dir) = path.parent().filter(|d| sync && !d.as_os_str().is_empty()) {
         // Make the rename itself durable where the platform allows it.
         if let Ok(d) = File::open(dir) {
             let _ = d.sync_all();

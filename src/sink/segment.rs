@@ -85,21 +85,44 @@ pub(crate) fn newest_existing(dir: &Path) -> io::Result<Option<SegmentKey>> {
 /// Unlimited write budget (see [`SegmentFile`]).
 pub(crate) const UNLIMITED: u64 = u64::MAX;
 
-/// The file under one MCAP writer.
+/// Buffered bytes beyond which they go to the file before a flush (bounds memory).
+const SPILL_BYTES: usize = 4 << 20;
+
+/// The file under one MCAP writer, buffered: the writer emits many small records (indexes,
+/// summary) and asks for its position often; both stay in memory until `flush`.
 ///
 /// * `poisoned`: once set, every write fails, so dropping an abandoned `mcap::Writer` (whose
 ///   `Drop` tries to finish the file) cannot append anything after the last good flush.
-/// * `budget`: bytes that may still be written, shared by all segments of a sink; a test hook
-///   to simulate a full disk (short write, then `StorageFull`). `UNLIMITED` in normal use.
+/// * `budget`: bytes that may still reach the file, shared by all segments of a sink; a test
+///   hook to simulate a full disk (a short write, then `StorageFull`). `UNLIMITED` normally.
 /// * `sync_on_flush`: `fsync` on every flush, for durability beyond a process crash.
 pub(crate) struct SegmentFile {
-    pub file: File,
-    pub poisoned: Arc<AtomicBool>,
-    pub budget: Arc<AtomicU64>,
-    pub sync_on_flush: bool,
+    file: File,
+    buffer: Vec<u8>,
+    /// Logical position: file position plus buffered bytes.
+    position: u64,
+    poisoned: Arc<AtomicBool>,
+    budget: Arc<AtomicU64>,
+    sync_on_flush: bool,
 }
 
 impl SegmentFile {
+    pub fn new(
+        file: File,
+        poisoned: Arc<AtomicBool>,
+        budget: Arc<AtomicU64>,
+        sync_on_flush: bool,
+    ) -> SegmentFile {
+        SegmentFile {
+            file,
+            buffer: Vec::new(),
+            position: 0,
+            poisoned,
+            budget,
+            sync_on_flush,
+        }
+    }
+
     fn check_poisoned(&self) -> io::Result<()> {
         if self.poisoned.load(Ordering::SeqCst) {
             Err(io::Error::other("segment abandoned after an earlier error"))
@@ -107,29 +130,56 @@ impl SegmentFile {
             Ok(())
         }
     }
+
+    /// Writes the buffer to the file, within the budget.
+    fn spill(&mut self) -> io::Result<()> {
+        let mut data = self.buffer.as_slice();
+        let result = loop {
+            if data.is_empty() {
+                break Ok(());
+            }
+            let budget = self.budget.load(Ordering::SeqCst);
+            let allowed = data
+                .len()
+                .min(usize::try_from(budget).unwrap_or(usize::MAX));
+            if allowed == 0 {
+                break Err(io::Error::new(
+                    io::ErrorKind::StorageFull,
+                    "no space left on device (injected)",
+                ));
+            }
+            match self.file.write(&data[..allowed]) {
+                Ok(0) => break Err(io::ErrorKind::WriteZero.into()),
+                Ok(n) => {
+                    if budget != UNLIMITED {
+                        self.budget.fetch_sub(n as u64, Ordering::SeqCst);
+                    }
+                    data = &data[n..];
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) => break Err(e),
+            }
+        };
+        let written = self.buffer.len() - data.len();
+        self.buffer.drain(..written);
+        result
+    }
 }
 
 impl Write for SegmentFile {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
         self.check_poisoned()?;
-        let budget = self.budget.load(Ordering::SeqCst);
-        if budget == UNLIMITED {
-            return self.file.write(buf);
+        self.buffer.extend_from_slice(buf);
+        self.position += buf.len() as u64;
+        if self.buffer.len() > SPILL_BYTES {
+            self.spill()?;
         }
-        let allowed = buf.len().min(usize::try_from(budget).unwrap_or(usize::MAX));
-        if allowed == 0 && !buf.is_empty() {
-            return Err(io::Error::new(
-                io::ErrorKind::StorageFull,
-                "no space left on device (injected)",
-            ));
-        }
-        let written = self.file.write(&buf[..allowed])?;
-        self.budget.fetch_sub(written as u64, Ordering::SeqCst);
-        Ok(written)
+        Ok(buf.len())
     }
 
     fn flush(&mut self) -> io::Result<()> {
         self.check_poisoned()?;
+        self.spill()?;
         self.file.flush()?;
         if self.sync_on_flush {
             self.file.sync_data()?;
@@ -141,7 +191,12 @@ impl Write for SegmentFile {
 impl Seek for SegmentFile {
     fn seek(&mut self, pos: SeekFrom) -> io::Result<u64> {
         self.check_poisoned()?;
-        self.file.seek(pos)
+        if pos == SeekFrom::Current(0) {
+            return Ok(self.position);
+        }
+        self.spill()?;
+        self.position = self.file.seek(pos)?;
+        Ok(self.position)
     }
 }
 
