@@ -8,7 +8,7 @@ use super::schemas::{
 use crate::fits::FrameSpec;
 use crate::record::FrameAlignment;
 use crate::{Error, Result};
-use mcap::records::{Channel, MessageHeader, Metadata, Record};
+use mcap::records::{op, Channel, MessageHeader, Metadata, Record};
 use std::collections::{BTreeMap, HashSet};
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -203,7 +203,7 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
         return Err(Error::bad_input(path, "not an MCAP file (bad magic bytes)"));
     }
     let mut pos = magic.len();
-    let mut data_end = false;
+    let mut data_end: Option<usize> = None;
     let mut stopped: Option<String> = None;
     while pos < bytes.len() {
         let rest = &bytes[pos..];
@@ -222,19 +222,10 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
             ));
             break;
         }
-        let body = &rest[9..9 + len as usize];
-        let record = match mcap::parse_record(opcode, body) {
-            Ok(r) => r,
-            Err(e) => {
-                stopped = Some(format!(
-                    "unreadable record (opcode 0x{opcode:02x}) at byte {pos}: {e}"
-                ));
-                break;
-            }
-        };
         let next = pos + 9 + len as usize;
-        match record {
-            Record::Chunk { header, data } => match chunk_records(header, &data) {
+        let body = &rest[9..9 + len as usize];
+        match opcode {
+            op::CHUNK => match chunk_records(&bytes[pos..next]) {
                 Ok(records) => {
                     for r in records {
                         take_record(&mut raw, r);
@@ -245,25 +236,37 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
                     "damaged chunk at byte {pos} ({len} bytes) skipped with its messages: {e}"
                 )),
             },
-            Record::DataEnd(_) => {
-                data_end = true;
+            op::SCHEMA | op::CHANNEL | op::MESSAGE | op::METADATA => {
+                match mcap::parse_record(opcode, body) {
+                    Ok(record) => take_record(&mut raw, record),
+                    Err(e) => {
+                        stopped = Some(format!(
+                            "unreadable record (opcode 0x{opcode:02x}) at byte {pos}: {e}"
+                        ));
+                        break;
+                    }
+                }
+            }
+            op::DATA_END => {
+                data_end = Some(next);
                 raw.report.readable_len = next as u64;
                 break;
             }
-            Record::Footer(_) => break,
-            other => take_record(&mut raw, other),
+            op::FOOTER => break,
+            // Header, indexes, statistics, attachments, unknown records: not needed for the
+            // series, and not parsed (less parsing of possibly damaged bytes).
+            _ => {}
         }
         pos = next;
         raw.report.readable_len = pos as u64;
     }
-    let footer_ok = data_end && mcap::read::footer(bytes).is_ok();
-    raw.report.complete = footer_ok && matches!(mcap::read::Summary::read(bytes), Ok(Some(_)));
+    raw.report.complete = data_end.is_some_and(|end| has_summary_and_footer(bytes, end));
     if !raw.report.complete {
         let n = raw.messages.len();
         let (read, total) = (raw.report.readable_len, raw.report.file_len);
         let what = match &stopped {
             Some(why) => format!("; stopped at a {why}"),
-            None if data_end => "; summary or footer missing or unreadable".to_string(),
+            None if data_end.is_some() => "; summary or footer missing or damaged".to_string(),
             None => "; ends at a record boundary".to_string(),
         };
         raw.report.notes.push(format!(
@@ -274,15 +277,59 @@ fn parse_segment(path: &Path, bytes: &[u8]) -> Result<RawSegment> {
     Ok(raw)
 }
 
-/// All records of a chunk, or an error if any part of it is unreadable (bad CRC, bad
-/// compression, truncated inside).
-fn chunk_records(
-    header: mcap::records::ChunkHeader,
-    data: &[u8],
-) -> mcap::McapResult<Vec<Record<'static>>> {
-    mcap::read::ChunkReader::new(header, data)?
-        .map(|r| r.map(|r| r.into_owned()))
-        .collect()
+/// A footer record right before the end magic, pointing at a summary section that starts
+/// after the data section (which ends at `data_end`).
+fn has_summary_and_footer(bytes: &[u8], data_end: usize) -> bool {
+    const FOOTER_LEN: usize = 1 + 8 + 20;
+    let magic = mcap::MAGIC;
+    let n = bytes.len();
+    if n < data_end + FOOTER_LEN + magic.len() || !bytes.ends_with(magic) {
+        return false;
+    }
+    let footer = &bytes[n - magic.len() - FOOTER_LEN..n - magic.len()];
+    let u64_at = |i: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&footer[i..i + 8]);
+        u64::from_le_bytes(b)
+    };
+    let summary_start = u64_at(9);
+    footer[0] == op::FOOTER
+        && u64_at(1) == 20
+        && summary_start >= data_end as u64
+        && summary_start < (n - magic.len() - FOOTER_LEN) as u64
+}
+
+/// Largest decompressed chunk accepted (a damaged size field must not exhaust memory).
+const CHUNK_LIMIT: usize = 1 << 30;
+
+/// The schema, channel and message records of one chunk record (`opcode..end`), or an error
+/// if any part of it is unreadable: its CRC is checked before any record is taken.
+fn chunk_records(record: &[u8]) -> mcap::McapResult<Vec<Record<'static>>> {
+    let options = mcap::sans_io::LinearReaderOptions::default()
+        .with_skip_start_magic(true)
+        .with_skip_end_magic(true)
+        .with_emit_chunks(false)
+        .with_prevalidate_chunk_crcs(true)
+        .with_record_length_limit(CHUNK_LIMIT);
+    let mut reader = mcap::sans_io::LinearReader::new_with_options(options);
+    let mut input = record;
+    let mut out = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event? {
+            mcap::sans_io::LinearReadEvent::ReadRequest(n) => {
+                let k = n.min(input.len());
+                reader.insert(k).copy_from_slice(&input[..k]);
+                reader.notify_read(k);
+                input = &input[k..];
+            }
+            mcap::sans_io::LinearReadEvent::Record { opcode, data } => {
+                if matches!(opcode, op::SCHEMA | op::CHANNEL | op::MESSAGE) {
+                    out.push(mcap::parse_record(opcode, data)?.into_owned());
+                }
+            }
+        }
+    }
+    Ok(out)
 }
 
 fn take_record(raw: &mut RawSegment, record: Record<'_>) {
