@@ -28,8 +28,9 @@
 //! twice) and rewritten as a finished file (at once if possible, else by `finish`); the next
 //! call opens a new segment and first re-writes every accepted message that was not yet on
 //! disk. An error from an automatic flush is not returned by the write that triggered it (that
-//! message was accepted); the next call reports it if it persists. Bytes reach the file only
-//! at flushes, so a write error surfaces at a flush, a rotation or a segment start.
+//! message was accepted); the next call reports it if it persists. Bytes reach the file at
+//! flushes (or past 4 MiB buffered), so a write error surfaces at a flush, a rotation or a
+//! segment start.
 //!
 //! # Use in a daemon
 //! One writer thread owns the sink. Call [`McapSink::tick`] when idle (flush, time rotation)
