@@ -369,8 +369,8 @@ const COARSE_SIZE_PX: usize = 512;
 /// EUV limb brightening; then limb points from the averaged radial profile of each
 /// angular sector (steepest drop, or the brightening peak), a seeded RANSAC circle and a
 /// geometric least-squares refit, iterated with narrowing search windows; finally a
-/// check in a wide window that at least half of all sectors agree, with no gap wider
-/// than 90°, and a minimum radius.
+/// check in a wide window that at least 40 % of all sectors agree, with no gap wider
+/// than 90°, and a minimum radius of 8 px. Non-finite pixels read as the darkest sky.
 pub fn detect_disk(img: ArrayView2<f32>) -> Option<DiskFit> {
     let (h, w) = img.dim();
     if h < 16 || w < 16 {
@@ -387,7 +387,7 @@ pub fn detect_disk(img: ArrayView2<f32>) -> Option<DiskFit> {
     drop(finite);
     let filled = img.mapv(|v| if v.is_finite() { v } else { sky });
 
-    let first = first_guess(&img, background)?;
+    let first = first_guess(&img, background, sky)?;
     let mut center = first.center;
     let mut radius = first.radius;
     let ring = first.ring;
@@ -447,7 +447,7 @@ struct FirstGuess {
 }
 
 /// Centre, radius and limb type from a binned copy of the image.
-fn first_guess(img: &ArrayView2<f32>, background: f32) -> Option<FirstGuess> {
+fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<FirstGuess> {
     let (h, w) = img.dim();
     let bin = h.max(w).div_ceil(COARSE_SIZE_PX).max(1);
     let small = bin_mean(img, bin);
@@ -461,19 +461,19 @@ fn first_guess(img: &ArrayView2<f32>, background: f32) -> Option<FirstGuess> {
         return None;
     }
     // Centroid of the clipped intensity: bright active regions weigh no more than the disk.
-    let (mut sw_, mut sx, mut sy) = (0.0f64, 0.0f64, 0.0f64);
+    let (mut total, mut sx, mut sy) = (0.0f64, 0.0f64, 0.0f64);
     for ((y, x), &v) in small.indexed_iter() {
         if v.is_finite() {
             let wgt = (v.min(top) - background).max(0.0) as f64;
-            sw_ += wgt;
+            total += wgt;
             sx += wgt * x as f64;
             sy += wgt * y as f64;
         }
     }
-    if sw_ <= 0.0 {
+    if total <= 0.0 {
         return None;
     }
-    let (cx, cy) = (sx / sw_, sy / sw_);
+    let (cx, cy) = (sx / total, sy / total);
     // Azimuthal median profile over 1-px annuli that are at least half inside the image.
     let rmax = (cx.max(sw as f64 - 1.0 - cx)).hypot(cy.max(sh as f64 - 1.0 - cy));
     let nr = rmax as usize + 1;
@@ -481,7 +481,7 @@ fn first_guess(img: &ArrayView2<f32>, background: f32) -> Option<FirstGuess> {
     for ((y, x), &v) in small.indexed_iter() {
         let k = (x as f64 - cx).hypot(y as f64 - cy) as usize;
         if k < nr {
-            annuli[k].push(if v.is_finite() { v } else { background });
+            annuli[k].push(if v.is_finite() { v } else { sky });
         }
     }
     let profile: Vec<f64> = annuli
