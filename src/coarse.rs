@@ -144,6 +144,34 @@ pub fn coarse_transform(reference: &FrameMeta, frame: &FrameMeta) -> Result<Simi
     ))
 }
 
+/// The solar radius in pixels the header implies (`RSUN / |CDELT|`), if it gives one.
+pub fn header_radius_px(meta: &FrameMeta) -> Option<f64> {
+    let scale = (meta.plate_scale_arcsec[0] * meta.plate_scale_arcsec[1])
+        .abs()
+        .sqrt();
+    let r = usable_radius(meta)? / scale;
+    r.is_finite().then_some(r)
+}
+
+/// How the header's disk compares with the disk measured in the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeaderCheck {
+    /// Distance between the header's sun centre and the measured one, px.
+    pub center_offset_px: f64,
+    /// Measured radius / header radius; `None` when the header gives no radius.
+    pub radius_ratio: Option<f64>,
+}
+
+/// Compare a header with the disk [`crate::preprocess::detect_disk`] found in its image
+/// (rebinned EIT files: a ratio of 0.13, a header 8× off).
+pub fn check_header(meta: &FrameMeta, disk: &crate::preprocess::DiskFit) -> HeaderCheck {
+    let [hx, hy] = meta.sun_center_px;
+    HeaderCheck {
+        center_offset_px: (hx - disk.center_px[0]).hypot(hy - disk.center_px[1]),
+        radius_ratio: header_radius_px(meta).map(|r| disk.radius_px / r),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -268,6 +296,36 @@ mod tests {
         for (p, q) in truth {
             assert_px(t.apply(p), q, 1e-4);
         }
+    }
+
+    #[test]
+    fn header_check_exposes_the_rebinned_eit_header() {
+        // EIT header: CDELT 2.63″, SOLAR_R 372.27 px (so RSUN = 979.07″), CRPIX 64.5;
+        // the image shows a 47.4 px disk at (62.96, 64.77).
+        let eit = meta(
+            128,
+            128,
+            [2.63, 2.63],
+            180.0,
+            [63.5, 63.5],
+            Some(372.27 * 2.63),
+        );
+        assert!((header_radius_px(&eit).unwrap() - 372.27).abs() < 1e-9);
+        let disk = crate::preprocess::DiskFit {
+            center_px: [62.96, 64.77],
+            radius_px: 47.4,
+            rms_px: 0.5,
+            coverage: 0.6,
+            limb: crate::preprocess::LimbFeature::Brightening,
+        };
+        let check = check_header(&eit, &disk);
+        assert!((check.radius_ratio.unwrap() - 47.4 / 372.27).abs() < 1e-12);
+        assert!((check.center_offset_px - 0.54_f64.hypot(1.27)).abs() < 1e-9);
+        let no_radius = FrameMeta {
+            rsun_arcsec: None,
+            ..eit
+        };
+        assert_eq!(header_radius_px(&no_radius), None);
     }
 
     #[test]

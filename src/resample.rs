@@ -555,7 +555,7 @@ mod tests {
         ];
         for ((y, x), want) in truth {
             let v = s.sample(x, y) as f64;
-            assert!((v - want).abs() < 2e-5, "({x}, {y}) = {v}, scipy {want}");
+            assert!((v - want).abs() < 2e-6, "({x}, {y}) = {v}, scipy {want}");
         }
         assert!(s.sample(-0.01, 2.0).is_nan() && s.sample(3.0, 5.01).is_nan());
     }
@@ -581,6 +581,7 @@ mod tests {
         // y,x=np.mgrid[0:40,0:40].astype(float)
         // o=nd.map_coordinates(a,[y-1.62,x+0.37],order=3,mode='mirror')
         // print([o[j,i] for j,i in [(2,0),(10,10),(20,31),(39,39),(25,5)]])"
+        // Agreement is f32 rounding: measured ≤ 1.3e-5 on values near 200.
         let full = read_real("trace_171_19980519T222143_1024.fits");
         let crop = full.slice(s![400..440, 500..540]).to_owned();
         let t = Similarity {
@@ -599,7 +600,7 @@ mod tests {
         ];
         for ([y, x], want) in truth {
             let v = out[[y, x]] as f64;
-            assert!((v - want).abs() < 1e-3, "out[{y},{x}] = {v}, scipy {want}");
+            assert!((v - want).abs() < 1e-4, "out[{y},{x}] = {v}, scipy {want}");
         }
         // Row 0 maps to y = −1.62 and column 39 to x = 39.37: outside the frame.
         assert!(out[[0, 5]].is_nan() && out[[39, 39]].is_nan());
@@ -621,7 +622,7 @@ mod tests {
         ];
         for ([y, x], want) in truth {
             let v = out[[y, x]] as f64;
-            assert!((v - want).abs() < 1e-3, "out[{y},{x}] = {v}, scipy {want}");
+            assert!((v - want).abs() < 1e-4, "out[{y},{x}] = {v}, scipy {want}");
         }
     }
 

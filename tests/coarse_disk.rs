@@ -6,7 +6,7 @@
 
 use ndarray::Array2;
 use std::path::{Path, PathBuf};
-use sunjitter::coarse::coarse_transform;
+use sunjitter::coarse::{check_header, coarse_transform};
 use sunjitter::preprocess::{detect_disk, DiskFit, LimbFeature};
 use sunjitter::resample::{warp_similarity, Interp};
 use sunjitter::{FrameMeta, Similarity};
@@ -41,8 +41,12 @@ fn meta_from_header(path: &Path) -> FrameMeta {
     let (cdelt1, cdelt2) = (key(&mut f, "CDELT1"), key(&mut f, "CDELT2"));
     let (crpix1, crpix2) = (key(&mut f, "CRPIX1"), key(&mut f, "CRPIX2"));
     let (crval1, crval2) = (key(&mut f, "CRVAL1"), key(&mut f, "CRVAL2"));
-    let rho = key(&mut f, "CROTA2");
-    let rsun = key(&mut f, "RSUN_OBS");
+    let opt = |f: &mut fitsio::FitsFile, k: &str| -> Option<f64> { hdu.read_key(f, k).ok() };
+    // Raw EIT files carry SC_ROLL and SOLAR_R (px) instead of CROTA2 and RSUN_OBS.
+    let rho = opt(&mut f, "CROTA2")
+        .or_else(|| opt(&mut f, "SC_ROLL"))
+        .unwrap_or(0.0);
+    let rsun = opt(&mut f, "RSUN_OBS").or_else(|| opt(&mut f, "SOLAR_R").map(|r| r * cdelt1));
     let (c, s) = (rho.to_radians().cos(), rho.to_radians().sin());
     // R(−ρ)·CRVAL, then divide by the scales.
     let (ux, uy) = (c * crval1 + s * crval2, -s * crval1 + c * crval2);
@@ -61,7 +65,7 @@ fn meta_from_header(path: &Path) -> FrameMeta {
         plate_scale_arcsec: [cdelt1, cdelt2],
         rotation_deg: rho,
         sun_center_px: [crpix1 - 1.0 - ux / cdelt1, crpix2 - 1.0 - uy / cdelt2],
-        rsun_arcsec: Some(rsun),
+        rsun_arcsec: rsun,
     }
 }
 
@@ -251,4 +255,26 @@ fn no_disk_is_reported_where_none_is_whole() {
     let aia = read_image(&real(AIA));
     let half = aia.slice(ndarray::s![.., 0..70]).to_owned();
     assert_eq!(detect_disk(half.view()), None);
+}
+
+#[test]
+fn image_disks_expose_the_lying_eit_headers_and_confirm_aia_and_hmi() {
+    // The data README: the EIT files were rebinned 1024² → 128² without updating CDELT or
+    // SOLAR_R (372 px, "really about 46 px"): measured/header radius ≈ 1/8. AIA and HMI
+    // headers are right to within the limb definitions (171 Å brightening +0.6 %,
+    // continuum inflection −0.4 %) and a few tenths of a pixel in centre.
+    for (name, lo, hi, max_offset) in [
+        (AIA, 0.99, 1.01, 0.5),
+        (HMI, 0.99, 1.01, 0.5),
+        ("eit_171_20040301T010016_128.fits", 0.12, 0.135, 2.0),
+        ("eit_195_20040301T000010_128.fits", 0.12, 0.135, 2.0),
+    ] {
+        let meta = meta_from_header(&real(name));
+        let disk = detect_disk(read_image(&real(name)).view()).expect("disk");
+        let check = check_header(&meta, &disk);
+        eprintln!("{name}: {check:?}");
+        let ratio = check.radius_ratio.expect("header radius");
+        assert!(lo < ratio && ratio < hi, "{name}: radius ratio {ratio}");
+        assert!(check.center_offset_px < max_offset, "{name}: {check:?}");
+    }
 }
