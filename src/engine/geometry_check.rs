@@ -3,6 +3,7 @@
 //! so and trust the image.
 
 use super::Image;
+use crate::coarse::{check_header, header_radius_px};
 use crate::meta::FrameMeta;
 use crate::preprocess::{detect_disk, DiskFit};
 use ndarray::Array2;
@@ -39,13 +40,6 @@ pub fn effective_geometry(
     }
 }
 
-fn header_radius_px(meta: &FrameMeta) -> Option<f64> {
-    let plate = (meta.plate_scale_arcsec[0] * meta.plate_scale_arcsec[1]).abs().sqrt();
-    meta.rsun_arcsec
-        .filter(|r| r.is_finite() && *r > 0.0 && plate > 0.0 && plate.is_finite())
-        .map(|r| r / plate)
-}
-
 fn checked(
     meta: &FrameMeta,
     data: &Array2<f32>,
@@ -56,10 +50,11 @@ fn checked(
     let Some(seen) = detect_disk(data.view()) else {
         return (meta.clone(), header_disk);
     };
-    let centre_off = distance(meta.sun_center_px, seen.center_px);
-    let centre_wrong = centre_off > (CENTER_TOLERANCE * seen.radius_px).max(3.0);
-    let radius_wrong = header_radius
-        .map(|r| (r / seen.radius_px - 1.0).abs() > RADIUS_TOLERANCE)
+    let check = check_header(meta, &seen);
+    let centre_wrong = check.center_offset_px > (CENTER_TOLERANCE * seen.radius_px).max(3.0);
+    let radius_wrong = check
+        .radius_ratio
+        .map(|q| (q - 1.0).abs() > RADIUS_TOLERANCE)
         .unwrap_or(false);
     if !(centre_wrong || radius_wrong) {
         return (meta.clone(), header_disk);
@@ -97,8 +92,4 @@ fn describe(meta: &FrameMeta, header_radius: Option<f64>, seen: &DiskFit) -> Str
         "{name}: header disk ({header}) disagrees with the image (centre ({:.1}, {:.1}) px, radius {:.1} px); using the image",
         seen.center_px[0], seen.center_px[1], seen.radius_px
     )
-}
-
-fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
 }

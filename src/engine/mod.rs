@@ -135,6 +135,7 @@ struct FineResult {
     points: usize,
     warped: Array2<f32>,
     passes: usize,
+    converged: bool,
 }
 
 /// Align `frame` to `reference`: where reference content appears in the frame.
@@ -209,7 +210,7 @@ fn align_inner(
         cfg,
     )
     .map_err(|e| e.to_string())?;
-    if fine.passes >= cfg.max_passes.max(1) {
+    if !fine.converged {
         notes.push(format!(
             "fine alignment did not converge to {} px in {} passes",
             cfg.convergence_px, fine.passes
@@ -218,8 +219,13 @@ fn align_inner(
 
     // Quality of the final match.
     let similarity = quality::bhattacharyya(ref_data.view(), fine.warped.view(), mask.view());
-    let correlation =
-        quality::normalised_cross_correlation(ref_matched.view(), fine.warped.view(), mask.view());
+    // Structure only: the large-scale disk brightness correlates even for unrelated images.
+    let trend_px = winsize as f64 / 4.0;
+    let correlation = quality::normalised_cross_correlation(
+        quality::high_pass(ref_matched.view(), trend_px).view(),
+        quality::high_pass(fine.warped.view(), trend_px).view(),
+        mask.view(),
+    );
 
     let t = fine.transform;
     let sig = sigmas(&fine.covariance);
@@ -385,8 +391,11 @@ fn fine_alignment(
         let update = fit.transform;
         let previous = estimate;
         estimate = estimate.after(&update);
+        // Converged when the update is negligible, or lost in this pass's own noise.
         let moved = max_motion_px(&update, radius);
-        if moved < cfg.convergence_px || pass >= cfg.max_passes.max(1) {
+        let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
+        let converged = moved < cfg.convergence_px.max(0.1 * noise);
+        if converged || pass >= cfg.max_passes.max(1) {
             let inliers = fit.inlier_points(&points);
             let uabjm = fit.covariance;
             let calibrated = sigma::calibrated_covariance(cfg.sigma, &inliers, &fit, winsize);
@@ -401,6 +410,7 @@ fn fine_alignment(
                 fit,
                 warped,
                 passes: pass,
+                converged,
             });
         }
     }
