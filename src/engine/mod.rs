@@ -375,10 +375,12 @@ fn fine_alignment(
             .map_err(|e| FineError::Flow(e.to_string()))?;
         solver = Some(s);
 
-        let mut sample_mask = mask.clone();
-        Zip::from(&mut sample_mask)
-            .and(&warped)
-            .for_each(|m, v| *m = *m && v.is_finite());
+        // Sample only where the whole window saw data: a window cut by the frame's edge
+        // (or a blank region) measures a biased motion.
+        let mut valid = warped.mapv(f32::is_finite);
+        Zip::from(&mut valid).and(reference).for_each(|m, v| *m = *m && v.is_finite());
+        let mut sample_mask = erode(&valid, winsize / 2);
+        Zip::from(&mut sample_mask).and(mask).for_each(|a, b| *a = *a && *b);
         let points = grid_median_sample(
             flow.u.view(),
             flow.v.view(),
@@ -414,6 +416,27 @@ fn fine_alignment(
             });
         }
     }
+}
+
+/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
+fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
+    let (h, w) = valid.dim();
+    // Integral image of invalid pixels.
+    let mut integral = Array2::<u32>::zeros((h + 1, w + 1));
+    for y in 0..h {
+        let mut row = 0u32;
+        for x in 0..w {
+            row += u32::from(!valid[[y, x]]);
+            integral[[y + 1, x + 1]] = integral[[y, x + 1]] + row;
+        }
+    }
+    Array2::from_shape_fn((h, w), |(y, x)| {
+        if y < r || x < r || y + r >= h || x + r >= w {
+            return false;
+        }
+        let (y0, y1, x0, x1) = (y - r, y + r + 1, x - r, x + r + 1);
+        integral[[y1, x1]] + integral[[y0, x0]] == integral[[y0, x1]] + integral[[y1, x0]]
+    })
 }
 
 /// Largest displacement the transform causes within `radius` of its centre.
