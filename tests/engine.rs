@@ -64,7 +64,11 @@ fn injected_similarities_are_recovered_beyond_the_papers_accuracy_with_honest_si
             let res = est[k] - t[k];
             sq[k] += res * res;
             // A calibrated σ: no residual beyond 4σ in a handful of trials.
-            assert!(res.abs() <= 4.0 * sig[k], "param {k}: residual {res:e}, σ {:e}", sig[k]);
+            assert!(
+                res.abs() <= 4.0 * sig[k],
+                "param {k}: residual {res:e}, σ {:e}",
+                sig[k]
+            );
         }
     }
     let rmse = sq.map(|s| (s / truths.len() as f64).sqrt());
@@ -73,7 +77,11 @@ fn injected_similarities_are_recovered_beyond_the_papers_accuracy_with_honest_si
     // rotation and scale).
     assert!(rmse[0] < 8e-6, "scale RMSE {:e}", rmse[0]);
     assert!(rmse[1] < 2.0, "rotation RMSE {}″", rmse[1]);
-    assert!(rmse[2] < 1e-3 && rmse[3] < 1e-3, "translation RMSE {:?}", &rmse[2..]);
+    assert!(
+        rmse[2] < 1e-3 && rmse[3] < 1e-3,
+        "translation RMSE {:?}",
+        &rmse[2..]
+    );
 }
 
 #[test]
@@ -98,7 +106,11 @@ fn eit_195_to_171_one_hour_apart_shows_solar_rotation_westward() {
     );
     let r = &out.result;
     assert_eq!(r.status, Status::Ok, "{}", r.message);
-    assert!(r.message.contains("disagrees with the image"), "header lie noticed: {}", r.message);
+    assert!(
+        r.message.contains("disagrees with the image"),
+        "header lie noticed: {}",
+        r.message
+    );
     let dx = r.dx_px.unwrap();
     assert!((-0.45..=-0.15).contains(&dx), "dx {dx}");
     assert!(r.dy_px.unwrap().abs() <= 3.0 * r.sigma_dy_px.unwrap());
@@ -117,7 +129,12 @@ fn unrelated_or_flipped_frames_never_come_back_as_confident_answers() {
     flipped.data.invert_axis(ndarray::Axis(0));
     flipped.data.invert_axis(ndarray::Axis(1));
     let out = align_images(&reference, &flipped, &cfg);
-    assert_ne!(out.result.status, Status::Ok, "flipped copy: {:?}", out.result);
+    assert_ne!(
+        out.result.status,
+        Status::Ok,
+        "flipped copy: {:?}",
+        out.result
+    );
     assert!(!out.result.message.is_empty());
 
     // Gaussian noise with the image's mean and spread: no common structure at all.
@@ -125,7 +142,9 @@ fn unrelated_or_flipped_frames_never_come_back_as_confident_answers() {
     let mut noise = reference.clone();
     let mean = reference.data.mean().unwrap();
     let sd = reference.data.std(0.0);
-    noise.data.mapv_inplace(|_| mean + sd * rng.gaussian() as f32);
+    noise
+        .data
+        .mapv_inplace(|_| mean + sd * rng.gaussian() as f32);
     let out = align_images(&reference, &noise, &cfg);
     assert_eq!(out.result.status, Status::Failed, "{:?}", out.result);
     assert!(out.result.scale.is_none() && out.result.dx_px.is_none());
@@ -157,10 +176,22 @@ fn a_different_real_frame_with_an_injected_roll_is_measured_through_evolution() 
     // moved = inject ∘ plain, so inject = moved ∘ plain⁻¹.
     let measured = t1.after(&t0.inverse());
     let r = &moved.result;
-    let s = (r.sigma_scale.unwrap(), r.sigma_rotation_arcsec.unwrap() / ARCSEC_PER_RAD);
-    assert!((measured.scale - inject.scale).abs() < 5.0 * s.0 + 1e-4, "{measured:?}");
+    let s = (
+        r.sigma_scale.unwrap(),
+        r.sigma_rotation_arcsec.unwrap() / ARCSEC_PER_RAD,
+    );
+    assert!(
+        (measured.scale - inject.scale).abs() < 5.0 * s.0 + 1e-4,
+        "{measured:?}"
+    );
     assert!((measured.rotation_rad - inject.rotation_rad).abs() < 5.0 * s.1 + 1e-4);
     let sd = r.sigma_dx_px.unwrap().max(r.sigma_dy_px.unwrap());
-    assert!((measured.dx - inject.dx).abs() < 5.0 * sd + 0.02, "{measured:?}");
-    assert!((measured.dy - inject.dy).abs() < 5.0 * sd + 0.02, "{measured:?}");
+    assert!(
+        (measured.dx - inject.dx).abs() < 5.0 * sd + 0.02,
+        "{measured:?}"
+    );
+    assert!(
+        (measured.dy - inject.dy).abs() < 5.0 * sd + 0.02,
+        "{measured:?}"
+    );
 }

@@ -5,7 +5,9 @@ use crate::engine::{self, Image};
 use crate::fits::{self, FrameSpec};
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
-use crate::simulate::{contract_units, draw_truths, summarise, MonteCarloSummary, TrialOutcome, TrialRanges};
+use crate::simulate::{
+    contract_units, draw_truths, summarise, MonteCarloSummary, TrialOutcome, TrialRanges,
+};
 use crate::stats::SplitMix64;
 use crate::{Error, Result};
 use ndarray::Array2;
@@ -65,14 +67,11 @@ pub fn run(args: &Args) -> Result<i32> {
     let center = Similarity::array_center(w, h);
     let spline = SplineImage::new(reference.data.view());
     let background_sigma = background_noise(&reference.data);
-    let mut noise_rng = SplitMix64::new(args.seed ^ 0x5EED_0F_0015E);
+    let mut noise_rng = SplitMix64::new(args.seed ^ 0x05EE_D0F0_015E);
 
     let ranges = TrialRanges::default();
     let truths = draw_truths(args.trials, args.seed, &ranges, center);
-    let progress = crate::commands::progress_bar(
-        (args.trials + args.cc_trials) as u64,
-        "simulate",
-    );
+    let progress = crate::commands::progress_bar((args.trials + args.cc_trials) as u64, "simulate");
     let mut elapsed = 0.0;
     let mut lines = Vec::new();
     let mut run_trial = |truth: &Similarity, with_cc: bool, rng: &mut SplitMix64| -> TrialOutcome {
@@ -106,7 +105,12 @@ pub fn run(args: &Args) -> Result<i32> {
         let trial = TrialOutcome {
             truth: contract_units(truth),
             estimate: out.transform.as_ref().map(contract_units),
-            sigma: match (res.sigma_scale, res.sigma_rotation_arcsec, res.sigma_dx_px, res.sigma_dy_px) {
+            sigma: match (
+                res.sigma_scale,
+                res.sigma_rotation_arcsec,
+                res.sigma_dx_px,
+                res.sigma_dy_px,
+            ) {
                 (Some(a), Some(b), Some(c), Some(d)) => Some([a, b, c, d]),
                 _ => None,
             },
@@ -170,7 +174,13 @@ pub fn run(args: &Args) -> Result<i32> {
     } else {
         print_table(&report);
     }
-    Ok(if report.similarity_trials.succeeded == 0 && args.trials > 0 { 1 } else { 0 })
+    Ok(
+        if report.similarity_trials.succeeded == 0 && args.trials > 0 {
+            1
+        } else {
+            0
+        },
+    )
 }
 
 /// Robust background noise: MAD of horizontal neighbour differences / √2 (structure cancels

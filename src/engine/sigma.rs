@@ -45,9 +45,10 @@ pub fn calibrated_covariance(
     let measured = residual_correlation_length(inliers, fit)
         .and_then(|l| sandwich(CorrelationModel::Gaussian { sigma_px: l }));
     // Resampling the data itself: leave out one block (twice the window) at a time.
-    let jackknife = block_jackknife_covariance(inliers, fit.transform.center, 2.0 * winsize_px as f64)
-        .ok()
-        .filter(|_| enough_blocks(inliers, 2.0 * winsize_px as f64));
+    let jackknife =
+        block_jackknife_covariance(inliers, fit.transform.center, 2.0 * winsize_px as f64)
+            .ok()
+            .filter(|_| enough_blocks(inliers, 2.0 * winsize_px as f64));
     [window, measured, jackknife]
         .into_iter()
         .flatten()
@@ -55,11 +56,40 @@ pub fn calibrated_covariance(
         .unwrap_or(fit.covariance)
 }
 
+/// Add a systematic floor of `floor_px` (in quadrature): fully to the translations, and as
+/// the rotation/scale that moves the vectors by `floor_px` at their RMS radius.
+pub fn add_floor(
+    cov: &mut Covariance4,
+    points: &[Correspondence],
+    center: [f64; 2],
+    floor_px: f64,
+) {
+    if !(floor_px > 0.0) || points.is_empty() {
+        return;
+    }
+    let r2 = points
+        .iter()
+        .map(|p| (p.x - center[0]).powi(2) + (p.y - center[1]).powi(2))
+        .sum::<f64>()
+        / points.len() as f64;
+    let lever = r2.sqrt().max(1.0);
+    let f2 = floor_px * floor_px;
+    cov[0][0] += f2 / (lever * lever);
+    cov[1][1] += f2 / (lever * lever);
+    cov[2][2] += f2;
+    cov[3][3] += f2;
+}
+
 /// The jackknife needs enough blocks to estimate a 4×4 covariance.
 fn enough_blocks(points: &[Correspondence], block_px: f64) -> bool {
     let blocks: std::collections::HashSet<(i64, i64)> = points
         .iter()
-        .map(|p| ((p.x / block_px).floor() as i64, (p.y / block_px).floor() as i64))
+        .map(|p| {
+            (
+                (p.x / block_px).floor() as i64,
+                (p.y / block_px).floor() as i64,
+            )
+        })
         .collect();
     blocks.len() >= 20
 }
@@ -75,10 +105,7 @@ fn mean_log_ratio(b: &Covariance4, a: &Covariance4) -> f64 {
 /// Correlation length of the fit residuals, px: the separation at which their normalised
 /// autocorrelation falls to `e^{-1/2}` (the σ of a Gaussian correlation), or `None` when
 /// neighbouring residuals are not significantly correlated.
-pub fn residual_correlation_length(
-    points: &[Correspondence],
-    fit: &SimilarityFit,
-) -> Option<f64> {
+pub fn residual_correlation_length(points: &[Correspondence], fit: &SimilarityFit) -> Option<f64> {
     let res: Vec<([f64; 2], [f64; 2])> = points
         .iter()
         .map(|p| ([p.x, p.y], residual(p, &fit.transform)))
@@ -107,8 +134,8 @@ pub fn residual_correlation_length(
     let mut count = [0usize; BINS];
     for i in 0..n {
         for j in i + 1..n {
-            let d = ((res[i].0[0] - res[j].0[0]).powi(2) + (res[i].0[1] - res[j].0[1]).powi(2))
-                .sqrt();
+            let d =
+                ((res[i].0[0] - res[j].0[0]).powi(2) + (res[i].0[1] - res[j].0[1]).powi(2)).sqrt();
             let k = (d / spacing).round() as usize;
             if (1..BINS).contains(&k) {
                 let a = res[i].1;
@@ -196,7 +223,12 @@ mod tests {
             for i in 0..24 {
                 let (x, y) = (20.0 + 40.0 * i as f64, 20.0 + 40.0 * j as f64);
                 let (u, v) = field(x, y);
-                smooth.push(Correspondence { x, y, u: 0.05 * u, v: 0.05 * v });
+                smooth.push(Correspondence {
+                    x,
+                    y,
+                    u: 0.05 * u,
+                    v: 0.05 * v,
+                });
                 white.push(Correspondence {
                     x,
                     y,
@@ -205,7 +237,10 @@ mod tests {
                 });
             }
         }
-        let params = RansacParams { threshold_px: 10.0, ..RansacParams::default() };
+        let params = RansacParams {
+            threshold_px: 10.0,
+            ..RansacParams::default()
+        };
         let c = Similarity::array_center(1024, 1024);
         let fit = fit_similarity(&smooth, c, &params).unwrap();
         let l = residual_correlation_length(&smooth, &fit).unwrap();
