@@ -227,7 +227,8 @@ fn print_table(r: &Report) {
         "{:<26}{:>14}{:>14}{:>14}{:>14}",
         "", "scale", "rotation ″", "dx px", "dy px"
     );
-    let rows: [(&str, fn(&crate::simulate::ParameterSummary) -> f64); 8] = [
+    type Column = fn(&crate::simulate::ParameterSummary) -> f64;
+    let rows: [(&str, Column); 8] = [
         ("RMSE of residuals", |p| p.rmse),
         ("mean residual (bias)", |p| p.bias),
         ("RMS of σ (calibrated)", |p| p.rms_sigma),

@@ -64,7 +64,7 @@ pub fn add_floor(
     center: [f64; 2],
     floor_px: f64,
 ) {
-    if !(floor_px > 0.0) || points.is_empty() {
+    if floor_px.is_nan() || floor_px <= 0.0 || points.is_empty() {
         return;
     }
     let r2 = points
@@ -124,7 +124,7 @@ pub fn residual_correlation_length(points: &[Correspondence], fit: &SimilarityFi
         .map(|r| (r.1[0] - mean[0]).powi(2) + (r.1[1] - mean[1]).powi(2))
         .sum::<f64>()
         / n as f64;
-    if !(var > 0.0) {
+    if var.is_nan() || var <= 0.0 {
         return None;
     }
     // Bin width: the typical nearest-neighbour spacing of the sample points.
