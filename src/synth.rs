@@ -1,1 +1,888 @@
-//! (not yet implemented)
+//! Synthetic full-disk EUV frames with a known, injected pointing jitter (no I/O here).
+//!
+//! The scene is a continuous function of reference-grid coordinates; frame `k` samples it at
+//! `T_k⁻¹(q)` for every pixel centre `q`, where `T_k` is the frame's [`Similarity`]. So content at
+//! reference position `p` appears at `T_k(p)` exactly (sub-pixel motion is not resampled):
+//! `p_frame = s·R(θ)·(p − c) + c + (dx, dy)`, `c` the array centre, as in the contract.
+//!
+//! What the scene contains (choices, AIA 171 Å-like):
+//! - Plate scale `0.6″ × 4096 / size` per pixel and `RSUN_OBS` = 960″, so the disk fills the
+//!   frame as on AIA (radius 1600 px at 4096²) whatever the size.
+//! - Radial profile: a uniform disk plus an optically thin shell, `ε/(μ + ε)` inside the limb
+//!   (EUV limb brightening, limb ≈ 2.5× centre as in AIA 171 Å), and off the limb an exponential (scale height
+//!   0.05 R☉) plus a `r⁻⁶` extended corona, modulated by a few streamers in position angle.
+//! - Texture: a periodic field of cubic-B-spline lattice noise summed over octaves
+//!   (lattice spacing 4, 8, … px up to size/8, equal variance per octave, i.e. a `k⁻²` power
+//!   spectrum), applied as a log-normal brightness factor (network-like). It is evaluated as
+//!   the cubic B-spline surface through the field's samples, so it is smooth and continuous
+//!   and can be sampled at any transformed coordinate.
+//! - Four active regions: clusters of eight anisotropic Gaussians (loop-like) each; a region's
+//!   brightness changes by ±8 % over 2–6 h, all its blobs together, so it does not move.
+//! - PSF: Gaussian σ = 1 px (FWHM 2.4 px, about AIA's), applied analytically to the radial
+//!   profile and the active regions, and to the texture samples (a σ = 0.82 px blur, which with
+//!   the cubic B-spline's own σ = 0.58 px makes 1 px). It keeps aliasing small, so a sub-pixel
+//!   motion of the scene is a sub-pixel motion of the sampled image.
+//! - Noise: Poisson (1.1 DN per photon) plus 1.15 DN read noise; values are integer DN.
+//!
+//! The header keeps the nominal pointing (Sun centre at the array centre, `CROTA2` = 0): like a
+//! real instrument, it does not know the jitter.
+
+use crate::geometry::{Similarity, ARCSEC_PER_RAD};
+use crate::{Error, Result};
+use ndarray::Array2;
+use rayon::prelude::*;
+use std::f64::consts::PI;
+use std::str::FromStr;
+
+/// AIA's plate scale at 4096², arcsec per pixel.
+pub const AIA_PLATE_SCALE_ARCSEC: f64 = 0.6;
+/// Apparent solar radius written as `RSUN_OBS`, arcsec.
+pub const RSUN_ARCSEC: f64 = 960.0;
+pub const TELESCOPE: &str = "SYNTH";
+pub const INSTRUMENT: &str = "SYNTH";
+pub const WAVELENGTH_A: i64 = 171;
+/// The channel name the headers imply (instrument + wavelength).
+pub const CHANNEL: &str = "SYNTH_171";
+
+const PSF_SIGMA_PX: f64 = 1.0;
+/// Extra Gaussian blur of the texture samples; with the cubic B-spline (σ² = 1/3 px²) the
+/// texture's total blur is the PSF's.
+const TEXTURE_BLUR_PX: f64 = 0.816;
+const GAIN_DN_PER_PHOTON: f64 = 1.1;
+const READ_NOISE_DN: f64 = 1.15;
+/// Quiet-Sun disk level, DN (AIA 171 Å, 2 s exposure, order of magnitude).
+const DISK_DN: f64 = 400.0;
+const TEXTURE_CONTRAST: f64 = 0.4;
+
+// ---------------------------------------------------------------------------------------------
+// Jitter specification
+
+/// Which axes a term moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Axis {
+    X,
+    Y,
+    /// Both; for a sinusoid, y lags x by a quarter period (a circular motion).
+    Both,
+}
+
+/// One term of `--jitter SPEC`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum JitterTerm {
+    Sine { amp_px: f64, period_s: f64, axis: Axis },
+    Walk { step_px: f64 },
+    Step { px: f64, at_s: f64, axis: Axis },
+    Rotation { arcsec_per_hour: f64 },
+    Scale { per_hour: f64 },
+}
+
+/// A comma-separated sum of jitter terms, e.g. `sine:0.3:120,walk:0.02`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct JitterSpec {
+    pub terms: Vec<JitterTerm>,
+}
+
+pub const DEFAULT_JITTER: &str = "sine:0.3:120,walk:0.02";
+
+impl FromStr for JitterSpec {
+    type Err = Error;
+
+    fn from_str(spec: &str) -> Result<Self> {
+        let spec = spec.trim();
+        if spec.is_empty() || spec.eq_ignore_ascii_case("none") {
+            return Ok(JitterSpec::default());
+        }
+        let terms = spec
+            .split(',')
+            .map(|t| parse_term(t.trim()))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(JitterSpec { terms })
+    }
+}
+
+fn parse_term(term: &str) -> Result<JitterTerm> {
+    let bad = |why: &str| Error::Usage(format!("--jitter: bad term '{term}': {why}"));
+    let parts: Vec<&str> = term.split(':').collect();
+    let num = |i: usize, what: &str| -> Result<f64> {
+        let s = parts.get(i).ok_or_else(|| bad(&format!("missing {what}")))?;
+        match s.trim().parse::<f64>() {
+            Ok(v) if v.is_finite() => Ok(v),
+            _ => Err(bad(&format!("{what} '{s}' is not a number"))),
+        }
+    };
+    let axis = |i: usize| -> Result<Axis> {
+        match parts.get(i).map(|s| s.trim()) {
+            None => Ok(Axis::Both),
+            Some("x") | Some("X") => Ok(Axis::X),
+            Some("y") | Some("Y") => Ok(Axis::Y),
+            Some(other) => Err(bad(&format!("axis '{other}' is not x or y"))),
+        }
+    };
+    let arity = |min: usize, max: usize| -> Result<()> {
+        if parts.len() < min || parts.len() > max {
+            Err(bad(&format!("expected {} to {} fields", min - 1, max - 1)))
+        } else {
+            Ok(())
+        }
+    };
+    match parts[0].trim() {
+        "sine" => {
+            arity(3, 4)?;
+            let period_s = num(2, "period")?;
+            if period_s <= 0.0 {
+                return Err(bad("period must be positive"));
+            }
+            Ok(JitterTerm::Sine {
+                amp_px: num(1, "amplitude")?,
+                period_s,
+                axis: axis(3)?,
+            })
+        }
+        "walk" => {
+            arity(2, 2)?;
+            let step_px = num(1, "step")?;
+            if step_px < 0.0 {
+                return Err(bad("step must not be negative"));
+            }
+            Ok(JitterTerm::Walk { step_px })
+        }
+        "step" => {
+            arity(3, 4)?;
+            Ok(JitterTerm::Step {
+                px: num(1, "size")?,
+                at_s: num(2, "time")?,
+                axis: axis(3)?,
+            })
+        }
+        "rot" => {
+            arity(2, 2)?;
+            Ok(JitterTerm::Rotation {
+                arcsec_per_hour: num(1, "rate")?,
+            })
+        }
+        "scale" => {
+            arity(2, 2)?;
+            Ok(JitterTerm::Scale {
+                per_hour: num(1, "rate")?,
+            })
+        }
+        other => Err(bad(&format!(
+            "unknown kind '{other}' (sine, walk, step, rot, scale)"
+        ))),
+    }
+}
+
+/// The injected image motion of every frame (frame `k` at `k · cadence_s` after the start),
+/// relative to the nominal pointing, about the centre of a `size × size` array.
+pub fn jitter_truth(spec: &JitterSpec, frames: usize, cadence_s: f64, seed: u64, size: usize) -> Vec<Similarity> {
+    let center = Similarity::array_center(size, size);
+    let mut walk_rng = Rng::new(mix(seed, 0x5741_4c4b));
+    let mut walks = vec![[0.0f64; 2]; spec.terms.len()];
+    (0..frames)
+        .map(|k| {
+            let t = k as f64 * cadence_s;
+            let mut m = Similarity::identity(center);
+            for (term, walk) in spec.terms.iter().zip(walks.iter_mut()) {
+                match *term {
+                    JitterTerm::Sine { amp_px, period_s, axis } => {
+                        let phase = 2.0 * PI * t / period_s;
+                        match axis {
+                            Axis::X => m.dx += amp_px * phase.sin(),
+                            Axis::Y => m.dy += amp_px * phase.sin(),
+                            Axis::Both => {
+                                m.dx += amp_px * phase.sin();
+                                m.dy += amp_px * (phase - PI / 2.0).sin();
+                            }
+                        }
+                    }
+                    JitterTerm::Walk { step_px } => {
+                        if k > 0 {
+                            walk[0] += step_px * walk_rng.normal();
+                            walk[1] += step_px * walk_rng.normal();
+                        }
+                        m.dx += walk[0];
+                        m.dy += walk[1];
+                    }
+                    JitterTerm::Step { px, at_s, axis } => {
+                        if t >= at_s {
+                            if axis != Axis::Y {
+                                m.dx += px;
+                            }
+                            if axis != Axis::X {
+                                m.dy += px;
+                            }
+                        }
+                    }
+                    JitterTerm::Rotation { arcsec_per_hour } => {
+                        m.rotation_rad += arcsec_per_hour * t / 3600.0 / ARCSEC_PER_RAD;
+                    }
+                    JitterTerm::Scale { per_hour } => m.scale += per_hour * t / 3600.0,
+                }
+            }
+            m
+        })
+        .collect()
+}
+
+// ---------------------------------------------------------------------------------------------
+// Scene
+
+/// What to generate (the command line's knobs, minus the file layout).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SynthConfig {
+    /// Frames are `size × size`.
+    pub size: usize,
+    pub seed: u64,
+    pub cadence_s: f64,
+    pub exptime_s: f64,
+    /// Poisson and read noise on (off gives the noiseless expectation).
+    pub noise: bool,
+}
+
+impl SynthConfig {
+    pub fn new(size: usize, seed: u64, cadence_s: f64) -> Self {
+        SynthConfig {
+            size,
+            seed,
+            cadence_s,
+            exptime_s: 2.0,
+            noise: true,
+        }
+    }
+
+    /// Arcsec per pixel: AIA's 0.6″ at 4096², scaled so the disk fills any size the same way.
+    pub fn plate_scale_arcsec(&self) -> f64 {
+        AIA_PLATE_SCALE_ARCSEC * 4096.0 / self.size as f64
+    }
+
+    pub fn rsun_px(&self) -> f64 {
+        RSUN_ARCSEC / self.plate_scale_arcsec()
+    }
+}
+
+/// A bright active-region component: an anisotropic Gaussian, brightness evolving slowly.
+#[derive(Debug, Clone)]
+struct Blob {
+    center: [f64; 2],
+    /// Inverse covariance (a, b, c): exponent −½(a·u² + 2b·u·v + c·v²).
+    inv: [f64; 3],
+    half_extent: f64,
+    amplitude: f64,
+    period_s: f64,
+    phase: f64,
+}
+
+/// The continuous scene; build once per seed, then [`SunModel::render`] each frame.
+pub struct SunModel {
+    cfg: SynthConfig,
+    center: [f64; 2],
+    rsun_px: f64,
+    /// Texture samples, periodic with `tex_n`, padded by 3 wrapped rows/columns.
+    tex: Vec<f32>,
+    tex_n: usize,
+    tex_stride: usize,
+    /// PSF-convolved radial profile, DN, sampled every `1/PROFILE_STEPS` px.
+    profile: Vec<f32>,
+    /// Streamers: (harmonic, amplitude, phase).
+    streamers: Vec<(f64, f64, f64)>,
+    blobs: Vec<Blob>,
+}
+
+const PROFILE_STEPS: f64 = 16.0;
+
+impl SunModel {
+    pub fn new(cfg: &SynthConfig) -> Result<Self> {
+        if cfg.size < 32 || cfg.size > 16384 {
+            return Err(Error::Usage(format!(
+                "--size {} is out of range (32 to 16384)",
+                cfg.size
+            )));
+        }
+        let n = cfg.size;
+        let center = Similarity::array_center(n, n);
+        let rsun_px = cfg.rsun_px();
+        let mut rng = Rng::new(mix(cfg.seed, 0x5343_454e));
+
+        let (tex, tex_n) = texture(n, &mut rng);
+        let tex_stride = tex_n + 3;
+
+        // Radius of the farthest point any frame may sample, with room for big steps.
+        let r_max = (2.0f64).sqrt() * n as f64 * 0.75 + 64.0;
+        let profile = radial_profile(rsun_px, r_max);
+
+        let streamers = (2..6)
+            .map(|h| (h as f64, rng.uniform_in(0.1, 0.3), rng.uniform_in(0.0, 2.0 * PI)))
+            .collect();
+
+        let px = |arcsec: f64| arcsec / cfg.plate_scale_arcsec();
+        let mut blobs = Vec::new();
+        for _ in 0..4 {
+            // Active-region centres within 0.75 R, a cluster of loop-like Gaussians each.
+            let r = 0.75 * rsun_px * rng.uniform().sqrt();
+            let phi = rng.uniform_in(0.0, 2.0 * PI);
+            let ar = [center[0] + r * phi.cos(), center[1] + r * phi.sin()];
+            // One brightening cycle per region: its blobs scale together, so the evolution
+            // changes brightness, not the (gradient-weighted) position of the region.
+            let period_s = rng.uniform_in(2.0 * 3600.0, 6.0 * 3600.0);
+            let phase = rng.uniform_in(0.0, 2.0 * PI);
+            for _ in 0..8 {
+                let off = [rng.normal() * px(50.0), rng.normal() * px(50.0)];
+                let s_major = (px(rng.uniform_in(15.0, 45.0)).powi(2) + PSF_SIGMA_PX.powi(2)).sqrt();
+                let s_minor = (px(rng.uniform_in(5.0, 15.0)).powi(2) + PSF_SIGMA_PX.powi(2)).sqrt();
+                let angle = rng.uniform_in(0.0, PI);
+                let (c, s) = (angle.cos(), angle.sin());
+                let (ia, ib) = (1.0 / (s_major * s_major), 1.0 / (s_minor * s_minor));
+                blobs.push(Blob {
+                    center: [ar[0] + off[0], ar[1] + off[1]],
+                    inv: [ia * c * c + ib * s * s, (ia - ib) * c * s, ia * s * s + ib * c * c],
+                    half_extent: 4.0 * s_major,
+                    amplitude: DISK_DN * rng.uniform_in(1.0, 3.0),
+                    period_s,
+                    phase,
+                });
+            }
+        }
+
+        Ok(SunModel {
+            cfg: cfg.clone(),
+            center,
+            rsun_px,
+            tex,
+            tex_n,
+            tex_stride,
+            profile,
+            streamers,
+            blobs,
+        })
+    }
+
+    pub fn config(&self) -> &SynthConfig {
+        &self.cfg
+    }
+
+    /// Frame `index` seen through `motion` at `time_s` after the start: shape `(size, size)`, DN.
+    pub fn render(&self, motion: &Similarity, time_s: f64, index: u64) -> Array2<f32> {
+        let n = self.cfg.size;
+        // Frame pixel q → reference point p = T⁻¹(q).
+        let inv = motion.recentered(self.center).inverse();
+        let (a, b) = inv.ab();
+        let c = self.center;
+        let amps: Vec<f64> = self
+            .blobs
+            .iter()
+            .map(|bl| bl.amplitude * (1.0 + 0.08 * (2.0 * PI * time_s / bl.period_s + bl.phase).sin()))
+            .collect();
+        let noise_seed = mix(self.cfg.seed, 0x4e4f_4953 ^ index.wrapping_mul(0x9E37_79B9));
+        let mut data = vec![0f32; n * n];
+        data.par_chunks_mut(n).enumerate().for_each(|(y, row)| {
+            let qy = y as f64 - c[1];
+            // Reference coordinates along this row: p = c + t + A·(q − c).
+            let px0 = c[0] + inv.dx - a * c[0] - b * qy;
+            let py0 = c[1] + inv.dy + b * (-c[0]) + a * qy;
+            let (ya, yb) = (py0, py0 + b * (n as f64 - 1.0));
+            let (ylo, yhi) = (ya.min(yb), ya.max(yb));
+            let row_blobs: Vec<(usize, &Blob)> = self
+                .blobs
+                .iter()
+                .enumerate()
+                .filter(|(_, bl)| bl.center[1] + bl.half_extent >= ylo && bl.center[1] - bl.half_extent <= yhi)
+                .collect();
+            let mut rng = Rng::new(mix(noise_seed, y as u64));
+            for (x, out) in row.iter_mut().enumerate() {
+                let p = [px0 + a * x as f64, py0 + b * x as f64];
+                let mut v = self.scene(p);
+                for (i, bl) in &row_blobs {
+                    let (u, w) = (p[0] - bl.center[0], p[1] - bl.center[1]);
+                    if u.abs() < bl.half_extent && w.abs() < bl.half_extent {
+                        let q = bl.inv[0] * u * u + 2.0 * bl.inv[1] * u * w + bl.inv[2] * w * w;
+                        v.0 += amps[*i] * (-0.5 * q).exp();
+                    }
+                }
+                let mut dn = v.0 * v.1;
+                if self.cfg.noise {
+                    dn = noisy(dn, &mut rng);
+                }
+                *out = dn as f32;
+            }
+        });
+        // Shape is n × n by construction.
+        Array2::from_shape_vec((n, n), data).unwrap_or_else(|_| Array2::zeros((n, n)))
+    }
+
+    /// Noise-free (base brightness, texture factor) at reference point `p`, without active regions.
+    fn scene(&self, p: [f64; 2]) -> (f64, f64) {
+        let (dx, dy) = (p[0] - self.center[0], p[1] - self.center[1]);
+        let r = (dx * dx + dy * dy).sqrt();
+        let mut base = self.profile_at(r);
+        if r > self.rsun_px {
+            // Streamers fade in smoothly above the limb (C¹ at the limb).
+            let h = 1.0 - (-(r - self.rsun_px) / (0.05 * self.rsun_px)).exp();
+            let phi = dy.atan2(dx);
+            let g: f64 = self
+                .streamers
+                .iter()
+                .map(|(k, amp, ph)| amp * (k * phi + ph).cos())
+                .sum();
+            base *= 1.0 + g * h * h;
+        }
+        let t = self.texture_at(p);
+        let a = TEXTURE_CONTRAST;
+        (base, (a * t - 0.5 * a * a).exp())
+    }
+
+    fn profile_at(&self, r: f64) -> f64 {
+        let u = r * PROFILE_STEPS;
+        let i = u as usize;
+        if i + 1 >= self.profile.len() {
+            return *self.profile.last().unwrap_or(&0.0) as f64;
+        }
+        let f = u - i as f64;
+        self.profile[i] as f64 * (1.0 - f) + self.profile[i + 1] as f64 * f
+    }
+
+    /// Cubic B-spline surface through the periodic texture samples.
+    fn texture_at(&self, p: [f64; 2]) -> f64 {
+        let (fx, fy) = (p[0].floor(), p[1].floor());
+        let wx = bspline_weights(p[0] - fx);
+        let wy = bspline_weights(p[1] - fy);
+        let n = self.tex_n as i64;
+        let ix = (fx as i64 - 1).rem_euclid(n) as usize;
+        let iy = (fy as i64 - 1).rem_euclid(n) as usize;
+        let mut acc = 0.0f64;
+        for (r, wyr) in wy.iter().enumerate() {
+            let base = (iy + r) * self.tex_stride + ix;
+            let row = &self.tex[base..base + 4];
+            let s = wx[0] * row[0] as f64 + wx[1] * row[1] as f64 + wx[2] * row[2] as f64 + wx[3] * row[3] as f64;
+            acc += wyr * s;
+        }
+        acc
+    }
+}
+
+/// Cubic B-spline weights for the samples at offsets −1, 0, 1, 2 from `floor(u)`, `f = u − floor(u)`.
+fn bspline_weights(f: f64) -> [f64; 4] {
+    let f2 = f * f;
+    let f3 = f2 * f;
+    let g = 1.0 - f;
+    [
+        g * g * g / 6.0,
+        (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
+        (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0,
+        f3 / 6.0,
+    ]
+}
+
+/// Periodic octave noise on an `m × m` grid (`m ≥ size`, a multiple of the largest lattice),
+/// unit variance, padded to `(m + 3)²` with wrapped copies for branch-free spline taps.
+fn texture(size: usize, rng: &mut Rng) -> (Vec<f32>, usize) {
+    let mut spacings = vec![4usize];
+    while spacings.last().map_or(false, |&l| l * 2 <= (size / 8).max(8)) {
+        let next = spacings[spacings.len() - 1] * 2;
+        spacings.push(next);
+    }
+    let l_max = *spacings.last().unwrap_or(&4);
+    let m = size.div_ceil(l_max) * l_max;
+    let mut grid = vec![0f32; m * m];
+    for &l in &spacings {
+        let cells = m / l;
+        let lattice: Vec<f32> = (0..cells * cells).map(|_| rng.normal() as f32).collect();
+        // Upsample along x: for each lattice row, values at every pixel column.
+        let weights: Vec<(usize, [f32; 4])> = (0..m)
+            .map(|x| {
+                let u = x as f64 / l as f64;
+                let i0 = u.floor();
+                let w = bspline_weights(u - i0);
+                (i0 as usize, w.map(|v| v as f32))
+            })
+            .collect();
+        let mut rows = vec![0f32; cells * m];
+        for j in 0..cells {
+            let lat = &lattice[j * cells..(j + 1) * cells];
+            let out = &mut rows[j * m..(j + 1) * m];
+            for (x, (i0, w)) in weights.iter().enumerate() {
+                let mut s = 0f32;
+                for (k, wk) in w.iter().enumerate() {
+                    s += wk * lat[(i0 + cells + k - 1) % cells];
+                }
+                out[x] = s;
+            }
+        }
+        // Then along y, accumulating into the grid.
+        grid.par_chunks_mut(m).enumerate().for_each(|(y, out)| {
+            let (j0, w) = weights[y];
+            for (k, wk) in w.iter().enumerate() {
+                let src = &rows[((j0 + cells + k - 1) % cells) * m..][..m];
+                for (o, s) in out.iter_mut().zip(src) {
+                    *o += wk * s;
+                }
+            }
+        });
+    }
+    let grid = blur_periodic(&grid, m, TEXTURE_BLUR_PX);
+    let count = grid.len() as f64;
+    let mean = grid.iter().map(|&v| v as f64).sum::<f64>() / count;
+    let var = grid.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / count;
+    let inv_sd = if var > 0.0 { 1.0 / var.sqrt() } else { 1.0 };
+    let stride = m + 3;
+    let mut padded = vec![0f32; stride * stride];
+    for y in 0..stride {
+        for x in 0..stride {
+            padded[y * stride + x] = ((grid[(y % m) * m + (x % m)] as f64 - mean) * inv_sd) as f32;
+        }
+    }
+    (padded, m)
+}
+
+/// Separable Gaussian blur of a periodic `m × m` grid.
+fn blur_periodic(grid: &[f32], m: usize, sigma: f64) -> Vec<f32> {
+    let half = (4.0 * sigma).ceil() as usize;
+    let mut kernel: Vec<f32> = (0..=2 * half)
+        .map(|k| (-0.5 * ((k as f64 - half as f64) / sigma).powi(2)).exp() as f32)
+        .collect();
+    let norm: f32 = kernel.iter().sum();
+    kernel.iter_mut().for_each(|k| *k /= norm);
+    // Rows, then columns (as rows of the transpose-free column pass).
+    let mut rows = vec![0f32; m * m];
+    rows.par_chunks_mut(m).enumerate().for_each(|(y, out)| {
+        let src = &grid[y * m..(y + 1) * m];
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = kernel
+                .iter()
+                .enumerate()
+                .map(|(k, w)| w * src[(x + m * 2 + k - half) % m])
+                .sum();
+        }
+    });
+    let mut out = vec![0f32; m * m];
+    out.par_chunks_mut(m).enumerate().for_each(|(y, o)| {
+        for (k, w) in kernel.iter().enumerate() {
+            let src = &rows[((y + m * 2 + k - half) % m) * m..][..m];
+            for (a, b) in o.iter_mut().zip(src) {
+                *a += w * b;
+            }
+        }
+    });
+    out
+}
+
+/// Disk + limb-brightened shell + corona, DN, convolved with the Gaussian PSF along r.
+fn radial_profile(rsun: f64, r_max: f64) -> Vec<f32> {
+    let len = (r_max * PROFILE_STEPS) as usize + 2;
+    let eps = 0.08;
+    let shell = 2.0 * DISK_DN;
+    let h = 0.03 * rsun;
+    let raw: Vec<f64> = (0..len)
+        .map(|i| {
+            let r = i as f64 / PROFILE_STEPS;
+            if r < rsun {
+                let mu = (1.0 - (r / rsun).powi(2)).max(0.0).sqrt();
+                DISK_DN + shell * eps / (mu + eps)
+            } else {
+                shell * (0.85 * (-(r - rsun) / h).exp() + 0.15 * (r / rsun).powi(-6))
+            }
+        })
+        .collect();
+    let half = (4.0 * PSF_SIGMA_PX * PROFILE_STEPS).ceil() as i64;
+    let kernel: Vec<f64> = (-half..=half)
+        .map(|k| {
+            let r = k as f64 / PROFILE_STEPS;
+            (-0.5 * (r / PSF_SIGMA_PX).powi(2)).exp()
+        })
+        .collect();
+    let norm: f64 = kernel.iter().sum();
+    (0..len as i64)
+        .map(|i| {
+            let mut s = 0.0;
+            for (k, w) in kernel.iter().enumerate() {
+                // Mirror at r = 0 (the profile is even in r).
+                let j = (i + k as i64 - half).unsigned_abs() as usize;
+                s += w * raw[j.min(len - 1)];
+            }
+            (s / norm) as f32
+        })
+        .collect()
+}
+
+/// Poisson photon noise (gain 1.1 DN/photon) plus read noise, rounded to integer DN.
+fn noisy(dn: f64, rng: &mut Rng) -> f64 {
+    let lambda = dn.max(0.0) / GAIN_DN_PER_PHOTON;
+    let v = if lambda >= 20.0 {
+        dn + (lambda * GAIN_DN_PER_PHOTON * GAIN_DN_PER_PHOTON + READ_NOISE_DN * READ_NOISE_DN).sqrt() * rng.normal()
+    } else {
+        // Knuth's multiplication method: fine for small means.
+        let limit = (-lambda).exp();
+        let mut k = 0u32;
+        let mut prod = rng.uniform();
+        while prod > limit {
+            k += 1;
+            prod *= rng.uniform();
+        }
+        k as f64 * GAIN_DN_PER_PHOTON + READ_NOISE_DN * rng.normal()
+    };
+    v.round().clamp(i16::MIN as f64, i16::MAX as f64)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Header
+
+/// A header card value, written by the command with `fitsio`.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CardValue {
+    Str(String),
+    Float(f64),
+    Int(i64),
+}
+
+/// One header card: keyword, value, comment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Card {
+    pub key: &'static str,
+    pub value: CardValue,
+    pub comment: &'static str,
+}
+
+/// A level-1-like header for a frame observed at `obs_time_ns` (nominal pointing only).
+pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Card> {
+    use CardValue::*;
+    let cdelt = cfg.plate_scale_arcsec();
+    let crpix = (cfg.size as f64 + 1.0) / 2.0;
+    let rsun_ref = 6.96e8;
+    let dsun = rsun_ref / (RSUN_ARCSEC / ARCSEC_PER_RAD).sin();
+    let card = |key, value, comment| Card { key, value, comment };
+    vec![
+        card("DATE-OBS", Str(iso_utc(obs_time_ns, false)), "start of exposure, UTC"),
+        card("EXPTIME", Float(cfg.exptime_s), "[s] exposure time"),
+        card("TELESCOP", Str(TELESCOPE.into()), "synthetic telescope"),
+        card("INSTRUME", Str(INSTRUMENT.into()), "synthetic instrument"),
+        card("WAVELNTH", Int(WAVELENGTH_A), "[angstrom] wavelength"),
+        card("WAVEUNIT", Str("angstrom".into()), "unit of WAVELNTH"),
+        card("BUNIT", Str("DN".into()), "data unit"),
+        card("LVL_NUM", Float(1.0), "data level"),
+        card("CTYPE1", Str("HPLN-TAN".into()), "helioprojective longitude"),
+        card("CTYPE2", Str("HPLT-TAN".into()), "helioprojective latitude"),
+        card("CUNIT1", Str("arcsec".into()), ""),
+        card("CUNIT2", Str("arcsec".into()), ""),
+        card("CDELT1", Float(cdelt), "[arcsec/px] plate scale"),
+        card("CDELT2", Float(cdelt), "[arcsec/px] plate scale"),
+        card("CRPIX1", Float(crpix), "Sun centre, 1-based (nominal pointing)"),
+        card("CRPIX2", Float(crpix), "Sun centre, 1-based (nominal pointing)"),
+        card("CRVAL1", Float(0.0), "[arcsec]"),
+        card("CRVAL2", Float(0.0), "[arcsec]"),
+        card("CROTA2", Float(0.0), "[deg] roll (nominal)"),
+        card("RSUN_OBS", Float(RSUN_ARCSEC), "[arcsec] apparent solar radius"),
+        card("R_SUN", Float(cfg.rsun_px()), "[px] apparent solar radius"),
+        card("RSUN_REF", Float(rsun_ref), "[m] reference solar radius"),
+        card("DSUN_OBS", Float(dsun), "[m] observer to Sun centre"),
+        card("HGLN_OBS", Float(0.0), "[deg] observer longitude"),
+        card("HGLT_OBS", Float(0.0), "[deg] observer latitude"),
+        card("ORIGIN", Str("sunjitter synth".into()), "synthetic data"),
+        card("SYNSEED", Int(cfg.seed as i64), "synth seed"),
+        card("SYNFRAME", Int(frame as i64), "synth frame index"),
+    ]
+}
+
+// ---------------------------------------------------------------------------------------------
+// UTC (until `crate::time` offers formatting)
+
+const NS_PER_S: i64 = 1_000_000_000;
+
+/// `YYYY-MM-DDTHH:MM:SS.sss` (with a trailing `Z` when `zulu`), from ns since the Unix epoch.
+pub fn iso_utc(ns: i64, zulu: bool) -> String {
+    let ms_total = ns.div_euclid(1_000_000);
+    let (secs, ms) = (ms_total.div_euclid(1000), ms_total.rem_euclid(1000));
+    let (days, sod) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    let (y, m, d) = civil_from_days(days);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{ms:03}{}",
+        sod / 3600,
+        sod / 60 % 60,
+        sod % 60,
+        if zulu { "Z" } else { "" }
+    )
+}
+
+/// Parse `YYYY-MM-DDTHH:MM:SS[.fff][Z]` (UTC) to ns since the Unix epoch.
+pub fn parse_iso_utc(s: &str) -> Option<i64> {
+    let s = s.trim().trim_end_matches('Z');
+    let (date, time) = s.split_once(['T', ' '])?;
+    let mut dp = date.split('-');
+    let y: i64 = dp.next()?.parse().ok()?;
+    let mo: i64 = dp.next()?.parse().ok()?;
+    let d: i64 = dp.next()?.parse().ok()?;
+    let mut tp = time.split(':');
+    let h: i64 = tp.next()?.parse().ok()?;
+    let mi: i64 = tp.next()?.parse().ok()?;
+    let sec: f64 = tp.next().unwrap_or("0").parse().ok()?;
+    if dp.next().is_some() || tp.next().is_some() {
+        return None;
+    }
+    if !(1..=12).contains(&mo) || !(1..=31).contains(&d) || !(0..24).contains(&h) || !(0..60).contains(&mi) || !(0.0..61.0).contains(&sec) {
+        return None;
+    }
+    let days = days_from_civil(y, mo, d);
+    let whole = (days * 86_400 + h * 3600 + mi * 60) * NS_PER_S;
+    Some(whole + (sec * 1e9).round() as i64)
+}
+
+fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
+    // Howard Hinnant's algorithm (proleptic Gregorian).
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + d - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+fn civil_from_days(z: i64) -> (i64, i64, i64) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    (yoe + era * 400 + i64::from(m <= 2), m, d)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Random numbers (deterministic from the seed; no external crate needed)
+
+/// SplitMix64 finaliser: decorrelates seeds for independent streams.
+fn mix(seed: u64, stream: u64) -> u64 {
+    let mut z = seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// xoshiro256++ with a cached Box–Muller normal.
+struct Rng {
+    s: [u64; 4],
+    spare: Option<f64>,
+}
+
+impl Rng {
+    fn new(seed: u64) -> Self {
+        let mut s = [0u64; 4];
+        for (i, v) in s.iter_mut().enumerate() {
+            *v = mix(seed, i as u64 + 1);
+        }
+        Rng { s, spare: None }
+    }
+
+    fn next_u64(&mut self) -> u64 {
+        let s = &mut self.s;
+        let result = s[0].wrapping_add(s[3]).rotate_left(23).wrapping_add(s[0]);
+        let t = s[1] << 17;
+        s[2] ^= s[0];
+        s[3] ^= s[1];
+        s[1] ^= s[2];
+        s[0] ^= s[3];
+        s[2] ^= t;
+        s[3] = s[3].rotate_left(45);
+        result
+    }
+
+    /// Uniform in (0, 1].
+    fn uniform(&mut self) -> f64 {
+        ((self.next_u64() >> 11) + 1) as f64 / (1u64 << 53) as f64
+    }
+
+    fn uniform_in(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.uniform()
+    }
+
+    fn normal(&mut self) -> f64 {
+        if let Some(v) = self.spare.take() {
+            return v;
+        }
+        let r = (-2.0 * self.uniform().ln()).sqrt();
+        let a = 2.0 * PI * self.uniform();
+        self.spare = Some(r * a.sin());
+        r * a.cos()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_parses_every_kind_and_rejects_junk() {
+        let s: JitterSpec = "sine:0.3:120,walk:0.02,step:1.5:60:x,rot:10,scale:1e-5".parse().unwrap();
+        assert_eq!(s.terms.len(), 5);
+        assert_eq!(
+            s.terms[2],
+            JitterTerm::Step { px: 1.5, at_s: 60.0, axis: Axis::X }
+        );
+        for bad in ["sine:0.3", "sine:a:120", "walk", "step:1:2:z", "wobble:1", "sine:1:0", "walk:-1"] {
+            let e = bad.parse::<JitterSpec>().unwrap_err();
+            assert_eq!(e.exit_code(), 2, "{bad}");
+        }
+        assert!("none".parse::<JitterSpec>().unwrap().terms.is_empty());
+    }
+
+    #[test]
+    fn sine_on_both_axes_has_y_a_quarter_period_behind() {
+        let spec: JitterSpec = "sine:0.5:120".parse().unwrap();
+        let t = jitter_truth(&spec, 11, 12.0, 1, 64);
+        // t = 0: x = 0, y = -A; t = 30 s (quarter period) is not sampled; t = 60 s: x = 0, y = +A.
+        assert!(t[0].dx.abs() < 1e-12 && (t[0].dy + 0.5).abs() < 1e-12);
+        assert!(t[5].dx.abs() < 1e-12 && (t[5].dy - 0.5).abs() < 1e-12);
+        // y(t) = x(t - P/4): y at 36 s equals x at 6 s.
+        let x6 = 0.5 * (2.0 * PI * 6.0 / 120.0).sin();
+        assert!((t[3].dy - x6).abs() < 1e-12);
+    }
+
+    #[test]
+    fn drifts_and_steps_follow_their_definitions() {
+        let spec: JitterSpec = "rot:3600,scale:0.36,step:2:24:y".parse().unwrap();
+        let t = jitter_truth(&spec, 4, 12.0, 1, 64);
+        // 3600″/h for 36 s = 36″; scale 0.36/h for 36 s = 0.0036.
+        assert!((t[3].rotation_arcsec() - 36.0).abs() < 1e-9);
+        assert!((t[3].scale - 1.0036).abs() < 1e-12);
+        assert_eq!((t[1].dx, t[1].dy), (0.0, 0.0));
+        assert_eq!((t[2].dx, t[2].dy), (0.0, 2.0));
+    }
+
+    #[test]
+    fn walk_steps_have_the_requested_spread() {
+        let spec: JitterSpec = "walk:0.1".parse().unwrap();
+        let t = jitter_truth(&spec, 4001, 1.0, 7, 64);
+        let steps: Vec<f64> = t.windows(2).map(|w| w[1].dx - w[0].dx).collect();
+        let rms = (steps.iter().map(|s| s * s).sum::<f64>() / steps.len() as f64).sqrt();
+        // 4000 samples: the sample RMS is within ~3 % (3σ ≈ 3.4 %) of 0.1.
+        assert!((rms - 0.1).abs() < 0.0035, "{rms}");
+        assert_eq!(t[0].dx, 0.0);
+    }
+
+    #[test]
+    fn iso_round_trip_and_known_epoch() {
+        // 2024-05-01T12:00:00Z = 1714564800 s (date -u -d 2024-05-01T12:00:00Z +%s).
+        let ns = parse_iso_utc("2024-05-01T12:00:00").unwrap();
+        assert_eq!(ns, 1_714_564_800 * NS_PER_S);
+        assert_eq!(iso_utc(ns + 12_345_000_000, true), "2024-05-01T12:00:12.345Z");
+        assert_eq!(iso_utc(-1_000_000, false), "1969-12-31T23:59:59.999");
+        assert!(parse_iso_utc("2024-13-01T00:00:00").is_none());
+        assert!(parse_iso_utc("yesterday").is_none());
+    }
+
+    #[test]
+    fn noiseless_frame_moves_by_the_injected_integer_shift() {
+        // A whole-pixel shift makes frame pixel (x+3, y-2) sample exactly the reference point (x, y).
+        let mut cfg = SynthConfig::new(64, 3, 12.0);
+        cfg.noise = false;
+        let model = SunModel::new(&cfg).unwrap();
+        let c = Similarity::array_center(64, 64);
+        let still = model.render(&Similarity::identity(c), 0.0, 0);
+        let moved = model.render(&Similarity { dx: 3.0, dy: -2.0, ..Similarity::identity(c) }, 0.0, 0);
+        for y in 10..50 {
+            for x in 10..50 {
+                let (a, b) = (still[[y, x]], moved[[y - 2, x + 3]]);
+                assert!((a - b).abs() <= 1e-3 * a.abs().max(1.0), "({x},{y}) {a} {b}");
+            }
+        }
+    }
+}
