@@ -69,11 +69,25 @@ pub enum Axis {
 /// One term of `--jitter SPEC`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum JitterTerm {
-    Sine { amp_px: f64, period_s: f64, axis: Axis },
-    Walk { step_px: f64 },
-    Step { px: f64, at_s: f64, axis: Axis },
-    Rotation { arcsec_per_hour: f64 },
-    Scale { per_hour: f64 },
+    Sine {
+        amp_px: f64,
+        period_s: f64,
+        axis: Axis,
+    },
+    Walk {
+        step_px: f64,
+    },
+    Step {
+        px: f64,
+        at_s: f64,
+        axis: Axis,
+    },
+    Rotation {
+        arcsec_per_hour: f64,
+    },
+    Scale {
+        per_hour: f64,
+    },
 }
 
 /// A comma-separated sum of jitter terms, e.g. `sine:0.3:120,walk:0.02`.
@@ -104,7 +118,9 @@ fn parse_term(term: &str) -> Result<JitterTerm> {
     let bad = |why: &str| Error::Usage(format!("--jitter: bad term '{term}': {why}"));
     let parts: Vec<&str> = term.split(':').collect();
     let num = |i: usize, what: &str| -> Result<f64> {
-        let s = parts.get(i).ok_or_else(|| bad(&format!("missing {what}")))?;
+        let s = parts
+            .get(i)
+            .ok_or_else(|| bad(&format!("missing {what}")))?;
         match s.trim().parse::<f64>() {
             Ok(v) if v.is_finite() => Ok(v),
             _ => Err(bad(&format!("{what} '{s}' is not a number"))),
@@ -174,7 +190,13 @@ fn parse_term(term: &str) -> Result<JitterTerm> {
 
 /// The injected image motion of every frame (frame `k` at `k · cadence_s` after the start),
 /// relative to the nominal pointing, about the centre of a `size × size` array.
-pub fn jitter_truth(spec: &JitterSpec, frames: usize, cadence_s: f64, seed: u64, size: usize) -> Vec<Similarity> {
+pub fn jitter_truth(
+    spec: &JitterSpec,
+    frames: usize,
+    cadence_s: f64,
+    seed: u64,
+    size: usize,
+) -> Vec<Similarity> {
     let center = Similarity::array_center(size, size);
     let mut walk_rng = Rng::new(mix(seed, 0x5741_4c4b));
     let mut walks = vec![[0.0f64; 2]; spec.terms.len()];
@@ -184,7 +206,11 @@ pub fn jitter_truth(spec: &JitterSpec, frames: usize, cadence_s: f64, seed: u64,
             let mut m = Similarity::identity(center);
             for (term, walk) in spec.terms.iter().zip(walks.iter_mut()) {
                 match *term {
-                    JitterTerm::Sine { amp_px, period_s, axis } => {
+                    JitterTerm::Sine {
+                        amp_px,
+                        period_s,
+                        axis,
+                    } => {
                         let phase = 2.0 * PI * t / period_s;
                         match axis {
                             Axis::X => m.dx += amp_px * phase.sin(),
@@ -311,7 +337,13 @@ impl SunModel {
         let profile = radial_profile(rsun_px, r_max);
 
         let streamers = (2..6)
-            .map(|h| (h as f64, rng.uniform_in(0.1, 0.3), rng.uniform_in(0.0, 2.0 * PI)))
+            .map(|h| {
+                (
+                    h as f64,
+                    rng.uniform_in(0.1, 0.3),
+                    rng.uniform_in(0.0, 2.0 * PI),
+                )
+            })
             .collect();
 
         let px = |arcsec: f64| arcsec / cfg.plate_scale_arcsec();
@@ -327,14 +359,19 @@ impl SunModel {
             let phase = rng.uniform_in(0.0, 2.0 * PI);
             for _ in 0..8 {
                 let off = [rng.normal() * px(50.0), rng.normal() * px(50.0)];
-                let s_major = (px(rng.uniform_in(15.0, 45.0)).powi(2) + PSF_SIGMA_PX.powi(2)).sqrt();
+                let s_major =
+                    (px(rng.uniform_in(15.0, 45.0)).powi(2) + PSF_SIGMA_PX.powi(2)).sqrt();
                 let s_minor = (px(rng.uniform_in(5.0, 15.0)).powi(2) + PSF_SIGMA_PX.powi(2)).sqrt();
                 let angle = rng.uniform_in(0.0, PI);
                 let (c, s) = (angle.cos(), angle.sin());
                 let (ia, ib) = (1.0 / (s_major * s_major), 1.0 / (s_minor * s_minor));
                 blobs.push(Blob {
                     center: [ar[0] + off[0], ar[1] + off[1]],
-                    inv: [ia * c * c + ib * s * s, (ia - ib) * c * s, ia * s * s + ib * c * c],
+                    inv: [
+                        ia * c * c + ib * s * s,
+                        (ia - ib) * c * s,
+                        ia * s * s + ib * c * c,
+                    ],
                     half_extent: 4.0 * s_major,
                     amplitude: DISK_DN * rng.uniform_in(1.0, 3.0),
                     period_s,
@@ -370,7 +407,9 @@ impl SunModel {
         let amps: Vec<f64> = self
             .blobs
             .iter()
-            .map(|bl| bl.amplitude * (1.0 + 0.08 * (2.0 * PI * time_s / bl.period_s + bl.phase).sin()))
+            .map(|bl| {
+                bl.amplitude * (1.0 + 0.08 * (2.0 * PI * time_s / bl.period_s + bl.phase).sin())
+            })
             .collect();
         let noise_seed = mix(self.cfg.seed, 0x4e4f_4953 ^ index.wrapping_mul(0x9E37_79B9));
         let mut data = vec![0f32; n * n];
@@ -385,7 +424,9 @@ impl SunModel {
                 .blobs
                 .iter()
                 .enumerate()
-                .filter(|(_, bl)| bl.center[1] + bl.half_extent >= ylo && bl.center[1] - bl.half_extent <= yhi)
+                .filter(|(_, bl)| {
+                    bl.center[1] + bl.half_extent >= ylo && bl.center[1] - bl.half_extent <= yhi
+                })
                 .collect();
             let mut rng = Rng::new(mix(noise_seed, y as u64));
             for (x, out) in row.iter_mut().enumerate() {
@@ -452,7 +493,10 @@ impl SunModel {
         for (r, wyr) in wy.iter().enumerate() {
             let base = (iy + r) * self.tex_stride + ix;
             let row = &self.tex[base..base + 4];
-            let s = wx[0] * row[0] as f64 + wx[1] * row[1] as f64 + wx[2] * row[2] as f64 + wx[3] * row[3] as f64;
+            let s = wx[0] * row[0] as f64
+                + wx[1] * row[1] as f64
+                + wx[2] * row[2] as f64
+                + wx[3] * row[3] as f64;
             acc += wyr * s;
         }
         acc
@@ -476,7 +520,7 @@ fn bspline_weights(f: f64) -> [f64; 4] {
 /// unit variance, padded to `(m + 3)²` with wrapped copies for branch-free spline taps.
 fn texture(size: usize, rng: &mut Rng) -> (Vec<f32>, usize) {
     let mut spacings = vec![4usize];
-    while spacings.last().map_or(false, |&l| l * 2 <= (size / 8).max(8)) {
+    while spacings.last().is_some_and(|&l| l * 2 <= (size / 8).max(8)) {
         let next = spacings[spacings.len() - 1] * 2;
         spacings.push(next);
     }
@@ -607,7 +651,9 @@ fn radial_profile(rsun: f64, r_max: f64) -> Vec<f32> {
 fn noisy(dn: f64, rng: &mut Rng) -> f64 {
     let lambda = dn.max(0.0) / GAIN_DN_PER_PHOTON;
     let v = if lambda >= 20.0 {
-        dn + (lambda * GAIN_DN_PER_PHOTON * GAIN_DN_PER_PHOTON + READ_NOISE_DN * READ_NOISE_DN).sqrt() * rng.normal()
+        dn + (lambda * GAIN_DN_PER_PHOTON * GAIN_DN_PER_PHOTON + READ_NOISE_DN * READ_NOISE_DN)
+            .sqrt()
+            * rng.normal()
     } else {
         // Knuth's multiplication method: fine for small means.
         let limit = (-lambda).exp();
@@ -648,9 +694,17 @@ pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Ca
     let crpix = (cfg.size as f64 + 1.0) / 2.0;
     let rsun_ref = 6.96e8;
     let dsun = rsun_ref / (RSUN_ARCSEC / ARCSEC_PER_RAD).sin();
-    let card = |key, value, comment| Card { key, value, comment };
+    let card = |key, value, comment| Card {
+        key,
+        value,
+        comment,
+    };
     vec![
-        card("DATE-OBS", Str(iso_utc(obs_time_ns, false)), "start of exposure, UTC"),
+        card(
+            "DATE-OBS",
+            Str(iso_utc(obs_time_ns, false)),
+            "start of exposure, UTC",
+        ),
         card("EXPTIME", Float(cfg.exptime_s), "[s] exposure time"),
         card("TELESCOP", Str(TELESCOPE.into()), "synthetic telescope"),
         card("INSTRUME", Str(INSTRUMENT.into()), "synthetic instrument"),
@@ -658,18 +712,34 @@ pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Ca
         card("WAVEUNIT", Str("angstrom".into()), "unit of WAVELNTH"),
         card("BUNIT", Str("DN".into()), "data unit"),
         card("LVL_NUM", Float(1.0), "data level"),
-        card("CTYPE1", Str("HPLN-TAN".into()), "helioprojective longitude"),
+        card(
+            "CTYPE1",
+            Str("HPLN-TAN".into()),
+            "helioprojective longitude",
+        ),
         card("CTYPE2", Str("HPLT-TAN".into()), "helioprojective latitude"),
         card("CUNIT1", Str("arcsec".into()), ""),
         card("CUNIT2", Str("arcsec".into()), ""),
         card("CDELT1", Float(cdelt), "[arcsec/px] plate scale"),
         card("CDELT2", Float(cdelt), "[arcsec/px] plate scale"),
-        card("CRPIX1", Float(crpix), "Sun centre, 1-based (nominal pointing)"),
-        card("CRPIX2", Float(crpix), "Sun centre, 1-based (nominal pointing)"),
+        card(
+            "CRPIX1",
+            Float(crpix),
+            "Sun centre, 1-based (nominal pointing)",
+        ),
+        card(
+            "CRPIX2",
+            Float(crpix),
+            "Sun centre, 1-based (nominal pointing)",
+        ),
         card("CRVAL1", Float(0.0), "[arcsec]"),
         card("CRVAL2", Float(0.0), "[arcsec]"),
         card("CROTA2", Float(0.0), "[deg] roll (nominal)"),
-        card("RSUN_OBS", Float(RSUN_ARCSEC), "[arcsec] apparent solar radius"),
+        card(
+            "RSUN_OBS",
+            Float(RSUN_ARCSEC),
+            "[arcsec] apparent solar radius",
+        ),
         card("R_SUN", Float(cfg.rsun_px()), "[px] apparent solar radius"),
         card("RSUN_REF", Float(rsun_ref), "[m] reference solar radius"),
         card("DSUN_OBS", Float(dsun), "[m] observer to Sun centre"),
@@ -716,7 +786,12 @@ pub fn parse_iso_utc(s: &str) -> Option<i64> {
     if dp.next().is_some() || tp.next().is_some() {
         return None;
     }
-    if !(1..=12).contains(&mo) || !(1..=31).contains(&d) || !(0..24).contains(&h) || !(0..60).contains(&mi) || !(0.0..61.0).contains(&sec) {
+    if !(1..=12).contains(&mo)
+        || !(1..=31).contains(&d)
+        || !(0..24).contains(&h)
+        || !(0..60).contains(&mi)
+        || !(0.0..61.0).contains(&sec)
+    {
         return None;
     }
     let days = days_from_civil(y, mo, d);
@@ -811,13 +886,27 @@ mod tests {
 
     #[test]
     fn spec_parses_every_kind_and_rejects_junk() {
-        let s: JitterSpec = "sine:0.3:120,walk:0.02,step:1.5:60:x,rot:10,scale:1e-5".parse().unwrap();
+        let s: JitterSpec = "sine:0.3:120,walk:0.02,step:1.5:60:x,rot:10,scale:1e-5"
+            .parse()
+            .unwrap();
         assert_eq!(s.terms.len(), 5);
         assert_eq!(
             s.terms[2],
-            JitterTerm::Step { px: 1.5, at_s: 60.0, axis: Axis::X }
+            JitterTerm::Step {
+                px: 1.5,
+                at_s: 60.0,
+                axis: Axis::X
+            }
         );
-        for bad in ["sine:0.3", "sine:a:120", "walk", "step:1:2:z", "wobble:1", "sine:1:0", "walk:-1"] {
+        for bad in [
+            "sine:0.3",
+            "sine:a:120",
+            "walk",
+            "step:1:2:z",
+            "wobble:1",
+            "sine:1:0",
+            "walk:-1",
+        ] {
             let e = bad.parse::<JitterSpec>().unwrap_err();
             assert_eq!(e.exit_code(), 2, "{bad}");
         }
@@ -863,7 +952,10 @@ mod tests {
         // 2024-05-01T12:00:00Z = 1714564800 s (date -u -d 2024-05-01T12:00:00Z +%s).
         let ns = parse_iso_utc("2024-05-01T12:00:00").unwrap();
         assert_eq!(ns, 1_714_564_800 * NS_PER_S);
-        assert_eq!(iso_utc(ns + 12_345_000_000, true), "2024-05-01T12:00:12.345Z");
+        assert_eq!(
+            iso_utc(ns + 12_345_000_000, true),
+            "2024-05-01T12:00:12.345Z"
+        );
         assert_eq!(iso_utc(-1_000_000, false), "1969-12-31T23:59:59.999");
         assert!(parse_iso_utc("2024-13-01T00:00:00").is_none());
         assert!(parse_iso_utc("yesterday").is_none());
@@ -877,11 +969,22 @@ mod tests {
         let model = SunModel::new(&cfg).unwrap();
         let c = Similarity::array_center(64, 64);
         let still = model.render(&Similarity::identity(c), 0.0, 0);
-        let moved = model.render(&Similarity { dx: 3.0, dy: -2.0, ..Similarity::identity(c) }, 0.0, 0);
+        let moved = model.render(
+            &Similarity {
+                dx: 3.0,
+                dy: -2.0,
+                ..Similarity::identity(c)
+            },
+            0.0,
+            0,
+        );
         for y in 10..50 {
             for x in 10..50 {
                 let (a, b) = (still[[y, x]], moved[[y - 2, x + 3]]);
-                assert!((a - b).abs() <= 1e-3 * a.abs().max(1.0), "({x},{y}) {a} {b}");
+                assert!(
+                    (a - b).abs() <= 1e-3 * a.abs().max(1.0),
+                    "({x},{y}) {a} {b}"
+                );
             }
         }
     }

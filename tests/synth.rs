@@ -14,7 +14,11 @@ fn synth(out: &Path, extra: &[&str]) {
         .args(extra)
         .output()
         .expect("run sunjitter synth");
-    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
 }
 
 struct Frame {
@@ -109,8 +113,12 @@ fn fit_similarity(reference: &Frame, frame: &Frame, radius: f64) -> [f64; 4] {
                     continue;
                 }
                 let (xi, yi) = (x as i64, y as i64);
-                let gx = 0.25 * (reference.at(xi + 1, yi) - reference.at(xi - 1, yi) + warped.at(xi + 1, yi) - warped.at(xi - 1, yi));
-                let gy = 0.25 * (reference.at(xi, yi + 1) - reference.at(xi, yi - 1) + warped.at(xi, yi + 1) - warped.at(xi, yi - 1));
+                let gx = 0.25
+                    * (reference.at(xi + 1, yi) - reference.at(xi - 1, yi) + warped.at(xi + 1, yi)
+                        - warped.at(xi - 1, yi));
+                let gy = 0.25
+                    * (reference.at(xi, yi + 1) - reference.at(xi, yi - 1) + warped.at(xi, yi + 1)
+                        - warped.at(xi, yi - 1));
                 let r = warped.at(xi, yi) - reference.at(xi, yi);
                 // ∂T/∂a = (u, v), ∂T/∂b = (−v, u), ∂T/∂t = identity.
                 let j = [gx * u + gy * v, -gx * v + gy * u, gx, gy];
@@ -132,13 +140,16 @@ fn fit_similarity(reference: &Frame, frame: &Frame, radius: f64) -> [f64; 4] {
 
 fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> [f64; 4] {
     for col in 0..4 {
-        let piv = (col..4).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs())).unwrap();
+        let piv = (col..4)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .unwrap();
         a.swap(col, piv);
         b.swap(col, piv);
         for row in col + 1..4 {
             let f = a[row][col] / a[col][col];
-            for k in col..4 {
-                a[row][k] -= f * a[col][k];
+            let pivot = a[col];
+            for (v, p) in a[row].iter_mut().zip(pivot).skip(col) {
+                *v -= f * p;
             }
             b[row] -= f * b[col];
         }
@@ -169,7 +180,10 @@ fn relative_truth(ti: [f64; 4], tj: [f64; 4]) -> [f64; 4] {
 fn measured_shift_between_frames_matches_truth_csv() {
     let dir = tempfile::tempdir().unwrap();
     // Default jitter (sine:0.3:120, walk:0.02).
-    synth(dir.path(), &["--frames", "6", "--size", "256", "--seed", "5"]);
+    synth(
+        dir.path(),
+        &["--frames", "6", "--size", "256", "--seed", "5"],
+    );
     let truth = read_truth(dir.path());
     assert_eq!(truth.len(), 6);
     let f0 = read_frame(&dir.path().join(&truth[0].0));
@@ -179,8 +193,18 @@ fn measured_shift_between_frames_matches_truth_csv() {
         let got = fit_similarity(&f0, &fk, radius);
         let want = relative_truth(truth[0].1, truth[k].1);
         eprintln!("frame {k}: measured {got:?}, truth {want:?}");
-        assert!((got[2] - want[2]).abs() < 0.03, "frame {k}: dx {} vs {}", got[2], want[2]);
-        assert!((got[3] - want[3]).abs() < 0.03, "frame {k}: dy {} vs {}", got[3], want[3]);
+        assert!(
+            (got[2] - want[2]).abs() < 0.03,
+            "frame {k}: dx {} vs {}",
+            got[2],
+            want[2]
+        );
+        assert!(
+            (got[3] - want[3]).abs() < 0.03,
+            "frame {k}: dy {} vs {}",
+            got[3],
+            want[3]
+        );
         // The motion is a real sub-pixel one, not zero.
         assert!(want[2].hypot(want[3]) > 0.1);
     }
@@ -192,7 +216,16 @@ fn rotation_and_scale_follow_the_contract_convention() {
     // 12 s of rot:360000″/h = 1200″ (0.0058 rad) counter-clockwise, scale +0.0012, dx 0.28 px.
     synth(
         dir.path(),
-        &["--frames", "2", "--size", "256", "--seed", "9", "--jitter", "rot:360000,scale:0.36,sine:0.3:48:x"],
+        &[
+            "--frames",
+            "2",
+            "--size",
+            "256",
+            "--seed",
+            "9",
+            "--jitter",
+            "rot:360000,scale:0.36,sine:0.3:48:x",
+        ],
     );
     let truth = read_truth(dir.path());
     let f0 = read_frame(&dir.path().join(&truth[0].0));
@@ -204,8 +237,15 @@ fn rotation_and_scale_follow_the_contract_convention() {
     let rot = |p: [f64; 4]| p[1].atan2(p[0]) * 206_264.806;
     let scale = |p: [f64; 4]| p[0].hypot(p[1]);
     assert!((rot(got) - 1200.0).abs() < 30.0, "rotation {}″", rot(got));
-    assert!((scale(got) - scale(want)).abs() < 1.5e-4, "scale {}", scale(got));
-    assert!((got[2] - want[2]).abs() < 0.03 && (got[3] - want[3]).abs() < 0.03, "{got:?} vs {want:?}");
+    assert!(
+        (scale(got) - scale(want)).abs() < 1.5e-4,
+        "scale {}",
+        scale(got)
+    );
+    assert!(
+        (got[2] - want[2]).abs() < 0.03 && (got[3] - want[3]).abs() < 0.03,
+        "{got:?} vs {want:?}"
+    );
 }
 
 #[test]
@@ -214,7 +254,16 @@ fn headers_and_disk_read_as_astropy_reads_them() {
     // step:10:0:x puts every frame 10 px to +x of the nominal pointing (headers do not know).
     synth(
         dir.path(),
-        &["--frames", "2", "--size", "256", "--seed", "2", "--jitter", "step:10:0:x"],
+        &[
+            "--frames",
+            "2",
+            "--size",
+            "256",
+            "--seed",
+            "2",
+            "--jitter",
+            "step:10:0:x",
+        ],
     );
     let path = dir.path().join("synth_0001.fits");
     let mut f = FitsFile::open(&path).unwrap();
@@ -262,7 +311,10 @@ fn headers_and_disk_read_as_astropy_reads_them() {
     assert!((edge - 101.5).abs() <= 0.5, "limb at r = {edge}");
     assert!((edge - 1.01 * 100.0).abs() <= 1.5, "limb at r = {edge}");
     assert!((drop + 70.4).abs() < 0.5, "drop {drop}");
-    assert!(drop_nominal.abs() < 0.75 * drop.abs(), "{drop_nominal} vs {drop}");
+    assert!(
+        drop_nominal.abs() < 0.75 * drop.abs(),
+        "{drop_nominal} vs {drop}"
+    );
 }
 
 /// (radius, drop) of the steepest fall of the azimuthal mean profile (0.5 px bins) in `[r0, r1)`.
@@ -278,7 +330,11 @@ fn steepest_limb_drop(frame: &Frame, c: [f64; 2], r0: f64, r1: f64) -> (f64, f64
             }
         }
     }
-    let prof: Vec<f64> = sum.iter().zip(&count).map(|(s, n)| s / f64::max(*n, 1.0)).collect();
+    let prof: Vec<f64> = sum
+        .iter()
+        .zip(&count)
+        .map(|(s, n)| s / f64::max(*n, 1.0))
+        .collect();
     let lo = (r0 * 2.0) as usize;
     let hi = (r1 * 2.0) as usize;
     (lo..hi - 1)

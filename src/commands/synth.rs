@@ -57,7 +57,10 @@ pub fn run(args: &Args) -> Result<i32> {
         return Err(Error::Usage("--frames must be at least 1".into()));
     }
     if !(args.cadence.is_finite() && args.cadence > 0.0) {
-        return Err(Error::Usage(format!("--cadence {} must be positive", args.cadence)));
+        return Err(Error::Usage(format!(
+            "--cadence {} must be positive",
+            args.cadence
+        )));
     }
     let spec: JitterSpec = args.jitter.parse()?;
     let start_ns = start_time(args)?;
@@ -71,7 +74,11 @@ pub fn run(args: &Args) -> Result<i32> {
     let mut truth_csv =
         std::fs::File::create(&truth_path).map_err(|e| Error::io(&truth_path, e))?;
     let csv_err = |e: std::io::Error| Error::io(&truth_path, e);
-    writeln!(truth_csv, "frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale").map_err(csv_err)?;
+    writeln!(
+        truth_csv,
+        "frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale"
+    )
+    .map_err(csv_err)?;
 
     let digits = (args.frames - 1).to_string().len().max(4);
     let wall_start = Instant::now();
@@ -139,10 +146,14 @@ pub fn run(args: &Args) -> Result<i32> {
 fn start_time(args: &Args) -> Result<i64> {
     match &args.start {
         Some(s) => synth::parse_iso_utc(s).ok_or_else(|| {
-            Error::Usage(format!("--start '{s}' is not a UTC time like 2024-05-01T12:00:00"))
+            Error::Usage(format!(
+                "--start '{s}' is not a UTC time like 2024-05-01T12:00:00"
+            ))
         }),
         None if args.realtime => {
-            let now = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
+            let now = SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .unwrap_or_default();
             Ok(now.as_secs() as i64 * 1_000_000_000)
         }
         None => Ok(synth::parse_iso_utc("2024-05-01T12:00:00").unwrap_or(0)),
