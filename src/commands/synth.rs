@@ -160,6 +160,16 @@ fn start_time(args: &Args) -> Result<i64> {
     }
 }
 
+/// fitsio names a custom primary HDU `EXTNAME = '_PRIMARY'`; a level-1 file has no such card.
+fn remove_extname(f: &mut FitsFile) {
+    let mut status = 0;
+    // SAFETY: `f` is an open, writable cfitsio handle for the duration of the call, and the key
+    // name is a NUL-terminated literal; a missing key only sets `status`, which we ignore.
+    unsafe {
+        fitsio::sys::ffdkey(f.as_raw(), c"EXTNAME".as_ptr(), &mut status);
+    }
+}
+
 /// One primary-HDU int16 image; written to `NAME.tmp` then renamed into place.
 fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>) -> Result<()> {
     let tmp = path.with_extension("fits.tmp");
@@ -175,6 +185,7 @@ fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>)
             .overwrite()
             .open()
             .map_err(fail)?;
+        remove_extname(&mut f);
         let hdu = f.primary_hdu().map_err(fail)?;
         for card in cards {
             match &card.value {
