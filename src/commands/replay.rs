@@ -8,7 +8,5 @@ pub struct Args {
 }
 
 pub fn run(_args: &Args) -> crate::Result<i32> {
-    Err(crate::Error::Usage(
-        "`replay` is not implemented yet".into(),
-    ))
+    Err(crate::Error::Usage("`replay` is not implemented yet".into()))
 }
