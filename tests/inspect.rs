@@ -356,3 +356,77 @@ fn plots_are_written_and_readable() {
     let err = inspect::plot::write_plot(&a, &dir.path().join("x.gif")).unwrap_err();
     assert_eq!(err.exit_code(), 2);
 }
+
+#[test]
+fn command_reads_a_run_split_over_segments() {
+    use sunjitter::sink::{McapSink, SinkConfig};
+    let (frames, _) = measured_series();
+    let dir = tempfile::tempdir().unwrap();
+    let logs = dir.path().join("log");
+    let config = SinkConfig {
+        segment_frames: 30,
+        segment_minutes: 0.0,
+        ..SinkConfig::default()
+    };
+    let mut sink = McapSink::new(&logs, config, "{}".into()).unwrap();
+    for f in &frames {
+        let t = f.log_time_ns as u64;
+        sink.write_frame(&f.record, t, t + 1_000_000_000).unwrap();
+    }
+    sink.finish().unwrap();
+    let segments = sink.segment_paths().len();
+    assert_eq!(segments, 3);
+
+    let csv = dir.path().join("series.csv");
+    let png = dir.path().join("series.png");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("inspect")
+        .arg(&logs)
+        .arg("--json")
+        .arg("--csv")
+        .arg(&csv)
+        .arg("--plot")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["files"].as_array().unwrap().len(), 3);
+    let c = &v["channels"][0];
+    assert_eq!(
+        (c["frames"].as_u64(), c["failed"].as_u64()),
+        (Some(75), Some(1))
+    );
+    let period = c["periodogram"]["peaks"]["dx_px"][0]["period_s"]
+        .as_f64()
+        .unwrap();
+    let bin = c["periodogram"]["frequency_resolution_hz"]
+        .as_f64()
+        .unwrap();
+    assert!((1.0 / period - 1.0 / 120.0).abs() < bin, "{period}");
+    assert_eq!(std::fs::read_to_string(&csv).unwrap().lines().count(), 76);
+    assert!(std::fs::metadata(&png).unwrap().len() > 40_000);
+
+    // Human output, and bad input: a missing log is exit 2 with the path named.
+    let text = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("inspect")
+        .arg(&logs)
+        .output()
+        .unwrap();
+    let text = String::from_utf8(text.stdout).unwrap();
+    assert!(
+        text.contains("SYNTH_171: 75 frames (73 ok, 1 degraded, 1 failed)"),
+        "{text}"
+    );
+    let missing = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("inspect")
+        .arg(dir.path().join("nope.mcap"))
+        .output()
+        .unwrap();
+    assert_eq!(missing.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&missing.stderr).contains("nope.mcap"));
+}

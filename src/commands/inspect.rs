@@ -36,7 +36,7 @@
 
 use crate::inspect::{self, InspectOptions, LoggedFrame};
 use crate::{Error, Result};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -120,12 +120,19 @@ pub fn log_files(args: &[PathBuf]) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// Every `/jitter/<channel>` message of `files`, with its `log_time`.
-/// The single place the MCAP reader plugs in (`sink::read_logs`).
+/// Every `/jitter/<channel>` message of `files`, with its `log_time`; damaged or unfinished
+/// segments are read as far as they go, with a warning naming what was skipped.
 pub fn read_frames(files: &[PathBuf]) -> Result<Vec<LoggedFrame>> {
-    let first: &Path = files.first().map_or(Path::new("?"), |p| p.as_path());
-    Err(Error::bad_input(
-        first,
-        "reading MCAP logs is not wired yet (waits for the MCAP reader, sink::read_logs)",
-    ))
+    let contents = crate::sink::read_logs(files)?;
+    for note in contents.notes() {
+        tracing::warn!("{note}");
+    }
+    Ok(contents
+        .jitter
+        .into_iter()
+        .map(|m| LoggedFrame {
+            log_time_ns: i64::try_from(m.log_time_ns).unwrap_or(i64::MAX),
+            record: m.record,
+        })
+        .collect())
 }

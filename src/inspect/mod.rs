@@ -421,6 +421,10 @@ pub fn render_text(report: &Report) -> String {
             .map(|(k, n)| format!("{k} {n}"))
             .collect();
         let _ = writeln!(s, "  references: {}", kinds.join(", "));
+        let _ = writeln!(
+            s,
+            "  rms about the mean, p-p = max − min, σ = median reported 1σ"
+        );
         let chained = c.chained.as_ref();
         let _ = writeln!(
             s,
@@ -428,9 +432,9 @@ pub fn render_text(report: &Report) -> String {
             "",
             "raw rms",
             "raw p-p",
-            "median σ",
+            "raw σ",
             if chained.is_some() {
-                "  chained rms  chained p-p"
+                "  chained rms  chained p-p    chained σ"
             } else {
                 ""
             }
@@ -457,7 +461,13 @@ pub fn render_text(report: &Report) -> String {
                 num(raw.median_sigma, k)
             );
             if let Some(ch) = ch {
-                let _ = write!(s, "{:>13}{:>13}", num(ch.rms, k), num(ch.peak_to_peak, k));
+                let _ = write!(
+                    s,
+                    "{:>13}{:>13}{:>13}",
+                    num(ch.rms, k),
+                    num(ch.peak_to_peak, k),
+                    num(ch.median_sigma, k)
+                );
             }
             let _ = writeln!(s);
         }
