@@ -474,6 +474,9 @@ pub fn render_text(report: &Report) -> String {
         match &c.periodogram {
             Some(p) => {
                 let fmt = |peaks: &[Peak]| -> String {
+                    if peaks.is_empty() {
+                        return "none (no variation)".to_string();
+                    }
                     peaks
                         .iter()
                         .map(|pk| {

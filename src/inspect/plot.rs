@@ -226,6 +226,22 @@ fn time_ticks(t0_ns: i64, span: f64) -> Vec<f64> {
         .collect()
 }
 
+/// A tick value with as many decimals as the axis range needs, and no "-0".
+fn tick_label(v: f64, range: f64) -> String {
+    // About five ticks: one decimal more than the tick step's leading digit needs.
+    let step = (range.abs() / 5.0).max(1e-12);
+    let decimals = (-step.log10().floor()).clamp(0.0, 8.0) as usize;
+    let s = format!("{v:.decimals$}");
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        s.trim_start_matches('-').to_string()
+    } else {
+        s
+    }
+}
+
 /// 1-2-5 ticks between two periods.
 fn period_ticks(lo: f64, hi: f64) -> Vec<f64> {
     let mut out = Vec::new();
@@ -313,9 +329,11 @@ where
             )
             .map_err(e)?;
         let fmt_x = |x: &f64| hhmmss(t0, *x, with_date);
+        let fmt_y = |y: &f64| tick_label(*y, hi - lo);
         let mut mesh = chart.configure_mesh();
         mesh.y_labels(5)
             .x_label_formatter(&fmt_x)
+            .y_label_formatter(&fmt_y)
             .y_desc(label(p))
             .label_style((FAMILY, 18))
             .axis_desc_style((FAMILY, 20))
