@@ -132,6 +132,7 @@ fn neighbour_sets(i: usize, (lo, hi): (usize, usize)) -> [Vec<usize>; 3] {
 
 /// Leave-one-out predictions of sample `i` of the segment `lo..hi` from each of its
 /// [`neighbour_sets`]: (prediction, Σw²).
+#[cfg(test)]
 fn predictions(
     t: &[f64],
     y: &[f64],
