@@ -35,6 +35,7 @@
 //! real instrument, it does not know the jitter.
 
 use crate::geometry::{Similarity, ARCSEC_PER_RAD};
+use crate::time::format_iso_utc;
 use crate::{Error, Result};
 use ndarray::Array2;
 use rayon::prelude::*;
@@ -708,7 +709,9 @@ pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Ca
     vec![
         card(
             "DATE-OBS",
-            Str(iso_utc(obs_time_ns, false)),
+            Str(format_iso_utc(obs_time_ns)
+                .trim_end_matches('Z')
+                .to_string()),
             "start of exposure, UTC",
         ),
         card("EXPTIME", Float(cfg.exptime_s), "[s] exposure time"),
@@ -755,76 +758,6 @@ pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Ca
         card("SYNSEED", Int(cfg.seed as i64), "synth seed"),
         card("SYNFRAME", Int(frame as i64), "synth frame index"),
     ]
-}
-
-// ---------------------------------------------------------------------------------------------
-// UTC (until `crate::time` offers formatting)
-
-const NS_PER_S: i64 = 1_000_000_000;
-
-/// `YYYY-MM-DDTHH:MM:SS.sss` (with a trailing `Z` when `zulu`), from ns since the Unix epoch.
-pub fn iso_utc(ns: i64, zulu: bool) -> String {
-    let ms_total = ns.div_euclid(1_000_000);
-    let (secs, ms) = (ms_total.div_euclid(1000), ms_total.rem_euclid(1000));
-    let (days, sod) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    let (y, m, d) = civil_from_days(days);
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{ms:03}{}",
-        sod / 3600,
-        sod / 60 % 60,
-        sod % 60,
-        if zulu { "Z" } else { "" }
-    )
-}
-
-/// Parse `YYYY-MM-DDTHH:MM:SS[.fff][Z]` (UTC) to ns since the Unix epoch.
-pub fn parse_iso_utc(s: &str) -> Option<i64> {
-    let s = s.trim().trim_end_matches('Z');
-    let (date, time) = s.split_once(['T', ' '])?;
-    let mut dp = date.split('-');
-    let y: i64 = dp.next()?.parse().ok()?;
-    let mo: i64 = dp.next()?.parse().ok()?;
-    let d: i64 = dp.next()?.parse().ok()?;
-    let mut tp = time.split(':');
-    let h: i64 = tp.next()?.parse().ok()?;
-    let mi: i64 = tp.next()?.parse().ok()?;
-    let sec: f64 = tp.next().unwrap_or("0").parse().ok()?;
-    if dp.next().is_some() || tp.next().is_some() {
-        return None;
-    }
-    if !(1..=12).contains(&mo)
-        || !(1..=31).contains(&d)
-        || !(0..24).contains(&h)
-        || !(0..60).contains(&mi)
-        || !(0.0..61.0).contains(&sec)
-    {
-        return None;
-    }
-    let days = days_from_civil(y, mo, d);
-    let whole = (days * 86_400 + h * 3600 + mi * 60) * NS_PER_S;
-    Some(whole + (sec * 1e9).round() as i64)
-}
-
-fn days_from_civil(y: i64, m: i64, d: i64) -> i64 {
-    // Howard Hinnant's algorithm (proleptic Gregorian).
-    let y = if m <= 2 { y - 1 } else { y };
-    let era = y.div_euclid(400);
-    let yoe = y - era * 400;
-    let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + d - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    era * 146_097 + doe - 719_468
-}
-
-fn civil_from_days(z: i64) -> (i64, i64, i64) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    (yoe + era * 400 + i64::from(m <= 2), m, d)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1051,17 +984,19 @@ mod tests {
     }
 
     #[test]
-    fn iso_round_trip_and_known_epoch() {
-        // 2024-05-01T12:00:00Z = 1714564800 s (date -u -d 2024-05-01T12:00:00Z +%s).
-        let ns = parse_iso_utc("2024-05-01T12:00:00").unwrap();
-        assert_eq!(ns, 1_714_564_800 * NS_PER_S);
+    fn header_has_the_nominal_pointing_and_fits_date() {
+        // 2024-05-01T12:00:12.345Z = 1714564812.345 s (date -u -d 2024-05-01T12:00:12Z +%s).
+        let cfg = SynthConfig::new(1024, 1, 12.0);
+        let cards = header_cards(&cfg, 1, 1_714_564_812_345_000_000);
+        let get = |k: &str| cards.iter().find(|c| c.key == k).map(|c| c.value.clone());
         assert_eq!(
-            iso_utc(ns + 12_345_000_000, true),
-            "2024-05-01T12:00:12.345Z"
+            get("DATE-OBS"),
+            Some(CardValue::Str("2024-05-01T12:00:12.345".into()))
         );
-        assert_eq!(iso_utc(-1_000_000, false), "1969-12-31T23:59:59.999");
-        assert!(parse_iso_utc("2024-13-01T00:00:00").is_none());
-        assert!(parse_iso_utc("yesterday").is_none());
+        // 1024² at 2.4″/px: Sun centre at the array centre, 1-based 512.5; radius 400 px.
+        assert_eq!(get("CDELT1"), Some(CardValue::Float(2.4)));
+        assert_eq!(get("CRPIX1"), Some(CardValue::Float(512.5)));
+        assert_eq!(get("R_SUN"), Some(CardValue::Float(400.0)));
     }
 
     #[test]

@@ -70,7 +70,7 @@ fn record(
                 elapsed_ms: 40.0,
             },
             channel: channel.into(),
-            obs_time: synth::iso_utc(ns, true),
+            obs_time: sunjitter::time::format_iso_utc(ns),
             sequence: seq,
             reference_kind: if seq == 0 {
                 "self".into()

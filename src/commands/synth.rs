@@ -12,6 +12,10 @@
 //! "seconds_per_frame": T}`, where `seconds_per_frame` is the generation plus write time.
 
 use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
+use crate::time::{parse_fits_time, TimeScale};
+
+/// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
+const DEFAULT_START_NS: i64 = 1_714_564_800_000_000_000;
 use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
@@ -97,7 +101,7 @@ pub fn run(args: &Args) -> Result<i32> {
         writeln!(
             truth_csv,
             "{k},{name},{},{:.6},{:.6},{:.6},{:.9}",
-            synth::iso_utc(obs_ns, true),
+            crate::time::format_iso_utc(obs_ns),
             motion.dx,
             motion.dy,
             motion.rotation_arcsec(),
@@ -145,7 +149,7 @@ pub fn run(args: &Args) -> Result<i32> {
 
 fn start_time(args: &Args) -> Result<i64> {
     match &args.start {
-        Some(s) => synth::parse_iso_utc(s).ok_or_else(|| {
+        Some(s) => parse_fits_time(s, TimeScale::Utc).map_err(|_| {
             Error::Usage(format!(
                 "--start '{s}' is not a UTC time like 2024-05-01T12:00:00"
             ))
@@ -156,7 +160,7 @@ fn start_time(args: &Args) -> Result<i64> {
                 .unwrap_or_default();
             Ok(now.as_secs() as i64 * 1_000_000_000)
         }
-        None => Ok(synth::parse_iso_utc("2024-05-01T12:00:00").unwrap_or(0)),
+        None => Ok(DEFAULT_START_NS),
     }
 }
 

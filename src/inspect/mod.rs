@@ -363,8 +363,8 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
         degraded: count(Status::Degraded),
         failed: count(Status::Failed),
         reference_kinds,
-        start: crate::synth::iso_utc(t0, true),
-        end: crate::synth::iso_utc(t1, true),
+        start: crate::time::format_iso_utc(t0),
+        end: crate::time::format_iso_utc(t1),
         span_s: (t1 - t0) as f64 * 1e-9,
         median_cadence_s: stats::median(&mut gaps),
         raw,
@@ -575,7 +575,7 @@ pub(crate) mod testdata {
                     elapsed_ms: 12.5,
                 },
                 channel: channel.into(),
-                obs_time: crate::synth::iso_utc(ns, true),
+                obs_time: crate::time::format_iso_utc(ns),
                 sequence: seq,
                 reference_kind: if seq == 0 {
                     "self".into()

@@ -142,7 +142,7 @@ fn runs(s: &[Sample], failed: &[f64], cadence: f64) -> Vec<std::ops::Range<usize
 }
 
 fn hhmmss(t0_ns: i64, x: f64, with_date: bool) -> String {
-    let iso = crate::synth::iso_utc(t0_ns + (x * 1e9).round() as i64, false);
+    let iso = crate::time::format_iso_utc(t0_ns + (x * 1e9).round() as i64);
     // YYYY-MM-DDTHH:MM:SS.sss
     if with_date {
         format!("{} {}", &iso[5..10], &iso[11..16])
@@ -305,14 +305,14 @@ where
     let title = format!(
         "sunjitter inspect: {} from {} UTC, {:.0} s",
         series_names.join(", "),
-        &crate::synth::iso_utc(t0, false)[..19].replace('T', " "),
+        &crate::time::format_iso_utc(t0)[..19].replace('T', " "),
         span
     );
     let body = root.titled(&title, (FAMILY, 30)).map_err(e)?;
     let (series_area, spectrum_area) = body.split_vertically(HEIGHT as i32 * 66 / 100);
     let panels = series_area.split_evenly((4, 1));
     let x_pad = span * 0.01;
-    let date = crate::synth::iso_utc(t0, false)[..10].to_string();
+    let date = crate::time::format_iso_utc(t0)[..10].to_string();
     for (k, (panel, p)) in panels.iter().zip(PARAMS).enumerate() {
         let per_channel: Vec<(Vec<Sample>, Vec<f64>)> =
             analyses.iter().map(|a| samples(a, p, t0)).collect();
