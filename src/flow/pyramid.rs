@@ -149,6 +149,7 @@ fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
 /// Fill `out` (domain-sized, row-major) with level pixels of `img` (`src_h × src_w`, already
 /// normalised).
 /// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn build_level(
     img: &[f32],
     src_h: usize,

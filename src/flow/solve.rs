@@ -182,7 +182,7 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
             ];
             // NaN anywhere (missing data, outside) means zero weight.
             let sum = m[0] + m[1] + m[2] + m[3] + m[4];
-            let keep = sum == sum;
+            let keep = !sum.is_nan();
             for c in 0..5 {
                 mo[c][i] = if keep { m[c] } else { 0.0 };
             }
