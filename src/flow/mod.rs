@@ -433,6 +433,24 @@ impl Farneback {
         roi: Option<Roi>,
         init: Option<&Flow>,
     ) -> Result<Flow> {
+        let mut out = Flow {
+            u: Array2::zeros((0, 0)),
+            v: Array2::zeros((0, 0)),
+        };
+        self.compute_into(prev, next, roi, init, &mut out)?;
+        Ok(out)
+    }
+
+    /// [`Farneback::compute`] writing into `out`, whose arrays are reused when they already
+    /// have the images' shape (no page-faulting fresh 2×4·H·W bytes per frame).
+    pub fn compute_into(
+        &mut self,
+        prev: ArrayView2<f32>,
+        next: ArrayView2<f32>,
+        roi: Option<Roi>,
+        init: Option<&Flow>,
+        out: &mut Flow,
+    ) -> Result<()> {
         let (h, w) = prev.dim();
         if next.dim() != (h, w) {
             return Err(Error::Usage(format!(
@@ -476,14 +494,20 @@ impl Farneback {
                 }
             }
         };
-        let mut out_u = Array2::from_elem((h, w), f32::NAN);
-        let mut out_v = Array2::from_elem((h, w), f32::NAN);
+        for a in [&mut out.u, &mut out.v] {
+            if a.dim() == (h, w) {
+                a.fill(f32::NAN);
+            } else {
+                *a = Array2::from_elem((h, w), f32::NAN);
+            }
+        }
+        let (out_u, out_v) = (&mut out.u, &mut out.v);
 
         let geoms = self.geometry(h, w, roi_rect);
         // Normalisation: statistics of prev over the finest domain (offset and unit free).
         let Some((mean, sd)) = finite_stats(prev, geoms[0].dom) else {
             // Constant or empty image: nothing to measure.
-            return Ok(Flow { u: out_u, v: out_v });
+            return Ok(());
         };
         let (offset, gain) = (mean as f32, (1.0 / sd) as f32);
         normalise(prev, offset, gain, &mut self.norm0);
@@ -637,8 +661,8 @@ impl Farneback {
         if finest > 0 {
             self.upsample_finish(&geoms, finest);
         } else if self.options.uses_grid() {
-            self.densify(d0, roi_rect, prev, &mut out_u, &mut out_v);
-            return Ok(Flow { u: out_u, v: out_v });
+            self.densify(d0, roi_rect, prev, out_u, out_v);
+            return Ok(());
         }
         for y in roi_rect.y0..roi_rect.y1 {
             for x in roi_rect.x0..roi_rect.x1 {
@@ -650,7 +674,7 @@ impl Farneback {
                 out_v[[y, x]] = self.prev_v[i];
             }
         }
-        Ok(Flow { u: out_u, v: out_v })
+        Ok(())
     }
 }
 
