@@ -105,8 +105,8 @@ pub struct FlowOptions {
     pub model: WindowModel,
     /// Solve the window system every `grid_stride` pixels (per level) and interpolate the flow
     /// bilinearly in between; the normal equations still use every pixel. 1 = every pixel.
-    /// Any value other than 1, or the affine model, uses the grid solver (windows truncated at
-    /// the domain's edges instead of OpenCV's replicated border).
+    /// Any value other than 1, or the affine model, uses the grid solver (box window only;
+    /// windows truncated at the domain's edges instead of OpenCV's replicated border).
     pub grid_stride: usize,
     /// Iterations on the finest level (`None`: `FarnebackParams::iterations`). The finest
     /// level starts from the upsampled coarse flow and needs few Gauss–Newton steps.
@@ -360,6 +360,12 @@ impl Farneback {
                 "flow: grid_stride and iteration counts must be ≥ 1".into(),
             ));
         }
+        if options.uses_grid() && self.params.gaussian_window {
+            return Err(Error::Usage(
+                "flow: the grid/affine solver has the box window only (set gaussian_window false)"
+                    .into(),
+            ));
+        }
         self.options = options;
         Ok(self)
     }
@@ -573,7 +579,7 @@ impl Farneback {
             }
             prev_geom = Some(*g);
 
-            let t = solve::typical_trace(&self.r0, dh * dw);
+            let t = solve::typical_trace(&self.r0, dw);
             if !(t > 0.0 && t.is_finite()) {
                 // No usable texture at this level: keep the flow as it is.
                 std::mem::swap(&mut self.prev_u, &mut self.u[0]);
