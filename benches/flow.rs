@@ -104,7 +104,104 @@ fn run(
     group.finish();
 }
 
+/// Least-squares affine fit of the flow over pixels ≥ `margin` from the edge, compared with
+/// the injected warp: (scale gain, rotation gain, centre translation error x, y, RMS error).
+fn accuracy(f: &Flow, a: [[f64; 2]; 2], t: [f64; 2], margin: usize) -> [f64; 5] {
+    let n = f.u.dim().0;
+    let c = (n as f64 - 1.0) / 2.0;
+    let (mut ata, mut atu, mut atv) = ([[0f64; 3]; 3], [0f64; 3], [0f64; 3]);
+    let (mut se, mut cnt) = (0.0, 0.0);
+    for y in margin..n - margin {
+        for x in margin..n - margin {
+            let (u, v) = (f.u[[y, x]] as f64, f.v[[y, x]] as f64);
+            if !(u.is_finite() && v.is_finite()) {
+                continue;
+            }
+            let r = [1.0, x as f64 - c, y as f64 - c];
+            for i in 0..3 {
+                for j in 0..3 {
+                    ata[i][j] += r[i] * r[j];
+                }
+                atu[i] += r[i] * u;
+                atv[i] += r[i] * v;
+            }
+            let tu = a[0][0] * r[1] + a[0][1] * r[2] + t[0] + c - x as f64;
+            let tv = a[1][0] * r[1] + a[1][1] * r[2] + t[1] + c - y as f64;
+            se += (u - tu).powi(2) + (v - tv).powi(2);
+            cnt += 1.0;
+        }
+    }
+    let m = nalgebra::Matrix3::from_fn(|i, j| ata[i][j]);
+    let inv = m.try_inverse().unwrap_or_else(nalgebra::Matrix3::zeros);
+    let ku = inv * nalgebra::Vector3::from(atu);
+    let kv = inv * nalgebra::Vector3::from(atv);
+    let (sc_t, rot_t) = ((a[0][0] + a[1][1]) / 2.0 - 1.0, (a[0][1] - a[1][0]) / 2.0);
+    // A gain of a second-order term (scale of a pure rotation) means nothing.
+    let gain = |m: f64, t: f64| if t.abs() > 1e-4 { m / t } else { f64::NAN };
+    [
+        gain((ku[1] + kv[2]) / 2.0, sc_t),
+        gain((ku[2] - kv[1]) / 2.0, rot_t),
+        ku[0] - t[0],
+        kv[0] - t[1],
+        (se / cnt).sqrt(),
+    ]
+}
+
+/// With SUNJITTER_FLOW_EVAL=DIR (warps from `tools/make_flow_fixtures.py --eval DIR`), print
+/// how well each setting recovers known warps of the real TRACE image, before timing.
+fn accuracy_table() {
+    let Ok(dir) = std::env::var("SUNJITTER_FLOW_EVAL") else {
+        return;
+    };
+    let read = |name: &str| -> Array2<f32> {
+        let b = std::fs::read(format!("{dir}/{name}")).expect("evaluation file");
+        let v: Vec<f32> = b
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        let n = (v.len() as f64).sqrt() as usize;
+        Array2::from_shape_vec((n, n), v).expect("square")
+    };
+    let prev = read("prev.f32");
+    println!("accuracy (fit over pixels ≥ winsize from the edge; gain = measured/injected):");
+    for case in ["small", "large", "scale", "rotation"] {
+        let meta: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(format!("{dir}/{case}.json")).expect("json"),
+        )
+        .expect("json");
+        let m = |i: usize, j: usize| meta["matrix_xy"][i][j].as_f64().unwrap_or(f64::NAN);
+        let a = [[m(0, 0), m(0, 1)], [m(1, 0), m(1, 1)]];
+        let t = [
+            meta["shift_xy"][0].as_f64().unwrap_or(0.0),
+            meta["shift_xy"][1].as_f64().unwrap_or(0.0),
+        ];
+        let next = read(&format!("{case}_next.f32"));
+        for winsize in [101usize, 127] {
+            let params = FarnebackParams {
+                winsize,
+                ..Default::default()
+            };
+            for (label, opts) in [
+                ("opencv_semantics", FlowOptions::default()),
+                ("affine_grid", FlowOptions::affine_grid(winsize)),
+            ] {
+                let f = Farneback::new(params.clone())
+                    .and_then(|s| s.with_options(opts))
+                    .and_then(|mut s| s.compute(prev.view(), next.view(), None, None))
+                    .expect("flow");
+                let r = accuracy(&f, a, t, winsize);
+                println!(
+                    "  {case:8} winsize {winsize:3} {label:16}: gain scale {:.4} rotation {:.4}, \
+                     translation error ({:+.4}, {:+.4}) px, RMS flow error {:.4} px",
+                    r[0], r[1], r[2], r[3], r[4]
+                );
+            }
+        }
+    }
+}
+
 fn bench(c: &mut Criterion) {
+    accuracy_table();
     let src = trace();
     let fast = FlowOptions::affine_grid(FarnebackParams::default().winsize);
     for n in [1024usize, 2048, 4096] {

@@ -31,10 +31,13 @@
 //!   window on solar images (the "gain" of the paper's method).
 //! - [`FlowOptions::affine_grid`]: the window fits an affine motion (unbiased for any affine
 //!   field whatever the texture layout), solved on a grid of stride `winsize/8` and
-//!   interpolated, with 3 coarse / 2 finest iterations. On TRACE 1024² (rotation 0.3°, scale
-//!   0.998, shift (4.3, −3.7) px, winsize 127) the rotation/scale gains are 0.9997/0.9991 and
-//!   the RMS flow error 0.006 px (OpenCV's algorithm: 0.966/0.968 and 0.15 px), at a fraction
-//!   of the cost. This is the one the engine should use.
+//!   interpolated, with 3 coarse / 2 finest iterations. On four spline warps of the TRACE
+//!   1024² image (`SUNJITTER_FLOW_EVAL=DIR cargo bench --bench flow`, warps from
+//!   `tools/make_flow_fixtures.py --eval DIR`), winsize 101/127: rotation gains 0.9997–1.0002
+//!   and scale gains 0.9984–0.9998 (OpenCV's algorithm: 0.966–0.986 and 0.962–0.984), RMS flow
+//!   error 0.004–0.010 px (OpenCV's: 0.06–0.30 px), translation at the centre within 0.0007 px,
+//!   at a third of the cost or less. This is the one the engine should use; a second pass
+//!   (resample, measure the residual) removes the remaining ≤ 0.16 % gain.
 //!
 //! Hot loops are compiled twice (baseline and AVX2+FMA, chosen at run time; see `simd`),
 //! work is split into row strips for rayon, and a [`Farneback`] keeps its buffers between
