@@ -200,8 +200,75 @@ fn accuracy_table() {
     }
 }
 
+/// CPU seconds (user + system, all threads) this process has used, from /proc/self/stat.
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // Fields after the parenthesised command name; utime and stime are the 12th and 13th.
+    let rest = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<f64> = rest
+        .split_whitespace()
+        .map(|x| x.parse().unwrap_or(0.0))
+        .collect();
+    if f.len() < 13 {
+        return f64::NAN;
+    }
+    // Clock ticks are 100 Hz on Linux.
+    (f[11] + f[12]) / 100.0
+}
+
+/// With SUNJITTER_FLOW_CPU set, print wall and CPU time per call for each case (median of 3):
+/// on a shared machine the CPU time is the load-independent figure.
+fn cpu_table() {
+    if std::env::var_os("SUNJITTER_FLOW_CPU").is_none() {
+        return;
+    }
+    let src = trace();
+    let fast = FlowOptions::affine_grid(FarnebackParams::default().winsize);
+    println!("wall / CPU seconds per call (median of 3):");
+    for n in [1024usize, 2048, 4096] {
+        let pair = make_pair(&src, n);
+        let mut cases = vec![
+            ("affine_grid", fast.clone(), None),
+            ("affine_grid_disk_roi", fast.clone(), Some(disk_roi(n))),
+        ];
+        if n <= 2048 {
+            cases.insert(0, ("opencv_semantics", FlowOptions::default(), None));
+        }
+        for (label, opts, roi) in cases {
+            for threads in [1usize, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .expect("thread pool");
+                let mut solver = Farneback::new(FarnebackParams::default())
+                    .and_then(|f| f.with_options(opts.clone()))
+                    .expect("params");
+                let mut out = Flow {
+                    u: Array2::zeros((0, 0)),
+                    v: Array2::zeros((0, 0)),
+                };
+                let mut runs: Vec<(f64, f64)> = (0..3)
+                    .map(|_| {
+                        let (t0, c0) = (std::time::Instant::now(), cpu_seconds());
+                        pool.install(|| {
+                            solver
+                                .compute_into(pair.0.view(), pair.1.view(), roi, None, &mut out)
+                                .expect("flow")
+                        });
+                        (t0.elapsed().as_secs_f64(), cpu_seconds() - c0)
+                    })
+                    .collect();
+                runs.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let (wall, cpu) = runs[1];
+                println!("  {label:22} {n}² {threads} thread(s): wall {wall:.3} s, CPU {cpu:.2} s");
+            }
+        }
+    }
+}
+
 fn bench(c: &mut Criterion) {
     accuracy_table();
+    cpu_table();
     let src = trace();
     let fast = FlowOptions::affine_grid(FarnebackParams::default().winsize);
     for n in [1024usize, 2048, 4096] {
