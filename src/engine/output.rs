@@ -97,7 +97,7 @@ fn aligned_header_cards(
 ) -> Vec<(String, HeaderValue)> {
     let mut cards: Vec<(String, HeaderValue)> = frame_cards
         .iter()
-        .filter(|(k, _)| !is_grid_key(k) && !is_data_statistic(k))
+        .filter(|(k, _)| !is_grid_key(k) && !is_data_statistic(k) && !is_container_key(k))
         .cloned()
         .collect();
     for (key, value) in reference_cards.iter().filter(|(k, _)| is_grid_key(k)) {
@@ -171,6 +171,26 @@ fn is_grid_key(key: &str) -> bool {
         .strip_prefix("PC00")
         .is_some_and(|r| r.len() == 4 && axis12(&r[..1]) && &r[1..3] == "00" && axis12(&r[3..]));
     matrix || old_pc
+}
+
+/// Cards of the HDU that held the frame rather than of the image: extension and binary-table
+/// structure, and the tile compression of `ZIMAGE` files (whose header is a table's). The
+/// output is a plain primary image.
+fn is_container_key(key: &str) -> bool {
+    const EXACT: [&str; 24] = [
+        "EXTNAME", "EXTVER", "EXTLEVEL", "INHERIT", "TFIELDS", "THEAP", "ZIMAGE", "ZSIMPLE",
+        "ZBITPIX", "ZNAXIS", "ZCMPTYPE", "ZMASKCMP", "ZQUANTIZ", "ZDITHER0", "ZBLANK", "ZSCALE",
+        "ZZERO", "ZHECKSUM", "ZDATASUM", "ZEXTEND", "ZPCOUNT", "ZGCOUNT", "ZTENSION", "ZBLOCKED",
+    ];
+    const NUMBERED: [&str; 13] = [
+        "TTYPE", "TFORM", "TUNIT", "TDIM", "TZERO", "TSCAL", "TNULL", "TDISP", "TBCOL", "ZNAXIS",
+        "ZTILE", "ZNAME", "ZVAL",
+    ];
+    EXACT.contains(&key)
+        || NUMBERED.iter().any(|p| {
+            key.strip_prefix(p)
+                .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+        })
 }
 
 /// Statistics of the original pixel values (and checksums) that resampling makes false.
@@ -437,6 +457,16 @@ mod tests {
             "DSUN_OBS", "CDELT12", "PCOUNT", "CROTAX", "TELESCOP",
         ] {
             assert!(!is_grid_key(k), "{k}");
+        }
+        // Tile-compressed AIA/HMI files: the header is a binary table's.
+        for k in [
+            "ZIMAGE", "ZNAXIS1", "ZTILE2", "ZCMPTYPE", "TFORM1", "TTYPE1", "EXTNAME",
+        ] {
+            assert!(is_container_key(k), "{k}");
+        }
+        // IRIS slit-jaw per-window keys are not table structure.
+        for k in ["TDESC1", "TWAVE1", "TDET1", "TDMEAN1", "TSR1", "ZNAXIS_X"] {
+            assert!(!is_container_key(k), "{k}");
         }
         assert!(is_data_statistic("DATAP99") && is_data_statistic("CHECKSUM"));
         assert!(!is_data_statistic("DATAP1") && !is_data_statistic("DATE"));
