@@ -1,1 +1,1303 @@
-//! (not yet implemented)
+//! The one pipeline both front ends feed: frame → channel → reference policy → engine → sink.
+//!
+//! ```text
+//! front end (watch: watcher + readers; replay: file list)
+//!   └─ bounded queue of Input ──> scheduler task: per-channel reorder buffers, partner choice
+//!        └─ blocking jobs (≤ workers, ≤ 1 per channel): read image, policy step, engine
+//!             └─ bounded queue of records ──> ONE writer thread: RecordSink (MCAP)
+//! ```
+//!
+//! Determinism: per channel, frames are processed one at a time in (observation time, key)
+//! order; a frame's messages depend only on its channel's earlier frames (and for
+//! `channel:NAME` on the partner frame, chosen once the partner has been processed past the
+//! frame's time). So `replay` of a set of frames writes what the daemon wrote for them,
+//! apart from `publish_time` and the engine's own `elapsed_ms`.
+
+use crate::config::Config;
+use crate::engine::{AlignOutcome, EngineConfig, Image};
+use crate::fits::FrameSpec;
+use crate::meta::FrameMeta;
+use crate::record::{FrameAlignment, Status};
+use crate::reference::{
+    frame_key, ChannelState, LoadedFrame, PartnerFrame, PolicySpec, ReferenceChange,
+    RestoredChannel, StepContext,
+};
+use crate::{Error, Result};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinSet;
+
+#[doc(hidden)]
+pub mod fake;
+
+// ---------------------------------------------------------------------------------------------
+// Records
+
+/// `foxglove.Log` levels used on `/log`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum LogLevel {
+    Info,
+    Warning,
+    Error,
+}
+
+impl LogLevel {
+    /// The `foxglove.Log` level number.
+    pub fn foxglove(self) -> u8 {
+        match self {
+            LogLevel::Info => 2,
+            LogLevel::Warning => 3,
+            LogLevel::Error => 4,
+        }
+    }
+
+    pub fn from_foxglove(level: u8) -> LogLevel {
+        match level {
+            0..=2 => LogLevel::Info,
+            3 => LogLevel::Warning,
+            _ => LogLevel::Error,
+        }
+    }
+}
+
+/// One message for the sink. `log_time_ns` is the frame's observation time where there is a
+/// frame, else the file's modification time (so replay and watch agree).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Record {
+    /// `/jitter/<channel>`.
+    Frame {
+        message: FrameAlignment,
+        log_time_ns: i64,
+    },
+    /// `/reference/<channel>`.
+    Reference {
+        change: ReferenceChange,
+        log_time_ns: i64,
+    },
+    /// `/log`. `file` is a frame key (`PATH` or `PATH[N]`). In a log read back, an entry at
+    /// `Warning` or above marks that frame (or file) finished: notes are only ever written
+    /// after the frame's own message, so the rule holds for them too.
+    Log {
+        level: LogLevel,
+        file: String,
+        message: String,
+        log_time_ns: i64,
+        /// This entry stands for the input (no message comes for it); `false` for notes.
+        finishes: bool,
+    },
+}
+
+impl Record {
+    /// A `/log` entry that finishes its input (at `Warning` or `Error`).
+    pub fn log(level: LogLevel, file: &str, message: impl Into<String>, log_time_ns: i64) -> Record {
+        Record::Log {
+            level,
+            file: file.to_string(),
+            message: message.into(),
+            log_time_ns,
+            finishes: level >= LogLevel::Warning,
+        }
+    }
+
+    /// A `/log` warning about a frame that has (or had) its own message.
+    pub fn note(file: &str, message: impl Into<String>, log_time_ns: i64) -> Record {
+        Record::Log {
+            level: LogLevel::Warning,
+            file: file.to_string(),
+            message: message.into(),
+            log_time_ns,
+            finishes: false,
+        }
+    }
+
+    pub fn log_time_ns(&self) -> i64 {
+        match self {
+            Record::Frame { log_time_ns, .. }
+            | Record::Reference { log_time_ns, .. }
+            | Record::Log { log_time_ns, .. } => *log_time_ns,
+        }
+    }
+
+    /// The MCAP topic this record goes to.
+    pub fn topic(&self) -> String {
+        match self {
+            Record::Frame { message, .. } => format!("/jitter/{}", message.channel),
+            Record::Reference { change, .. } => format!("/reference/{}", change.channel),
+            Record::Log { .. } => "/log".into(),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The outside world, as small traits (the real ones wrap `fits`, `engine` and `sink`).
+
+/// Reads frames: `fits::read_meta` / `fits::read_frame` in production, fakes in tests.
+pub trait FrameReader: Send + Sync {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>>;
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image>;
+}
+
+/// Aligns one image to another: `engine::align_images` in production.
+pub trait Aligner: Send + Sync {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+}
+
+/// Where records go: the MCAP sink in production. Called from the one writer thread.
+pub trait RecordSink: Send {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()>;
+    fn flush(&mut self) -> Result<()>;
+    /// Close cleanly (MCAP: summary and index).
+    fn finish(self: Box<Self>) -> Result<()>;
+}
+
+/// The FITS reader.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FitsReader;
+
+impl FrameReader for FitsReader {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        crate::fits::read_meta(path)
+    }
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+        crate::fits::read_frame(spec)
+    }
+}
+
+/// The alignment engine.
+#[derive(Debug, Clone, Default)]
+pub struct EngineAligner(pub EngineConfig);
+
+impl Aligner for EngineAligner {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        crate::engine::align_images(reference, frame, &self.0)
+    }
+}
+
+/// A sink that keeps records in memory (tests, dry runs). Clones share the same log.
+#[derive(Debug, Clone, Default)]
+pub struct MemorySink {
+    pub log: Arc<Mutex<MemoryLog>>,
+}
+
+#[derive(Debug, Default)]
+pub struct MemoryLog {
+    /// Records with their publish times, in write order.
+    pub records: Vec<(Record, i64)>,
+    pub flushes: usize,
+    pub finished: bool,
+}
+
+impl RecordSink for MemorySink {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
+        let mut log = self.log.lock().map_err(|_| Error::output("memory", "poisoned"))?;
+        log.records.push((record.clone(), publish_time_ns));
+        Ok(())
+    }
+    fn flush(&mut self) -> Result<()> {
+        if let Ok(mut log) = self.log.lock() {
+            log.flushes += 1;
+        }
+        Ok(())
+    }
+    fn finish(self: Box<Self>) -> Result<()> {
+        if let Ok(mut log) = self.log.lock() {
+            log.finished = true;
+        }
+        Ok(())
+    }
+}
+
+impl MemorySink {
+    pub fn records(&self) -> Vec<Record> {
+        self.log
+            .lock()
+            .map(|l| l.records.iter().map(|(r, _)| r.clone()).collect())
+            .unwrap_or_default()
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// What an existing log says (restart)
+
+/// What earlier runs logged in the output: which frames are finished, and each channel's
+/// state to continue from. Built from the sink's reader with [`History::add`].
+#[derive(Debug, Clone, Default)]
+pub struct History {
+    /// Frame keys (and file keys) already logged as a measurement or a terminal `/log` entry.
+    pub done: HashSet<String>,
+    pub channels: BTreeMap<String, RestoredChannel>,
+}
+
+/// Frame messages kept per channel for restoring its state.
+const RESTORE_TAIL: usize = 256;
+
+impl History {
+    pub fn add(&mut self, record: &Record) {
+        match record {
+            Record::Frame {
+                message,
+                log_time_ns,
+            } => {
+                self.done.insert(message.align.frame.clone());
+                let ch = self.channels.entry(message.channel.clone()).or_default();
+                ch.next_sequence = ch.next_sequence.max(message.sequence + 1);
+                ch.last_obs_time_ns = ch.last_obs_time_ns.max(Some(*log_time_ns));
+                let at = ch
+                    .recent
+                    .partition_point(|(m, _)| m.sequence < message.sequence);
+                if ch.recent.get(at).is_none_or(|(m, _)| m.sequence != message.sequence) {
+                    ch.recent.insert(at, (message.clone(), *log_time_ns));
+                }
+                if ch.recent.len() > RESTORE_TAIL {
+                    let excess = ch.recent.len() - RESTORE_TAIL;
+                    ch.recent.drain(..excess);
+                }
+            }
+            Record::Reference {
+                change,
+                log_time_ns,
+            } => {
+                let ch = self.channels.entry(change.channel.clone()).or_default();
+                let newer = ch
+                    .last_reference
+                    .as_ref()
+                    .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
+                if newer {
+                    ch.last_reference = Some((change.clone(), *log_time_ns));
+                }
+            }
+            Record::Log { level, file, .. } => {
+                if *level >= LogLevel::Warning && !file.is_empty() {
+                    self.done.insert(file.clone());
+                }
+            }
+        }
+    }
+
+    pub fn is_done(&self, key: &str) -> bool {
+        self.done.contains(key)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Progress (observable by tests, the progress bar and, later, the health file)
+
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Progress {
+    /// `/jitter` messages written.
+    pub frames: u64,
+    /// Frames (or files) finished with a terminal `/log` entry instead of a message.
+    pub skipped: u64,
+    /// `/log` entries about frames that also have a message (degraded, failed, late).
+    pub notes: u64,
+    pub references: u64,
+    pub per_channel: BTreeMap<String, u64>,
+    /// Inputs (frames or files) finished so far: `frames + skipped`.
+    pub finished: u64,
+    pub write_errors: u64,
+    pub last_error: Option<String>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Frames entering the pipeline
+
+/// A frame found by a front end, not yet processed.
+#[derive(Debug, Clone)]
+pub struct FrameItem {
+    pub key: String,
+    pub spec: FrameSpec,
+    pub channel: String,
+    pub obs_time_ns: i64,
+    /// When it entered the pipeline (wall clock; reorder window and partner hold).
+    pub arrived: Instant,
+}
+
+/// What the front ends send to the scheduler.
+#[derive(Debug)]
+pub enum Input {
+    Frame(FrameItem),
+    /// A finished input that produced no frame (unreadable file …): written as is.
+    Record(Record),
+}
+
+/// What looking at one file gave.
+#[derive(Debug)]
+pub enum FileOutcome {
+    /// Frames to process (already-logged ones left out) and terminal records for frames
+    /// that cannot be processed (no observation time).
+    Frames(Vec<FrameItem>, Vec<Record>),
+    /// Not (yet) a complete FITS file; the reason is what `/log` will say if it stays so.
+    NotReady(String),
+    /// Never to be taken; the record says why (`None`: silently irrelevant, e.g. a directory).
+    Skip(Option<Record>),
+}
+
+/// Identity of a file's content for de-duplication: (size, mtime).
+pub type FileStamp = (u64, Option<SystemTime>);
+
+pub fn file_stamp(meta: &std::fs::Metadata) -> FileStamp {
+    (meta.len(), meta.modified().ok())
+}
+
+fn system_time_ns(t: Option<SystemTime>) -> i64 {
+    let t = t.unwrap_or_else(SystemTime::now);
+    match t.duration_since(SystemTime::UNIX_EPOCH) {
+        Ok(d) => i64::try_from(d.as_nanos()).unwrap_or(i64::MAX),
+        Err(e) => -i64::try_from(e.duration().as_nanos()).unwrap_or(i64::MAX),
+    }
+}
+
+pub fn now_ns() -> i64 {
+    system_time_ns(Some(SystemTime::now()))
+}
+
+/// Look at one file: complete FITS? which frames, which channel, which time?
+/// `path` must already be in canonical form ([`crate::config::canonical_file_path`]).
+pub fn inspect_file(
+    path: &Path,
+    reader: &dyn FrameReader,
+    config: &Config,
+    history: &History,
+    follow_symlinks: bool,
+) -> FileOutcome {
+    let key = frame_key(path, None);
+    let link_meta = match std::fs::symlink_metadata(path) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return FileOutcome::Skip(Some(Record::log(
+                LogLevel::Warning,
+                &key,
+                "vanished before it could be read",
+                now_ns(),
+            )))
+        }
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    };
+    if link_meta.file_type().is_symlink() && !follow_symlinks {
+        return FileOutcome::Skip(Some(Record::log(
+            LogLevel::Warning,
+            &key,
+            "symbolic link not followed (set daemon.follow_symlinks = true to take it)",
+            system_time_ns(link_meta.modified().ok()),
+        )));
+    }
+    let before = match std::fs::metadata(path) {
+        Ok(m) => m,
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    };
+    if before.is_dir() {
+        return FileOutcome::Skip(None);
+    }
+    let mtime_ns = system_time_ns(before.modified().ok());
+    if !before.is_file() {
+        return FileOutcome::Skip(Some(Record::log(
+            LogLevel::Warning,
+            &key,
+            "not a regular file",
+            mtime_ns,
+        )));
+    }
+    if history.is_done(&key) {
+        return FileOutcome::Skip(None);
+    }
+    if let Err(reason) = fits_completeness(path) {
+        return FileOutcome::NotReady(reason);
+    }
+    let metas = match reader.read_meta(path) {
+        Ok(m) if m.is_empty() => return FileOutcome::NotReady("no image in file".into()),
+        Ok(m) => m,
+        Err(e) => return FileOutcome::NotReady(error_reason(&e)),
+    };
+    match std::fs::metadata(path) {
+        Ok(after) if file_stamp(&after) == file_stamp(&before) => {}
+        Ok(_) => return FileOutcome::NotReady("changed while being read".into()),
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    }
+    let arrived = Instant::now();
+    let mut items = Vec::new();
+    let mut records = Vec::new();
+    for meta in metas {
+        let key = frame_key(path, meta.frame);
+        if history.is_done(&key) {
+            continue;
+        }
+        let Some(obs_time_ns) = meta.obs_time_ns else {
+            records.push(Record::log(
+                LogLevel::Error,
+                &key,
+                "no observation time in the header (DATE-OBS, DATE_OBS or T_OBS)",
+                mtime_ns,
+            ));
+            continue;
+        };
+        items.push(FrameItem {
+            key,
+            spec: FrameSpec {
+                path: path.to_path_buf(),
+                frame: meta.frame,
+            },
+            channel: config.channel_name(&meta.channel),
+            obs_time_ns,
+            arrived,
+        });
+    }
+    FileOutcome::Frames(items, records)
+}
+
+/// The one-line reason of an error, without the path prefix (the `/log` entry names the file).
+pub fn error_reason(e: &Error) -> String {
+    match e {
+        Error::BadInput { reason, .. } | Error::Output { reason, .. } => reason.clone(),
+        Error::BadHeader { reason, .. } => format!("header: {reason}"),
+        Error::Io { source, .. } => source.to_string(),
+        other => other.to_string(),
+    }
+}
+
+/// The terminal `/log` record for a file that never became readable.
+pub fn unreadable_record(path: &Path, reason: &str) -> Record {
+    let mtime = std::fs::metadata(path).ok().and_then(|m| m.modified().ok());
+    Record::log(LogLevel::Error, &frame_key(path, None), reason, system_time_ns(mtime))
+}
+
+/// Check that `path` holds complete FITS HDUs: every header has its END card and the file is
+/// as long as the headers say. A file still being written fails here (and is retried);
+/// absurd headers (`NAXIS1 = 2000000000`) fail with the size they claim.
+pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
+    use std::io::{Read, Seek, SeekFrom};
+    const BLOCK: u64 = 2880;
+    const MAX_HEADER_BLOCKS: u64 = 10_000;
+    let mut file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
+    let size = file
+        .metadata()
+        .map_err(|e| format!("cannot stat: {e}"))?
+        .len();
+    if size == 0 {
+        return Err("empty file".into());
+    }
+    let mut magic = [0u8; 2];
+    if file.read_exact(&mut magic).is_ok() && magic == [0x1f, 0x8b] {
+        return Ok(()); // gzip: the reader checks it as it decompresses
+    }
+    let mut offset = 0u64;
+    let mut hdu = 0usize;
+    let mut block = [0u8; BLOCK as usize];
+    loop {
+        // Header
+        let mut cards: HashMap<String, String> = HashMap::new();
+        let mut blocks = 0u64;
+        let mut ended = false;
+        while !ended {
+            if offset + (blocks + 1) * BLOCK > size {
+                return Err(format!(
+                    "incomplete: HDU {hdu} header is cut off at byte {size} (no END card)"
+                ));
+            }
+            if blocks >= MAX_HEADER_BLOCKS {
+                return Err(format!("HDU {hdu} header has no END card in {MAX_HEADER_BLOCKS} blocks"));
+            }
+            file.seek(SeekFrom::Start(offset + blocks * BLOCK))
+                .and_then(|_| file.read_exact(&mut block))
+                .map_err(|e| format!("cannot read: {e}"))?;
+            if blocks == 0 {
+                let first = String::from_utf8_lossy(&block[..9]).to_string();
+                let expected = if hdu == 0 { "SIMPLE  =" } else { "XTENSION=" };
+                if first != expected {
+                    if hdu == 0 {
+                        return Err("not a FITS file (it does not start with SIMPLE)".into());
+                    }
+                    return Ok(()); // trailing bytes after the last HDU
+                }
+            }
+            for card in block.chunks(80) {
+                let card = String::from_utf8_lossy(card);
+                let name = card[..8.min(card.len())].trim_end().to_string();
+                if name == "END" {
+                    ended = true;
+                    break;
+                }
+                if card.len() > 10 && &card[8..10] == "= " {
+                    let value = card[10..].split('/').next().unwrap_or("").trim().to_string();
+                    cards.entry(name).or_insert(value);
+                }
+            }
+            blocks += 1;
+        }
+        let int = |k: &str| -> std::result::Result<i64, String> {
+            cards
+                .get(k)
+                .ok_or_else(|| format!("HDU {hdu} header lacks {k}"))?
+                .parse::<i64>()
+                .map_err(|_| format!("HDU {hdu} header: {k} is not an integer"))
+        };
+        let bitpix = int("BITPIX")?;
+        let naxis = int("NAXIS")?;
+        if !(0..=999).contains(&naxis) || ![8, 16, 32, 64, -32, -64].contains(&bitpix) {
+            return Err(format!("HDU {hdu} header: BITPIX {bitpix} / NAXIS {naxis} invalid"));
+        }
+        let mut pixels: u64 = if naxis == 0 { 0 } else { 1 };
+        for i in 1..=naxis {
+            let n = int(&format!("NAXIS{i}"))?;
+            if n < 0 {
+                return Err(format!("HDU {hdu} header: NAXIS{i} = {n}"));
+            }
+            pixels = pixels
+                .checked_mul(n as u64)
+                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
+        }
+        let pcount = if hdu == 0 { 0 } else { int("PCOUNT").unwrap_or(0).max(0) as u64 };
+        let gcount = if hdu == 0 { 1 } else { int("GCOUNT").unwrap_or(1).max(0) as u64 };
+        let data = if naxis == 0 {
+            0
+        } else {
+            pixels
+                .checked_add(pcount)
+                .and_then(|n| n.checked_mul(gcount))
+                .and_then(|n| n.checked_mul(bitpix.unsigned_abs() / 8))
+                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?
+        };
+        let data_start = offset + blocks * BLOCK;
+        let data_end = data_start
+            .checked_add(data)
+            .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
+        if data_end > size {
+            return Err(format!(
+                "incomplete: HDU {hdu} needs {data_end} bytes, the file has {size}"
+            ));
+        }
+        let padded = data_end.div_ceil(BLOCK) * BLOCK;
+        if padded + BLOCK > size {
+            return Ok(());
+        }
+        offset = padded;
+        hdu += 1;
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Jobs
+
+/// The reader and aligner the jobs use.
+#[derive(Clone)]
+pub struct JobContext {
+    pub reader: Arc<dyn FrameReader>,
+    pub aligner: Arc<dyn Aligner>,
+}
+
+impl StepContext for JobContext {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        self.aligner.align(reference, frame)
+    }
+    fn load(&self, spec: &FrameSpec) -> Result<Image> {
+        self.reader.read_frame(spec)
+    }
+}
+
+/// One frame of one channel to process, with the channel's state moved in.
+#[derive(Debug)]
+pub struct Job {
+    pub channel: String,
+    pub state: ChannelState,
+    pub item: FrameItem,
+    pub partner: Option<PartnerFrame>,
+    /// Emitted after a later frame of its channel (it arrived too late to reorder).
+    pub late: bool,
+}
+
+#[derive(Debug)]
+pub struct JobDone {
+    pub channel: String,
+    pub state: ChannelState,
+    pub records: Vec<Record>,
+    pub partner: Option<PartnerFrame>,
+}
+
+/// Run one job (blocking: reads the image, runs the engine).
+pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
+    let Job {
+        channel,
+        mut state,
+        item,
+        partner,
+        late,
+    } = job;
+    let mut records = Vec::new();
+    let mut partner_out = None;
+    match ctx.reader.read_frame(&item.spec) {
+        Err(e) => records.push(Record::log(
+            LogLevel::Error,
+            &item.key,
+            error_reason(&e),
+            item.obs_time_ns,
+        )),
+        Ok(image) => {
+            let frame = LoadedFrame {
+                key: item.key.clone(),
+                spec: item.spec.clone(),
+                obs_time_ns: item.obs_time_ns,
+                image: Arc::new(image),
+            };
+            let step = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                state.process(&frame, partner.as_ref(), ctx)
+            }));
+            match step {
+                Ok(out) => {
+                    partner_out = out.partner;
+                    let notes: Vec<Record> = out
+                        .records
+                        .iter()
+                        .filter_map(|r| match r {
+                            Record::Frame {
+                                message,
+                                log_time_ns,
+                            } => frame_note(message, *log_time_ns),
+                            _ => None,
+                        })
+                        .collect();
+                    records.extend(out.records);
+                    records.extend(notes);
+                }
+                Err(panic) => {
+                    let what = panic
+                        .downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| panic.downcast_ref::<String>().cloned())
+                        .unwrap_or_else(|| "unknown".into());
+                    tracing::error!(frame = %item.key, "internal error while aligning: {what}");
+                    records.push(Record::log(
+                        LogLevel::Error,
+                        &item.key,
+                        format!("internal error while aligning: {what}"),
+                        item.obs_time_ns,
+                    ));
+                }
+            }
+        }
+    }
+    if late {
+        records.push(Record::note(
+            &item.key,
+            "arrived after later frames of its channel: processed out of time order",
+            item.obs_time_ns,
+        ));
+    }
+    JobDone {
+        channel,
+        state,
+        records,
+        partner: partner_out,
+    }
+}
+
+/// The `/log` note for a degraded or failed frame (after its message, never instead of it).
+fn frame_note(message: &FrameAlignment, log_time_ns: i64) -> Option<Record> {
+    let what = match message.align.status {
+        Status::Ok => return None,
+        Status::Degraded => "degraded",
+        Status::Failed => "failed",
+    };
+    Some(Record::note(
+        &message.align.frame,
+        format!("{what}: {}", message.align.message),
+        log_time_ns,
+    ))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Scheduler: per-channel order, reorder window, partner choice
+
+/// What the scheduler wants done.
+#[derive(Debug)]
+pub enum Action {
+    Run(Box<Job>),
+    Emit(Record),
+}
+
+#[derive(Debug, Default)]
+struct Lane {
+    state: Option<ChannelState>,
+    buffer: BTreeMap<(i64, String), FrameItem>,
+    in_flight: bool,
+    last_dispatched_ns: Option<i64>,
+    /// Processed, usable frames of this channel (candidates for `channel:` followers).
+    history: VecDeque<PartnerFrame>,
+}
+
+enum PartnerChoice {
+    Wait,
+    Unmatched(String),
+    Use(PartnerFrame),
+}
+
+/// Scheduling settings.
+#[derive(Debug, Clone)]
+pub struct SchedulerSettings {
+    /// Daemon (wall-clock reorder window and partner hold) or replay (all input known at EOF).
+    pub live: bool,
+    pub workers: usize,
+    pub reorder_window_frames: usize,
+    pub reorder_window: Duration,
+}
+
+impl SchedulerSettings {
+    pub fn from_config(config: &Config, live: bool) -> SchedulerSettings {
+        SchedulerSettings {
+            live,
+            workers: config.daemon.workers.max(1),
+            reorder_window_frames: config.daemon.reorder_window_frames,
+            reorder_window: Duration::from_secs_f64(config.daemon.reorder_window_s),
+        }
+    }
+}
+
+/// Decides which frame of which channel runs next. Pure state, no I/O, no clock of its own.
+pub struct Scheduler {
+    config: Arc<Config>,
+    settings: SchedulerSettings,
+    restored: BTreeMap<String, RestoredChannel>,
+    lanes: BTreeMap<String, Lane>,
+    running: usize,
+    eof: bool,
+}
+
+/// Partner history kept per channel beyond what waiting followers need.
+const PARTNER_HISTORY_MIN: usize = 4;
+
+impl Scheduler {
+    pub fn new(config: Arc<Config>, settings: SchedulerSettings, history: &History) -> Scheduler {
+        Scheduler {
+            config,
+            settings,
+            restored: history.channels.clone(),
+            lanes: BTreeMap::new(),
+            running: 0,
+            eof: false,
+        }
+    }
+
+    pub fn offer(&mut self, item: FrameItem) {
+        let lane = self.lanes.entry(item.channel.clone()).or_default();
+        lane.buffer.insert((item.obs_time_ns, item.key.clone()), item);
+    }
+
+    /// No more input will come (replay: everything is known; frames are released).
+    pub fn set_eof(&mut self) {
+        self.eof = true;
+    }
+
+    pub fn is_eof(&self) -> bool {
+        self.eof
+    }
+
+    /// Nothing buffered and nothing running.
+    pub fn idle(&self) -> bool {
+        self.running == 0 && self.lanes.values().all(|l| l.buffer.is_empty())
+    }
+
+    pub fn running(&self) -> usize {
+        self.running
+    }
+
+    pub fn buffered(&self) -> usize {
+        self.lanes.values().map(|l| l.buffer.len()).sum()
+    }
+
+    /// Everything that can start now.
+    pub fn poll(&mut self, now: Instant) -> Vec<Action> {
+        let mut actions = Vec::new();
+        loop {
+            let mut progressed = false;
+            let names: Vec<String> = self.lanes.keys().cloned().collect();
+            for name in names {
+                if self.running >= self.settings.workers {
+                    return actions;
+                }
+                if let Some(action) = self.poll_lane(&name, now) {
+                    progressed = true;
+                    actions.push(action);
+                }
+            }
+            if !progressed {
+                return actions;
+            }
+        }
+    }
+
+    fn released(&self, lane: &Lane, now: Instant) -> bool {
+        let Some(((t, _), _)) = lane.buffer.first_key_value() else {
+            return false;
+        };
+        if self.eof {
+            return true;
+        }
+        if !self.settings.live {
+            return false;
+        }
+        lane.last_dispatched_ns.is_some_and(|last| *t < last)
+            || lane.buffer.len() > self.settings.reorder_window_frames
+            || lane
+                .buffer
+                .values()
+                .any(|i| now.saturating_duration_since(i.arrived) >= self.settings.reorder_window)
+    }
+
+    fn poll_lane(&mut self, name: &str, now: Instant) -> Option<Action> {
+        let lane = self.lanes.get(name)?;
+        if lane.in_flight || !self.released(lane, now) {
+            return None;
+        }
+        let (_, head) = lane.buffer.first_key_value()?;
+        let policy = self.config.channel_policy(name);
+        let partner = match &policy.policy {
+            PolicySpec::Channel(partner_name) => {
+                match self.choose_partner(partner_name, head, policy.tolerance_s, policy.hold_s, now)
+                {
+                    PartnerChoice::Wait => return None,
+                    PartnerChoice::Unmatched(why) => {
+                        let lane = self.lanes.get_mut(name)?;
+                        let (_, item) = lane.buffer.pop_first()?;
+                        return Some(Action::Emit(Record::log(
+                            LogLevel::Error,
+                            &item.key,
+                            why,
+                            item.obs_time_ns,
+                        )));
+                    }
+                    PartnerChoice::Use(p) => Some(p),
+                }
+            }
+            _ => None,
+        };
+        let restored = self.restored.remove(name);
+        let lane = self.lanes.get_mut(name)?;
+        let (_, item) = lane.buffer.pop_first()?;
+        let late = lane.last_dispatched_ns.is_some_and(|t| item.obs_time_ns < t);
+        lane.last_dispatched_ns = lane.last_dispatched_ns.max(Some(item.obs_time_ns));
+        let state = lane.state.take().unwrap_or_else(|| match restored {
+            Some(r) => ChannelState::restore(name, policy, &r),
+            None => ChannelState::new(name, policy),
+        });
+        lane.in_flight = true;
+        self.running += 1;
+        Some(Action::Run(Box::new(Job {
+            channel: name.to_string(),
+            state,
+            item,
+            partner,
+            late,
+        })))
+    }
+
+    fn choose_partner(
+        &self,
+        partner: &str,
+        item: &FrameItem,
+        tolerance_s: f64,
+        hold_s: f64,
+        now: Instant,
+    ) -> PartnerChoice {
+        let lane = self.lanes.get(partner);
+        let history = lane.map(|l| &l.history);
+        let t = item.obs_time_ns;
+        let before = history.and_then(|h| h.iter().rev().find(|p| p.obs_time_ns <= t));
+        let after = history.and_then(|h| h.iter().find(|p| p.obs_time_ns >= t));
+        let exhausted = self.eof && lane.is_none_or(|l| l.buffer.is_empty() && !l.in_flight);
+        let expired = self.settings.live
+            && now.saturating_duration_since(item.arrived) >= Duration::from_secs_f64(hold_s);
+        if after.is_none() && !exhausted && !expired {
+            return PartnerChoice::Wait;
+        }
+        let tolerance_ns = (tolerance_s * 1e9) as i64;
+        let mut best: Option<&PartnerFrame> = None;
+        for p in [before, after].into_iter().flatten() {
+            let dt = (p.obs_time_ns - t).abs();
+            if dt <= tolerance_ns && best.is_none_or(|b| dt < (b.obs_time_ns - t).abs()) {
+                best = Some(p);
+            }
+        }
+        match best {
+            Some(p) => PartnerChoice::Use(p.clone()),
+            None => PartnerChoice::Unmatched(format!(
+                "unmatched: no {partner} frame within ±{tolerance_s} s"
+            )),
+        }
+    }
+
+    /// A job finished: take its state back and record the frame for followers.
+    pub fn complete(&mut self, done: JobDone) {
+        self.running = self.running.saturating_sub(1);
+        let lane = self.lanes.entry(done.channel.clone()).or_default();
+        lane.in_flight = false;
+        lane.state = Some(done.state);
+        if let Some(p) = done.partner {
+            let at = lane.history.partition_point(|q| q.obs_time_ns <= p.obs_time_ns);
+            lane.history.insert(at, p);
+        }
+        self.prune_history(&done.channel);
+    }
+
+    /// Drop partner frames no waiting follower can still choose.
+    fn prune_history(&mut self, channel: &str) {
+        let mut oldest_needed: Option<i64> = None;
+        let mut has_followers = false;
+        for (name, lane) in &self.lanes {
+            let p = self.config.channel_policy(name);
+            if p.policy != PolicySpec::Channel(channel.to_string()) {
+                continue;
+            }
+            has_followers = true;
+            let tol = (p.tolerance_s * 1e9) as i64;
+            let pending = lane
+                .buffer
+                .keys()
+                .next()
+                .map(|(t, _)| *t)
+                .or(lane.last_dispatched_ns);
+            if let Some(t) = pending {
+                let need = t.saturating_sub(tol);
+                oldest_needed = Some(oldest_needed.map_or(need, |o| o.min(need)));
+            }
+        }
+        let Some(lane) = self.lanes.get_mut(channel) else {
+            return;
+        };
+        if !has_followers {
+            while lane.history.len() > PARTNER_HISTORY_MIN {
+                lane.history.pop_front();
+            }
+            return;
+        }
+        if let Some(oldest) = oldest_needed {
+            // Keep one frame before `oldest` (it may still be the nearest).
+            while lane.history.len() > PARTNER_HISTORY_MIN
+                && lane.history.get(1).is_some_and(|p| p.obs_time_ns < oldest)
+            {
+                lane.history.pop_front();
+            }
+        }
+    }
+
+    /// When the scheduler next needs a look without new input (daemon only).
+    pub fn next_deadline(&self) -> Option<Instant> {
+        if !self.settings.live || self.eof {
+            return None;
+        }
+        let mut next: Option<Instant> = None;
+        let mut consider = |t: Instant| next = Some(next.map_or(t, |n: Instant| n.min(t)));
+        for (name, lane) in &self.lanes {
+            if lane.in_flight {
+                continue;
+            }
+            if let Some(first) = lane.buffer.values().map(|i| i.arrived).min() {
+                consider(first + self.settings.reorder_window);
+            }
+            let policy = self.config.channel_policy(name);
+            if matches!(policy.policy, PolicySpec::Channel(_)) {
+                if let Some((_, head)) = lane.buffer.first_key_value() {
+                    consider(head.arrived + Duration::from_secs_f64(policy.hold_s));
+                }
+            }
+        }
+        next
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The writer thread
+
+#[derive(Debug)]
+pub enum WriterMsg {
+    Record(Record),
+    Flush,
+}
+
+/// Start the one thread that owns the sink. It writes records in the order received,
+/// flushes on request, retries failed writes (the pipeline waits meanwhile: nothing is lost)
+/// and finishes the sink when the channel closes.
+pub fn spawn_writer(
+    mut sink: Box<dyn RecordSink>,
+    mut rx: mpsc::Receiver<WriterMsg>,
+    progress: watch::Sender<Progress>,
+    stopping: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<Result<()>> {
+    std::thread::Builder::new()
+        .name("sunjitter-writer".into())
+        .spawn(move || {
+            while let Some(msg) = rx.blocking_recv() {
+                match msg {
+                    WriterMsg::Flush => {
+                        if let Err(e) = sink.flush() {
+                            tracing::error!("flushing the log failed: {e}");
+                            progress.send_modify(|p| {
+                                p.write_errors += 1;
+                                p.last_error = Some(e.to_string());
+                            });
+                        }
+                    }
+                    WriterMsg::Record(record) => {
+                        write_with_retry(sink.as_mut(), &record, &progress, &stopping)?;
+                        progress.send_modify(|p| count(p, &record));
+                    }
+                }
+            }
+            sink.flush()?;
+            sink.finish()
+        })
+        .unwrap_or_else(|e| {
+            // Thread creation failure: report it through the join handle.
+            let reason = e.to_string();
+            std::thread::spawn(move || Err(Error::output("writer thread", reason)))
+        })
+}
+
+fn write_with_retry(
+    sink: &mut dyn RecordSink,
+    record: &Record,
+    progress: &watch::Sender<Progress>,
+    stopping: &AtomicBool,
+) -> Result<()> {
+    let mut delay = Duration::from_millis(100);
+    let mut attempts_while_stopping = 0;
+    loop {
+        match sink.write(record, now_ns()) {
+            Ok(()) => return Ok(()),
+            Err(e) => {
+                tracing::error!("writing the log failed (will retry; input waits): {e}");
+                progress.send_modify(|p| {
+                    p.write_errors += 1;
+                    p.last_error = Some(e.to_string());
+                });
+                if stopping.load(Ordering::SeqCst) {
+                    attempts_while_stopping += 1;
+                    if attempts_while_stopping >= 3 {
+                        return Err(e);
+                    }
+                }
+                std::thread::sleep(delay);
+                delay = (delay * 2).min(Duration::from_secs(5));
+            }
+        }
+    }
+}
+
+fn count(p: &mut Progress, record: &Record) {
+    match record {
+        Record::Frame { message, .. } => {
+            p.frames += 1;
+            p.finished += 1;
+            *p.per_channel.entry(message.channel.clone()).or_default() += 1;
+        }
+        Record::Reference { .. } => p.references += 1,
+        Record::Log { finishes: true, .. } => {
+            p.skipped += 1;
+            p.finished += 1;
+        }
+        Record::Log { .. } => p.notes += 1,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Driving it all
+
+/// Everything a run needs besides its input.
+pub struct RunParts {
+    pub config: Arc<Config>,
+    pub reader: Arc<dyn FrameReader>,
+    pub aligner: Arc<dyn Aligner>,
+    pub sink: Box<dyn RecordSink>,
+    pub history: History,
+    pub progress: watch::Sender<Progress>,
+    pub live: bool,
+}
+
+/// Run the pipeline until the input ends (replay) or `stop` turns true (daemon: frames in
+/// hand are finished, buffered ones are left for the next start), then close the sink.
+pub async fn run_pipeline(
+    parts: RunParts,
+    input: mpsc::Receiver<Input>,
+    stop: watch::Receiver<bool>,
+) -> Result<Progress> {
+    let RunParts {
+        config,
+        reader,
+        aligner,
+        sink,
+        history,
+        progress,
+        live,
+    } = parts;
+    let stopping = Arc::new(AtomicBool::new(false));
+    let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
+    let progress_rx = progress.subscribe();
+    let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
+    let scheduler = Scheduler::new(
+        config.clone(),
+        SchedulerSettings::from_config(&config, live),
+        &history,
+    );
+    let ctx = JobContext { reader, aligner };
+    let flush_every = Duration::from_secs_f64(config.sink.flush_interval_s.max(0.01));
+    let driven = drive(input, scheduler, ctx, writer_tx, stop, stopping, flush_every).await;
+    let written = tokio::task::spawn_blocking(move || writer.join())
+        .await
+        .map_err(|e| Error::output("writer thread", e.to_string()))?
+        .map_err(|_| Error::output("writer thread", "panicked"))?;
+    driven?;
+    written?;
+    let last = progress_rx.borrow().clone();
+    Ok(last)
+}
+
+async fn drive(
+    mut input: mpsc::Receiver<Input>,
+    mut scheduler: Scheduler,
+    ctx: JobContext,
+    writer: mpsc::Sender<WriterMsg>,
+    mut stop: watch::Receiver<bool>,
+    stopping: Arc<AtomicBool>,
+    flush_every: Duration,
+) -> Result<()> {
+    let gone = || Error::output("log writer", "stopped unexpectedly");
+    let mut jobs: JoinSet<JobDone> = JoinSet::new();
+    let mut accepting = true;
+    let mut stopped = *stop.borrow();
+    let mut flush_tick = tokio::time::interval(flush_every);
+    flush_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        if stopped {
+            if accepting {
+                accepting = false;
+                stopping.store(true, Ordering::SeqCst);
+                input.close();
+            }
+        } else {
+            for action in scheduler.poll(Instant::now()) {
+                match action {
+                    Action::Run(job) => {
+                        let ctx = ctx.clone();
+                        jobs.spawn_blocking(move || run_job(*job, &ctx));
+                    }
+                    Action::Emit(record) => {
+                        writer.send(WriterMsg::Record(record)).await.map_err(|_| gone())?;
+                    }
+                }
+            }
+        }
+        if jobs.is_empty() && (stopped || (scheduler.is_eof() && scheduler.idle())) {
+            break;
+        }
+        let deadline = scheduler.next_deadline();
+        tokio::select! {
+            biased;
+            changed = stop.changed(), if !stopped => {
+                stopped = changed.is_err() || *stop.borrow();
+            }
+            joined = jobs.join_next(), if !jobs.is_empty() => {
+                match joined {
+                    Some(Ok(done)) => {
+                        for record in &done.records {
+                            writer.send(WriterMsg::Record(record.clone())).await.map_err(|_| gone())?;
+                        }
+                        scheduler.complete(done);
+                    }
+                    Some(Err(e)) => {
+                        return Err(Error::output("pipeline", format!("a worker died: {e}")));
+                    }
+                    None => {}
+                }
+            }
+            received = input.recv(), if accepting => {
+                match received {
+                    Some(Input::Frame(item)) => scheduler.offer(item),
+                    Some(Input::Record(record)) => {
+                        writer.send(WriterMsg::Record(record)).await.map_err(|_| gone())?;
+                    }
+                    None => {
+                        accepting = false;
+                        scheduler.set_eof();
+                    }
+                }
+            }
+            _ = sleep_until_opt(deadline), if deadline.is_some() => {}
+            _ = flush_tick.tick() => {
+                writer.send(WriterMsg::Flush).await.map_err(|_| gone())?;
+            }
+        }
+    }
+    drop(writer);
+    Ok(())
+}
+
+async fn sleep_until_opt(deadline: Option<Instant>) {
+    if let Some(d) = deadline {
+        tokio::time::sleep_until(tokio::time::Instant::from_std(d)).await;
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Paths and time
+
+/// ISO 8601 UTC with milliseconds, e.g. `2014-03-29T14:09:38.680Z`.
+pub fn iso8601_utc(ns: i64) -> String {
+    let secs = ns.div_euclid(1_000_000_000);
+    let millis = ns.rem_euclid(1_000_000_000) / 1_000_000;
+    let days = secs.div_euclid(86_400);
+    let sod = secs.rem_euclid(86_400);
+    let (y, m, d) = civil_from_days(days);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{millis:03}Z",
+        sod / 3600,
+        sod % 3600 / 60,
+        sod % 60
+    )
+}
+
+/// Parse what [`iso8601_utc`] writes (and plain `YYYY-MM-DDTHH:MM:SS[.fff][Z]`).
+pub fn parse_iso8601_utc(s: &str) -> Option<i64> {
+    let s = s.trim().trim_end_matches('Z');
+    let (date, time) = s.split_once('T')?;
+    let mut dp = date.split('-');
+    let y: i64 = dp.next()?.parse().ok()?;
+    let m: u32 = dp.next()?.parse().ok()?;
+    let d: u32 = dp.next()?.parse().ok()?;
+    let mut tp = time.split(':');
+    let hh: i64 = tp.next()?.parse().ok()?;
+    let mm: i64 = tp.next()?.parse().ok()?;
+    let sec = tp.next()?;
+    let (whole, frac) = sec.split_once('.').unwrap_or((sec, ""));
+    let ss: i64 = whole.parse().ok()?;
+    let mut frac_ns: i64 = 0;
+    for (i, c) in frac.chars().take(9).enumerate() {
+        frac_ns += i64::from(c.to_digit(10)?) * 10i64.pow(8 - i as u32);
+    }
+    let days = days_from_civil(y, m, d);
+    Some(((days * 86_400 + hh * 3600 + mm * 60 + ss) * 1_000_000_000) + frac_ns)
+}
+
+// Howard Hinnant's civil calendar algorithms (proleptic Gregorian).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let y = yoe + era * 400;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (if m <= 2 { y + 1 } else { y }, m, d)
+}
+
+fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y.rem_euclid(400);
+    let m = i64::from(m);
+    let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + i64::from(d) - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
