@@ -479,9 +479,16 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
     if size == 0 {
         return Err("empty file".into());
     }
-    let mut magic = [0u8; 2];
-    if file.read_exact(&mut magic).is_ok() && magic == [0x1f, 0x8b] {
+    let mut start = Vec::with_capacity(9);
+    (&mut file)
+        .take(9)
+        .read_to_end(&mut start)
+        .map_err(|e| format!("cannot read: {e}"))?;
+    if start.starts_with(&[0x1f, 0x8b]) {
         return Ok(()); // gzip: the reader checks it as it decompresses
+    }
+    if !b"SIMPLE  =".starts_with(&start) && !start.starts_with(b"SIMPLE  =") {
+        return Err("not a FITS file (it does not start with SIMPLE)".into());
     }
     let mut offset = 0u64;
     let mut hdu = 0usize;
@@ -1165,6 +1172,7 @@ async fn drive(
     let mut jobs: JoinSet<JobDone> = JoinSet::new();
     let mut accepting = true;
     let mut stopped = *stop.borrow();
+    let mut stop_alive = true;
     let mut flush_tick = tokio::time::interval(flush_every);
     flush_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -1193,8 +1201,11 @@ async fn drive(
         let deadline = scheduler.next_deadline();
         tokio::select! {
             biased;
-            changed = stop.changed(), if !stopped => {
-                stopped = changed.is_err() || *stop.borrow();
+            changed = stop.changed(), if stop_alive && !stopped => {
+                match changed {
+                    Ok(()) => stopped = *stop.borrow(),
+                    Err(_) => stop_alive = false, // nobody can ask any more
+                }
             }
             joined = jobs.join_next(), if !jobs.is_empty() => {
                 match joined {
@@ -1236,6 +1247,141 @@ async fn sleep_until_opt(deadline: Option<Instant>) {
     if let Some(d) = deadline {
         tokio::time::sleep_until(tokio::time::Instant::from_std(d)).await;
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Replay: the same pipeline over archived files
+
+/// Expand `replay` arguments (files, directories, shell globs) to canonical file paths,
+/// each with whether it was named explicitly (explicit symbolic links are followed).
+/// An argument that matches nothing is a usage error (exit code 2).
+pub fn expand_inputs(args: &[String], config: &Config) -> Result<Vec<(std::path::PathBuf, bool)>> {
+    let d = &config.daemon;
+    let mut out: Vec<(std::path::PathBuf, bool)> = Vec::new();
+    let mut seen = HashSet::new();
+    let mut push = |path: std::path::PathBuf, explicit: bool, out: &mut Vec<_>| -> Result<()> {
+        let canon = crate::config::canonical_file_path(&path)?;
+        if seen.insert(canon.clone()) {
+            out.push((canon, explicit));
+        }
+        Ok(())
+    };
+    for arg in args {
+        let path = Path::new(arg);
+        let matches: Vec<std::path::PathBuf> = if path.exists() || !has_wildcards(arg) {
+            vec![path.to_path_buf()]
+        } else {
+            glob(arg)?
+        };
+        if matches.is_empty() || (matches.len() == 1 && !matches[0].exists()) {
+            return Err(Error::bad_input(path, "no such file or directory"));
+        }
+        for m in matches {
+            if m.is_dir() {
+                for f in crate::daemon::scan_tree(&m, d.recursive, d.follow_symlinks, d)? {
+                    push(f, false, &mut out)?;
+                }
+            } else {
+                push(m, true, &mut out)?;
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn has_wildcards(s: &str) -> bool {
+    s.contains(['*', '?', '['])
+}
+
+/// Shell-style glob over path components (for quoted patterns the shell did not expand).
+fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
+    use std::path::{Component, PathBuf};
+    let mut current: Vec<PathBuf> = vec![PathBuf::new()];
+    for component in Path::new(pattern).components() {
+        let mut next = Vec::new();
+        match component {
+            Component::Normal(part) => {
+                let part = part.to_string_lossy();
+                if !has_wildcards(&part) {
+                    next = current.iter().map(|c| c.join(&*part)).collect();
+                } else {
+                    for base in &current {
+                        let dir = if base.as_os_str().is_empty() { Path::new(".") } else { base };
+                        let Ok(entries) = std::fs::read_dir(dir) else {
+                            continue;
+                        };
+                        let mut names: Vec<String> = entries
+                            .flatten()
+                            .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                            .filter(|n| !n.starts_with('.') || part.starts_with('.'))
+                            .filter(|n| crate::daemon::name_matches(&part, n))
+                            .collect();
+                        names.sort();
+                        next.extend(names.into_iter().map(|n| base.join(n)));
+                    }
+                }
+            }
+            other => next = current.iter().map(|c| c.join(other.as_os_str())).collect(),
+        }
+        current = next;
+    }
+    Ok(current.into_iter().filter(|p| p.exists()).collect())
+}
+
+/// Check every file of a replay and list what goes into the pipeline: the frames (not yet
+/// in the log) and a terminal `/log` record for each file that cannot be taken. Files are
+/// checked once (no retries: an archive is complete), with the same reasons the daemon gives.
+pub fn replay_inputs(
+    files: &[(std::path::PathBuf, bool)],
+    config: &Config,
+    reader: &dyn FrameReader,
+    history: &History,
+) -> Vec<Input> {
+    let mut inputs = Vec::new();
+    for (path, explicit) in files {
+        let follow = *explicit || config.daemon.follow_symlinks;
+        match inspect_file(path, reader, config, history, follow) {
+            FileOutcome::Frames(items, records) => {
+                inputs.extend(records.into_iter().map(Input::Record));
+                inputs.extend(items.into_iter().map(Input::Frame));
+            }
+            FileOutcome::NotReady(reason) => {
+                inputs.push(Input::Record(unreadable_record(path, &reason)));
+            }
+            FileOutcome::Skip(Some(record)) => inputs.push(Input::Record(record)),
+            FileOutcome::Skip(None) => {}
+        }
+    }
+    inputs
+}
+
+/// Run the pipeline over `inputs` (from [`replay_inputs`]) in observation-time order per
+/// channel. `shutdown` stops early (what is not logged is taken by the next run).
+pub async fn run_replay(
+    inputs: Vec<Input>,
+    parts: RunParts,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<Progress> {
+    let capacity = parts.config.daemon.queue_capacity.max(1);
+    let (tx, rx) = mpsc::channel(capacity);
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let producer = tokio::spawn(async move {
+        for input in inputs {
+            if tx.send(input).await.is_err() {
+                break;
+            }
+        }
+    });
+    let stopper = tokio::spawn(async move {
+        shutdown.await;
+        let _ = stop_tx.send(true);
+        // Keep the sender alive: a closed channel must not read as a stop.
+        std::future::pending::<()>().await;
+    });
+    let result = run_pipeline(RunParts { live: false, ..parts }, rx, stop_rx).await;
+    producer.abort();
+    stopper.abort();
+    result
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1300,4 +1446,286 @@ fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
     let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + i64::from(d) - 1;
     let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
     era * 146_097 + doe - 719_468
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fake::{FakeFrame, FakeReader, TruthAligner};
+    use super::*;
+    use crate::config::ChannelConfig;
+
+    const S: i64 = 1_000_000_000;
+
+    fn cov() -> crate::reference::Cov4 {
+        let mut c = [[0.0; 4]; 4];
+        c[2][2] = 0.01;
+        c[3][3] = 0.01;
+        c
+    }
+
+    fn write(dir: &Path, name: &str, frame: &FakeFrame) -> std::path::PathBuf {
+        let path = dir.join(name);
+        std::fs::write(&path, frame.to_fits()).unwrap();
+        crate::config::canonical_file_path(&path).unwrap()
+    }
+
+    fn replay(dir: &Path, config: Config, history: History) -> (Progress, Vec<Record>) {
+        let config = Arc::new(config);
+        let reader = FakeReader::default();
+        let files = expand_inputs(&[dir.display().to_string()], &config).unwrap();
+        let inputs = replay_inputs(&files, &config, &reader, &history);
+        let sink = MemorySink::default();
+        let parts = RunParts {
+            config: config.clone(),
+            reader: Arc::new(reader),
+            aligner: Arc::new(TruthAligner::from_files(cov())),
+            sink: Box::new(sink.clone()),
+            history,
+            progress: watch::channel(Progress::default()).0,
+            live: false,
+        };
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        let progress = rt
+            .block_on(run_replay(inputs, parts, std::future::pending()))
+            .unwrap();
+        assert!(sink.log.lock().unwrap().finished, "sink finished");
+        (progress, sink.records())
+    }
+
+    fn frames_of<'a>(records: &'a [Record], channel: &str) -> Vec<&'a FrameAlignment> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Frame { message, .. } if message.channel == channel => Some(message),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn logs(records: &[Record]) -> Vec<(String, String)> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Log { file, message, .. } => Some((file.clone(), message.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn replay_emits_each_frame_once_in_time_order_per_channel() {
+        let dir = tempfile::tempdir().unwrap();
+        // Names deliberately not in time order; two channels interleaved.
+        let times_a = [50, 10, 40, 20, 30];
+        for (i, t) in times_a.iter().enumerate() {
+            let f = FakeFrame::new("A", t * S, 1.0, 0.0, 0.1 * *t as f64, 0.0);
+            write(dir.path(), &format!("z{i}_a.fits"), &f);
+        }
+        for (i, t) in [15, 5, 25].iter().enumerate() {
+            let f = FakeFrame::new("B", t * S, 1.0, 0.0, 0.0, 0.2 * *t as f64);
+            write(dir.path(), &format!("b{i}.fits"), &f);
+        }
+        std::fs::write(dir.path().join("garbage.fits"), b"not a fits file at all").unwrap();
+        let mut no_time = FakeFrame::new("A", 0, 1.0, 0.0, 0.0, 0.0);
+        no_time.obs_time_ns = None;
+        let no_time_path = write(dir.path(), "notime.fits", &no_time);
+
+        let (progress, records) = replay(dir.path(), Config::default(), History::default());
+        let a = frames_of(&records, "A");
+        let times: Vec<i64> = a.iter().map(|m| parse_iso8601_utc(&m.obs_time).unwrap() / S).collect();
+        assert_eq!(times, [10, 20, 30, 40, 50]);
+        assert_eq!(a.iter().map(|m| m.sequence).collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+        assert_eq!(frames_of(&records, "B").len(), 3);
+        // Chained dx is the true 0.1·t relative to the first frame (t = 10).
+        for (m, t) in a.iter().zip(times) {
+            assert!((m.chained_dx_px.unwrap() - 0.1 * (t - 10) as f64).abs() < 1e-9);
+        }
+        let logs = logs(&records);
+        assert_eq!(logs.len(), 2, "{logs:?}");
+        assert!(logs.iter().any(|(f, m)| f.ends_with("garbage.fits") && m.contains("not a FITS file")));
+        assert!(logs.iter().any(|(f, m)| *f == no_time_path.display().to_string() && m.contains("no observation time")));
+        assert_eq!((progress.frames, progress.skipped, progress.finished), (8, 2, 10));
+    }
+
+    #[test]
+    fn channel_policy_picks_the_nearest_partner_within_tolerance() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut keys = HashMap::new();
+        for t in [0, 10, 20, 30] {
+            let f = FakeFrame::new("P", t * S, 1.0, 0.0, t as f64, 0.0);
+            keys.insert(t, write(dir.path(), &format!("p{t}.fits"), &f).display().to_string());
+        }
+        // 12 → P10, 16 → P20, 25 → tie → earlier (P20), 39 → P30 (9 s), 45 → unmatched (> 10 s).
+        for t in [12, 16, 25, 39, 45] {
+            let f = FakeFrame::new("F", t * S, 1.0, 0.0, t as f64, 1.0);
+            write(dir.path(), &format!("f{t}.fits"), &f);
+        }
+        let mut config = Config::default();
+        config.channels.insert(
+            "F".into(),
+            ChannelConfig {
+                policy: Some(PolicySpec::Channel("P".into())),
+                tolerance_s: Some(10.0),
+                ..Default::default()
+            },
+        );
+        let (_, records) = replay(dir.path(), config, History::default());
+        let f = frames_of(&records, "F");
+        let refs: Vec<&str> = f.iter().map(|m| m.align.reference.as_str()).collect();
+        assert_eq!(refs, [&keys[&10], &keys[&20], &keys[&20], &keys[&30]]);
+        for m in &f {
+            assert_eq!(m.reference_kind, "channel");
+            // Partner chain (dx = t_p) then partner → frame (dx = t_f − t_p): dx = t_f; dy = 1.
+            let t = parse_iso8601_utc(&m.obs_time).unwrap() / S;
+            assert!((m.chained_dx_px.unwrap() - t as f64).abs() < 1e-9);
+            assert!((m.chained_dy_px.unwrap() - 1.0).abs() < 1e-9);
+        }
+        let logs = logs(&records);
+        assert_eq!(logs.len(), 1);
+        assert!(logs[0].0.ends_with("f45.fits") && logs[0].1.contains("unmatched"), "{logs:?}");
+        // The partner changed three times (P10, P20, P30).
+        let changes = records
+            .iter()
+            .filter(|r| matches!(r, Record::Reference { change, .. } if change.channel == "F"))
+            .count();
+        assert_eq!(changes, 3);
+    }
+
+    #[test]
+    fn replay_output_does_not_depend_on_worker_count() {
+        let dir = tempfile::tempdir().unwrap();
+        for t in 0..12 {
+            for ch in ["A", "B", "C"] {
+                let offset = (ch.as_bytes()[0] - b'A') as i64 + 1;
+                let f = FakeFrame::new(ch, (t * 10 + offset) * S, 1.0 + 1e-4 * t as f64, 1e-4 * t as f64, t as f64, -(t as f64));
+                write(dir.path(), &format!("{ch}{t:02}.fits"), &f);
+            }
+        }
+        let run = |workers| {
+            let mut config = Config::default();
+            config.daemon.workers = workers;
+            config.reference.keyframe_every_frames = 5;
+            config.channels.insert("C".into(), ChannelConfig { policy: Some(PolicySpec::Channel("A".into())), ..Default::default() });
+            let (_, mut records) = replay(dir.path(), config, History::default());
+            records.sort_by_key(|r| (r.topic(), r.log_time_ns(), format!("{r:?}")));
+            records
+        };
+        let one = run(1);
+        // 36 frames; keyframes at 0, 5, 10 in A and B; C follows A, a new partner each frame.
+        assert_eq!(one.len(), 36 + 3 + 3 + 12);
+        assert_eq!(one, run(3));
+    }
+
+    #[test]
+    fn frames_already_in_the_log_are_not_processed_again() {
+        let dir = tempfile::tempdir().unwrap();
+        for t in 0..6 {
+            write(dir.path(), &format!("f{t}.fits"), &FakeFrame::new("A", t * S, 1.0, 0.0, t as f64, 0.0));
+        }
+        let mut config = Config::default();
+        config.reference.keyframe_every_frames = 4;
+        let (_, full) = replay(dir.path(), config.clone(), History::default());
+        // Pretend the first run logged frames 0..3 (and their reference changes).
+        let mut history = History::default();
+        let cut = full
+            .iter()
+            .position(|r| matches!(r, Record::Frame { message, .. } if message.sequence == 3))
+            .unwrap();
+        for r in &full[..=cut] {
+            history.add(r);
+        }
+        let (progress, rest) = replay(dir.path(), config, history);
+        assert_eq!(progress.frames, 2);
+        assert_eq!(&full[cut + 1..], &rest[..], "the resumed run continues the same series");
+    }
+
+    #[test]
+    fn completeness_check_matches_astropy_offsets() {
+        // Offsets from astropy (`HDU.fileinfo()`): AIA data starts at 17280 and holds
+        // 131072 bytes; the IRIS cube's last HDU (a table) ends at 2750400 + 80460.
+        let dir = tempfile::tempdir().unwrap();
+        let cases = [
+            ("aia_171_20110215T000000_128.fits", 17_280 + 131_072),
+            ("iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits", 2_750_400 + 80_460),
+        ];
+        for (name, needed) in cases {
+            let bytes = std::fs::read(Path::new("data/real").join(name)).unwrap();
+            let full = dir.path().join(name);
+            std::fs::write(&full, &bytes).unwrap();
+            assert_eq!(fits_completeness(&full), Ok(()));
+            let cut = dir.path().join("cut.fits");
+            std::fs::write(&cut, &bytes[..needed]).unwrap();
+            assert_eq!(fits_completeness(&cut), Ok(()), "unpadded but complete");
+            std::fs::write(&cut, &bytes[..needed - 1]).unwrap();
+            let err = fits_completeness(&cut).unwrap_err();
+            assert!(err.contains(&format!("needs {needed} bytes")), "{err}");
+            std::fs::write(&cut, &bytes[..1000]).unwrap();
+            assert!(fits_completeness(&cut).unwrap_err().contains("cut off"));
+        }
+        let bomb = dir.path().join("bomb.fits");
+        let mut header = String::new();
+        for card in ["SIMPLE  =                    T", "BITPIX  =                   16", "NAXIS   =                    2", "NAXIS1  =           2000000000", "NAXIS2  =           2000000000", "END"] {
+            header.push_str(&format!("{card:<80}"));
+        }
+        std::fs::write(&bomb, format!("{header:<2880}")).unwrap();
+        let err = fits_completeness(&bomb).unwrap_err();
+        // One header block, then 2e9 × 2e9 × 2 bytes of data.
+        assert!(err.contains("needs 8000000000000002880 bytes"), "{err}");
+        std::fs::write(&bomb, b"").unwrap();
+        assert_eq!(fits_completeness(&bomb).unwrap_err(), "empty file");
+        let not = Path::new("data/malformed/not_actually_fits.fits");
+        assert!(fits_completeness(not).unwrap_err().starts_with("not a FITS file"));
+    }
+
+    #[test]
+    fn iso_times_match_python_datetime() {
+        // python: datetime.fromisoformat(s).replace(tzinfo=timezone.utc).timestamp()
+        for (s, ns) in [
+            ("2014-03-29T14:09:38.680Z", 1_396_102_178_680_000_000i64),
+            ("1998-05-19T22:21:43.000Z", 895_616_503_000_000_000),
+            ("2000-02-29T00:00:00.000Z", 951_782_400_000_000_000),
+            ("1969-12-31T23:59:59.500Z", -500_000_000),
+        ] {
+            assert_eq!(iso8601_utc(ns), s);
+            assert_eq!(parse_iso8601_utc(s), Some(ns));
+        }
+    }
+
+    #[test]
+    fn writer_retries_until_the_sink_accepts() {
+        // A sink that fails its first three writes: nothing may be lost or doubled.
+        struct Flaky(MemorySink, usize);
+        impl RecordSink for Flaky {
+            fn write(&mut self, r: &Record, t: i64) -> Result<()> {
+                if self.1 > 0 {
+                    self.1 -= 1;
+                    return Err(Error::output("disk", "full"));
+                }
+                self.0.write(r, t)
+            }
+            fn flush(&mut self) -> Result<()> {
+                Ok(())
+            }
+            fn finish(self: Box<Self>) -> Result<()> {
+                Box::new(self.0).finish()
+            }
+        }
+        let memory = MemorySink::default();
+        let (tx, rx) = mpsc::channel(4);
+        let (ptx, prx) = watch::channel(Progress::default());
+        let handle = spawn_writer(Box::new(Flaky(memory.clone(), 3)), rx, ptx, Arc::new(AtomicBool::new(false)));
+        for i in 0..3 {
+            let r = Record::log(LogLevel::Error, &format!("f{i}"), "x", i);
+            tx.blocking_send(WriterMsg::Record(r)).unwrap();
+        }
+        drop(tx);
+        handle.join().unwrap().unwrap();
+        let files: Vec<String> = logs(&memory.records()).into_iter().map(|(f, _)| f).collect();
+        assert_eq!(files, ["f0", "f1", "f2"]);
+        assert_eq!((prx.borrow().write_errors, prx.borrow().finished), (3, 3));
+    }
 }
