@@ -266,9 +266,7 @@ impl Config {
             refresh_below_similarity: c
                 .refresh_below_similarity
                 .unwrap_or(r.refresh_below_similarity),
-            restart_after_failures: c
-                .restart_after_failures
-                .unwrap_or(r.restart_after_failures),
+            restart_after_failures: c.restart_after_failures.unwrap_or(r.restart_after_failures),
             tolerance_s: c.tolerance_s.unwrap_or(r.tolerance_s),
             hold_s: c.hold_s.unwrap_or(r.hold_s),
         }
@@ -378,7 +376,10 @@ mod tests {
             reference: Some(PolicySpec::Channel("A".into())),
             recursive: true,
         });
-        assert_eq!(config.channel_policy("B").policy, PolicySpec::Channel("A".into()));
+        assert_eq!(
+            config.channel_policy("B").policy,
+            PolicySpec::Channel("A".into())
+        );
         // A cannot follow itself: it keeps a keyframe series the others follow.
         assert_eq!(config.channel_policy("A").policy, PolicySpec::Keyframe);
         assert!(config.daemon.recursive);

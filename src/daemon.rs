@@ -22,8 +22,8 @@
 
 use crate::config::{Config, DaemonConfig};
 use crate::pipeline::{
-    file_stamp, inspect_file, run_pipeline, unreadable_record, FileOutcome, FileStamp,
-    FrameReader, History, Input, Progress, Record, RunParts,
+    file_stamp, inspect_file, run_pipeline, unreadable_record, FileOutcome, FileStamp, FrameReader,
+    History, Input, Progress, Record, RunParts,
 };
 use crate::{Error, Result};
 use notify::event::{AccessKind, AccessMode, CreateKind, EventKind, ModifyKind, RenameMode};
@@ -78,7 +78,12 @@ pub async fn run_daemon(
     tracing::info!(dir = %root.display(), recursive = config.daemon.recursive, "watching");
 
     let (input_tx, input_rx) = mpsc::channel::<Input>(capacity);
-    let ingest = Ingest::new(root, config, parts.reader.clone(), Arc::new(parts.history.clone()));
+    let ingest = Ingest::new(
+        root,
+        config,
+        parts.reader.clone(),
+        Arc::new(parts.history.clone()),
+    );
     let ingest_task = tokio::spawn(ingest.run(signal_rx, input_tx, stop_rx.clone()));
 
     let result = run_pipeline(parts, input_rx, stop_rx).await;
@@ -168,7 +173,7 @@ enum Examined {
     /// Modified less than `settle_s` ago: look again later.
     NotSettled(Duration),
     Dir,
-    Outcome(FileOutcome, Option<FileStamp>),
+    Outcome(Box<FileOutcome>, Option<FileStamp>),
 }
 
 struct Ingest {
@@ -235,8 +240,11 @@ impl Ingest {
                     continue;
                 };
                 self.files.insert(path.clone(), FileState::Reading(tries));
-                let (reader, config, history) =
-                    (self.reader.clone(), self.config.clone(), self.history.clone());
+                let (reader, config, history) = (
+                    self.reader.clone(),
+                    self.config.clone(),
+                    self.history.clone(),
+                );
                 reading.spawn_blocking(move || {
                     let examined = examine(&path, origin, reader.as_ref(), &config, &history);
                     (path, examined)
@@ -251,14 +259,18 @@ impl Ingest {
                     }
                 }
                 joined = reading.join_next(), if !reading.is_empty() => {
-                    match joined {
+                    let alive = match joined {
                         Some(Ok((path, examined))) => {
-                            if !self.handle_examined(path, examined, &input).await {
-                                break;
-                            }
+                            self.handle_examined(path, examined, &input).await
                         }
-                        Some(Err(e)) => tracing::error!("a file check died: {e}"),
-                        None => {}
+                        Some(Err(e)) => {
+                            tracing::error!("a file check died: {e}");
+                            true
+                        }
+                        None => true,
+                    };
+                    if !alive {
+                        break;
                     }
                 }
                 signal = signals.recv(), if watcher_alive && self.ready.len() < capacity => {
@@ -312,18 +324,22 @@ impl Ingest {
         }
         match self.files.get(&path).cloned() {
             None => {
-                self.files.insert(path.clone(), FileState::Queued(origin, Tries::default()));
+                self.files
+                    .insert(path.clone(), FileState::Queued(origin, Tries::default()));
                 self.ready.push_back(path);
             }
             Some(FileState::Queued(Origin::Scan, tries)) if origin == Origin::Event => {
                 self.files.insert(path, FileState::Queued(origin, tries));
             }
             Some(FileState::Queued(..)) | Some(FileState::Reading(_)) => {}
-            Some(FileState::Waiting { due, origin: was, .. }) => {
+            Some(FileState::Waiting {
+                due, origin: was, ..
+            }) => {
                 // New activity: look again now, with a fresh attempt count.
                 self.waiting.remove(&(due, path.clone()));
                 let origin = if was == Origin::Event { was } else { origin };
-                self.files.insert(path.clone(), FileState::Queued(origin, Tries::default()));
+                self.files
+                    .insert(path.clone(), FileState::Queued(origin, Tries::default()));
                 self.ready.push_back(path);
             }
             Some(FileState::Done(stamp)) => {
@@ -368,7 +384,7 @@ impl Ingest {
                 }
                 return true;
             }
-            Examined::Outcome(outcome, stamp) => (outcome, stamp),
+            Examined::Outcome(outcome, stamp) => (*outcome, stamp),
         };
         match outcome {
             FileOutcome::Frames(items, records) => {
@@ -419,7 +435,8 @@ impl Ingest {
 
     fn wait(&mut self, path: PathBuf, due: Instant, origin: Origin, tries: Tries) {
         self.waiting.insert((due, path.clone()));
-        self.files.insert(path, FileState::Waiting { due, origin, tries });
+        self.files
+            .insert(path, FileState::Waiting { due, origin, tries });
     }
 
     fn release_due(&mut self, now: Instant) {
@@ -429,7 +446,8 @@ impl Ingest {
             }
             self.waiting.pop_first();
             if let Some(FileState::Waiting { origin, tries, .. }) = self.files.get(&path).cloned() {
-                self.files.insert(path.clone(), FileState::Queued(origin, tries));
+                self.files
+                    .insert(path.clone(), FileState::Queued(origin, tries));
                 self.ready.push_back(path);
             }
         }
@@ -494,7 +512,7 @@ fn examine(
     }
     let stamp = std::fs::metadata(path).ok().map(|m| file_stamp(&m));
     let outcome = inspect_file(path, reader, config, history, config.daemon.follow_symlinks);
-    Examined::Outcome(outcome, stamp)
+    Examined::Outcome(Box::new(outcome), stamp)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -509,9 +527,12 @@ pub fn wanted_file(name: &str, d: &DaemonConfig) -> bool {
         return true;
     }
     let lower = name.to_ascii_lowercase();
-    d.extensions
-        .iter()
-        .any(|ext| lower.ends_with(&format!(".{}", ext.trim_start_matches('.').to_ascii_lowercase())))
+    d.extensions.iter().any(|ext| {
+        lower.ends_with(&format!(
+            ".{}",
+            ext.trim_start_matches('.').to_ascii_lowercase()
+        ))
+    })
 }
 
 fn wanted_dir(path: &Path, d: &DaemonConfig) -> bool {
@@ -544,8 +565,8 @@ pub fn scan_tree(
             let Ok(file_type) = entry.file_type() else {
                 continue;
             };
-            let is_dir = file_type.is_dir()
-                || (file_type.is_symlink() && follow_symlinks && path.is_dir());
+            let is_dir =
+                file_type.is_dir() || (file_type.is_symlink() && follow_symlinks && path.is_dir());
             if is_dir {
                 if recursive && wanted_dir(&path, d) {
                     dirs.push(path);
@@ -648,9 +669,11 @@ mod tests {
     fn close_write_and_renames_are_complete_creates_are_not() {
         use notify::Event;
         let p = PathBuf::from("/w/a.fits");
-        let close = Event::new(EventKind::Access(AccessKind::Close(AccessMode::Write))).add_path(p.clone());
+        let close =
+            Event::new(EventKind::Access(AccessKind::Close(AccessMode::Write))).add_path(p.clone());
         assert_eq!(classify(Ok(close)), vec![Signal::Complete(p.clone())]);
-        let moved = Event::new(EventKind::Modify(ModifyKind::Name(RenameMode::To))).add_path(p.clone());
+        let moved =
+            Event::new(EventKind::Modify(ModifyKind::Name(RenameMode::To))).add_path(p.clone());
         assert_eq!(classify(Ok(moved)), vec![Signal::Complete(p.clone())]);
         let both = Event::new(EventKind::Modify(ModifyKind::Name(RenameMode::Both)))
             .add_path("/w/.a.tmp".into())
@@ -660,8 +683,91 @@ mod tests {
         assert_eq!(classify(Ok(create)), vec![Signal::Appeared(p.clone())]);
         let overflow = Event::new(EventKind::Other).set_flag(notify::event::Flag::Rescan);
         assert!(matches!(classify(Ok(overflow))[..], [Signal::Rescan(_)]));
-        let modify = Event::new(EventKind::Modify(ModifyKind::Data(notify::event::DataChange::Any))).add_path(p);
-        assert!(classify(Ok(modify)).is_empty(), "a write in progress is not a complete file");
+        let modify = Event::new(EventKind::Modify(ModifyKind::Data(
+            notify::event::DataChange::Any,
+        )))
+        .add_path(p);
+        assert!(
+            classify(Ok(modify)).is_empty(),
+            "a write in progress is not a complete file"
+        );
+    }
+
+    /// Drive the ingest with hand-made signals: repeated events and rescans must hand each
+    /// file to the pipeline exactly once; a garbage file once, as a `/log` record.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn rescans_and_repeated_events_hand_each_file_over_once() {
+        use crate::pipeline::fake::{FakeFrame, FakeReader};
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().canonicalize().unwrap();
+        let mut config = Config::default();
+        config.daemon.settle_s = 0.0;
+        config.daemon.retry_initial_s = 0.01;
+        config.daemon.retry_max_s = 0.02;
+        config.daemon.retry_attempts = 2;
+        config.daemon.queue_capacity = 2;
+        let write = |name: &str, t: i64| {
+            let f = FakeFrame::new("A", t, 1.0, 0.0, 0.0, 0.0);
+            std::fs::write(root.join(name), f.to_fits()).unwrap();
+            root.join(name)
+        };
+        let early = write("early.fits", 1); // found by the start scan
+        let ingest = Ingest::new(
+            root.clone(),
+            Arc::new(config),
+            Arc::new(FakeReader::default()),
+            Arc::new(History::default()),
+        );
+        let (sig_tx, sig_rx) = mpsc::channel(2);
+        let (in_tx, mut in_rx) = mpsc::channel(2);
+        let (stop_tx, stop_rx) = watch::channel(false);
+        let task = tokio::spawn(ingest.run(sig_rx, in_tx, stop_rx));
+        let mut paths = vec![early];
+        for i in 0..20 {
+            paths.push(write(&format!("f{i:02}.fits"), 10 + i));
+        }
+        std::fs::write(root.join("junk.fits"), b"junk").unwrap();
+        std::fs::write(root.join(".hidden.fits"), b"junk").unwrap();
+        let sender = tokio::spawn(async move {
+            for round in 0..3 {
+                for p in &paths {
+                    sig_tx.send(Signal::Complete(p.clone())).await.unwrap();
+                }
+                sig_tx
+                    .send(Signal::Rescan(format!("round {round}")))
+                    .await
+                    .unwrap();
+            }
+            sig_tx
+                .send(Signal::Complete(root.join(".hidden.fits")))
+                .await
+                .unwrap();
+            sig_tx
+        });
+        let mut frames = std::collections::BTreeMap::new();
+        let mut logs = Vec::new();
+        while frames.len() < 21 || logs.is_empty() {
+            let next = tokio::time::timeout(Duration::from_secs(30), in_rx.recv()).await;
+            match next.expect("ingest made progress").expect("ingest alive") {
+                Input::Frame(item) => *frames.entry(item.key).or_insert(0) += 1,
+                Input::Record(r) => logs.push(r),
+            }
+        }
+        let _sig_tx = sender.await.unwrap();
+        // Nothing more may come: stop, then drain what is left.
+        stop_tx.send(true).unwrap();
+        task.await.unwrap().unwrap();
+        while let Ok(extra) = in_rx.try_recv() {
+            match extra {
+                Input::Frame(item) => *frames.entry(item.key).or_insert(0) += 1,
+                Input::Record(r) => logs.push(r),
+            }
+        }
+        assert_eq!(frames.len(), 21);
+        assert!(frames.values().all(|n| *n == 1), "{frames:?}");
+        assert_eq!(logs.len(), 1, "{logs:?}");
+        assert!(matches!(&logs[0], Record::Log { file, message, .. }
+            if file.ends_with("junk.fits") && message.contains("not a FITS file")));
     }
 
     #[test]

@@ -24,10 +24,16 @@ impl FrameSpec {
 
 /// Read one image (or one frame of a cube) as f32, with its metadata.
 pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
-    Err(crate::Error::bad_input(&spec.path, "FITS reading not implemented yet"))
+    Err(crate::Error::bad_input(
+        &spec.path,
+        "FITS reading not implemented yet",
+    ))
 }
 
 /// Metadata of every image (every frame of a cube) in a file.
 pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
-    Err(crate::Error::bad_input(path, "FITS reading not implemented yet"))
+    Err(crate::Error::bad_input(
+        path,
+        "FITS reading not implemented yet",
+    ))
 }

@@ -4,7 +4,11 @@ use clap::{Parser, Subcommand};
 use sunjitter::commands;
 
 #[derive(Debug, Parser)]
-#[command(name = "sunjitter", version, about = "Pointing-jitter monitor for solar telescopes")]
+#[command(
+    name = "sunjitter",
+    version,
+    about = "Pointing-jitter monitor for solar telescopes"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -70,12 +70,12 @@ impl LogLevel {
 pub enum Record {
     /// `/jitter/<channel>`.
     Frame {
-        message: FrameAlignment,
+        message: Box<FrameAlignment>,
         log_time_ns: i64,
     },
     /// `/reference/<channel>`.
     Reference {
-        change: ReferenceChange,
+        change: Box<ReferenceChange>,
         log_time_ns: i64,
     },
     /// `/log`. `file` is a frame key (`PATH` or `PATH[N]`). In a log read back, an entry at
@@ -93,7 +93,12 @@ pub enum Record {
 
 impl Record {
     /// A `/log` entry that finishes its input (at `Warning` or `Error`).
-    pub fn log(level: LogLevel, file: &str, message: impl Into<String>, log_time_ns: i64) -> Record {
+    pub fn log(
+        level: LogLevel,
+        file: &str,
+        message: impl Into<String>,
+        log_time_ns: i64,
+    ) -> Record {
         Record::Log {
             level,
             file: file.to_string(),
@@ -193,7 +198,10 @@ pub struct MemoryLog {
 
 impl RecordSink for MemorySink {
     fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
-        let mut log = self.log.lock().map_err(|_| Error::output("memory", "poisoned"))?;
+        let mut log = self
+            .log
+            .lock()
+            .map_err(|_| Error::output("memory", "poisoned"))?;
         log.records.push((record.clone(), publish_time_ns));
         Ok(())
     }
@@ -249,8 +257,12 @@ impl History {
                 let at = ch
                     .recent
                     .partition_point(|(m, _)| m.sequence < message.sequence);
-                if ch.recent.get(at).is_none_or(|(m, _)| m.sequence != message.sequence) {
-                    ch.recent.insert(at, (message.clone(), *log_time_ns));
+                if ch
+                    .recent
+                    .get(at)
+                    .is_none_or(|(m, _)| m.sequence != message.sequence)
+                {
+                    ch.recent.insert(at, ((**message).clone(), *log_time_ns));
                 }
                 if ch.recent.len() > RESTORE_TAIL {
                     let excess = ch.recent.len() - RESTORE_TAIL;
@@ -267,7 +279,7 @@ impl History {
                     .as_ref()
                     .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
                 if newer {
-                    ch.last_reference = Some((change.clone(), *log_time_ns));
+                    ch.last_reference = Some(((**change).clone(), *log_time_ns));
                 }
             }
             Record::Log { level, file, .. } => {
@@ -288,8 +300,11 @@ impl History {
 
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Progress {
-    /// `/jitter` messages written.
+    /// `/jitter` messages written, and how many of them were ok / degraded / failed.
     pub frames: u64,
+    pub ok: u64,
+    pub degraded: u64,
+    pub failed: u64,
     /// Frames (or files) finished with a terminal `/log` entry instead of a message.
     pub skipped: u64,
     /// `/log` entries about frames that also have a message (degraded, failed, late).
@@ -461,7 +476,12 @@ pub fn error_reason(e: &Error) -> String {
 /// The terminal `/log` record for a file that never became readable.
 pub fn unreadable_record(path: &Path, reason: &str) -> Record {
     let mtime = std::fs::metadata(path).ok().and_then(|m| m.modified().ok());
-    Record::log(LogLevel::Error, &frame_key(path, None), reason, system_time_ns(mtime))
+    Record::log(
+        LogLevel::Error,
+        &frame_key(path, None),
+        reason,
+        system_time_ns(mtime),
+    )
 }
 
 /// Check that `path` holds complete FITS HDUs: every header has its END card and the file is
@@ -487,7 +507,7 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
     if start.starts_with(&[0x1f, 0x8b]) {
         return Ok(()); // gzip: the reader checks it as it decompresses
     }
-    if !b"SIMPLE  =".starts_with(&start) && !start.starts_with(b"SIMPLE  =") {
+    if !b"SIMPLE  =".starts_with(&start) {
         return Err("not a FITS file (it does not start with SIMPLE)".into());
     }
     let mut offset = 0u64;
@@ -505,7 +525,9 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
                 ));
             }
             if blocks >= MAX_HEADER_BLOCKS {
-                return Err(format!("HDU {hdu} header has no END card in {MAX_HEADER_BLOCKS} blocks"));
+                return Err(format!(
+                    "HDU {hdu} header has no END card in {MAX_HEADER_BLOCKS} blocks"
+                ));
             }
             file.seek(SeekFrom::Start(offset + blocks * BLOCK))
                 .and_then(|_| file.read_exact(&mut block))
@@ -528,7 +550,12 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
                     break;
                 }
                 if card.len() > 10 && &card[8..10] == "= " {
-                    let value = card[10..].split('/').next().unwrap_or("").trim().to_string();
+                    let value = card[10..]
+                        .split('/')
+                        .next()
+                        .unwrap_or("")
+                        .trim()
+                        .to_string();
                     cards.entry(name).or_insert(value);
                 }
             }
@@ -544,7 +571,9 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
         let bitpix = int("BITPIX")?;
         let naxis = int("NAXIS")?;
         if !(0..=999).contains(&naxis) || ![8, 16, 32, 64, -32, -64].contains(&bitpix) {
-            return Err(format!("HDU {hdu} header: BITPIX {bitpix} / NAXIS {naxis} invalid"));
+            return Err(format!(
+                "HDU {hdu} header: BITPIX {bitpix} / NAXIS {naxis} invalid"
+            ));
         }
         let mut pixels: u64 = if naxis == 0 { 0 } else { 1 };
         for i in 1..=naxis {
@@ -556,8 +585,16 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
                 .checked_mul(n as u64)
                 .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
         }
-        let pcount = if hdu == 0 { 0 } else { int("PCOUNT").unwrap_or(0).max(0) as u64 };
-        let gcount = if hdu == 0 { 1 } else { int("GCOUNT").unwrap_or(1).max(0) as u64 };
+        let pcount = if hdu == 0 {
+            0
+        } else {
+            int("PCOUNT").unwrap_or(0).max(0) as u64
+        };
+        let gcount = if hdu == 0 {
+            1
+        } else {
+            int("GCOUNT").unwrap_or(1).max(0) as u64
+        };
         let data = if naxis == 0 {
             0
         } else {
@@ -737,7 +774,7 @@ struct Lane {
 enum PartnerChoice {
     Wait,
     Unmatched(String),
-    Use(PartnerFrame),
+    Use(Box<PartnerFrame>),
 }
 
 /// Scheduling settings.
@@ -788,7 +825,8 @@ impl Scheduler {
 
     pub fn offer(&mut self, item: FrameItem) {
         let lane = self.lanes.entry(item.channel.clone()).or_default();
-        lane.buffer.insert((item.obs_time_ns, item.key.clone()), item);
+        lane.buffer
+            .insert((item.obs_time_ns, item.key.clone()), item);
     }
 
     /// No more input will come (replay: everything is known; frames are released).
@@ -861,8 +899,13 @@ impl Scheduler {
         let policy = self.config.channel_policy(name);
         let partner = match &policy.policy {
             PolicySpec::Channel(partner_name) => {
-                match self.choose_partner(partner_name, head, policy.tolerance_s, policy.hold_s, now)
-                {
+                match self.choose_partner(
+                    partner_name,
+                    head,
+                    policy.tolerance_s,
+                    policy.hold_s,
+                    now,
+                ) {
                     PartnerChoice::Wait => return None,
                     PartnerChoice::Unmatched(why) => {
                         let lane = self.lanes.get_mut(name)?;
@@ -874,7 +917,7 @@ impl Scheduler {
                             item.obs_time_ns,
                         )));
                     }
-                    PartnerChoice::Use(p) => Some(p),
+                    PartnerChoice::Use(p) => Some(*p),
                 }
             }
             _ => None,
@@ -882,7 +925,9 @@ impl Scheduler {
         let restored = self.restored.remove(name);
         let lane = self.lanes.get_mut(name)?;
         let (_, item) = lane.buffer.pop_first()?;
-        let late = lane.last_dispatched_ns.is_some_and(|t| item.obs_time_ns < t);
+        let late = lane
+            .last_dispatched_ns
+            .is_some_and(|t| item.obs_time_ns < t);
         lane.last_dispatched_ns = lane.last_dispatched_ns.max(Some(item.obs_time_ns));
         let state = lane.state.take().unwrap_or_else(|| match restored {
             Some(r) => ChannelState::restore(name, policy, &r),
@@ -927,7 +972,7 @@ impl Scheduler {
             }
         }
         match best {
-            Some(p) => PartnerChoice::Use(p.clone()),
+            Some(p) => PartnerChoice::Use(Box::new(p.clone())),
             None => PartnerChoice::Unmatched(format!(
                 "unmatched: no {partner} frame within ±{tolerance_s} s"
             )),
@@ -941,7 +986,9 @@ impl Scheduler {
         lane.in_flight = false;
         lane.state = Some(done.state);
         if let Some(p) = done.partner {
-            let at = lane.history.partition_point(|q| q.obs_time_ns <= p.obs_time_ns);
+            let at = lane
+                .history
+                .partition_point(|q| q.obs_time_ns <= p.obs_time_ns);
             lane.history.insert(at, p);
         }
         self.prune_history(&done.channel);
@@ -1096,6 +1143,11 @@ fn count(p: &mut Progress, record: &Record) {
         Record::Frame { message, .. } => {
             p.frames += 1;
             p.finished += 1;
+            match message.align.status {
+                Status::Ok => p.ok += 1,
+                Status::Degraded => p.degraded += 1,
+                Status::Failed => p.failed += 1,
+            }
             *p.per_channel.entry(message.channel.clone()).or_default() += 1;
         }
         Record::Reference { .. } => p.references += 1,
@@ -1148,7 +1200,16 @@ pub async fn run_pipeline(
     );
     let ctx = JobContext { reader, aligner };
     let flush_every = Duration::from_secs_f64(config.sink.flush_interval_s.max(0.01));
-    let driven = drive(input, scheduler, ctx, writer_tx, stop, stopping, flush_every).await;
+    let driven = drive(
+        input,
+        scheduler,
+        ctx,
+        writer_tx,
+        stop,
+        stopping,
+        flush_every,
+    )
+    .await;
     let written = tokio::task::spawn_blocking(move || writer.join())
         .await
         .map_err(|e| Error::output("writer thread", e.to_string()))?
@@ -1190,7 +1251,10 @@ async fn drive(
                         jobs.spawn_blocking(move || run_job(*job, &ctx));
                     }
                     Action::Emit(record) => {
-                        writer.send(WriterMsg::Record(record)).await.map_err(|_| gone())?;
+                        writer
+                            .send(WriterMsg::Record(record))
+                            .await
+                            .map_err(|_| gone())?;
                     }
                 }
             }
@@ -1250,6 +1314,18 @@ async fn sleep_until_opt(deadline: Option<Instant>) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// The output directory
+
+/// Open the MCAP output in `out` for a new run, with what earlier runs already logged there.
+pub fn open_output(out: &Path, _config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
+    // Wired to `sink::McapSink` and `sink::read_logs` when the MCAP sink lands.
+    Err(Error::output(
+        out,
+        "the MCAP sink is not available in this build yet",
+    ))
+}
+
+// ---------------------------------------------------------------------------------------------
 // Replay: the same pipeline over archived files
 
 /// Expand `replay` arguments (files, directories, shell globs) to canonical file paths,
@@ -1306,7 +1382,11 @@ fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
                     next = current.iter().map(|c| c.join(&*part)).collect();
                 } else {
                     for base in &current {
-                        let dir = if base.as_os_str().is_empty() { Path::new(".") } else { base };
+                        let dir = if base.as_os_str().is_empty() {
+                            Path::new(".")
+                        } else {
+                            base
+                        };
                         let Ok(entries) = std::fs::read_dir(dir) else {
                             continue;
                         };
@@ -1378,7 +1458,15 @@ pub async fn run_replay(
         // Keep the sender alive: a closed channel must not read as a stop.
         std::future::pending::<()>().await;
     });
-    let result = run_pipeline(RunParts { live: false, ..parts }, rx, stop_rx).await;
+    let result = run_pipeline(
+        RunParts {
+            live: false,
+            ..parts
+        },
+        rx,
+        stop_rx,
+    )
+    .await;
     producer.abort();
     stopper.abort();
     result
@@ -1500,7 +1588,9 @@ mod tests {
         records
             .iter()
             .filter_map(|r| match r {
-                Record::Frame { message, .. } if message.channel == channel => Some(message),
+                Record::Frame { message, .. } if message.channel == channel => {
+                    Some(message.as_ref())
+                }
                 _ => None,
             })
             .collect()
@@ -1536,9 +1626,15 @@ mod tests {
 
         let (progress, records) = replay(dir.path(), Config::default(), History::default());
         let a = frames_of(&records, "A");
-        let times: Vec<i64> = a.iter().map(|m| parse_iso8601_utc(&m.obs_time).unwrap() / S).collect();
+        let times: Vec<i64> = a
+            .iter()
+            .map(|m| parse_iso8601_utc(&m.obs_time).unwrap() / S)
+            .collect();
         assert_eq!(times, [10, 20, 30, 40, 50]);
-        assert_eq!(a.iter().map(|m| m.sequence).collect::<Vec<_>>(), [0, 1, 2, 3, 4]);
+        assert_eq!(
+            a.iter().map(|m| m.sequence).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
         assert_eq!(frames_of(&records, "B").len(), 3);
         // Chained dx is the true 0.1·t relative to the first frame (t = 10).
         for (m, t) in a.iter().zip(times) {
@@ -1546,9 +1642,17 @@ mod tests {
         }
         let logs = logs(&records);
         assert_eq!(logs.len(), 2, "{logs:?}");
-        assert!(logs.iter().any(|(f, m)| f.ends_with("garbage.fits") && m.contains("not a FITS file")));
-        assert!(logs.iter().any(|(f, m)| *f == no_time_path.display().to_string() && m.contains("no observation time")));
-        assert_eq!((progress.frames, progress.skipped, progress.finished), (8, 2, 10));
+        assert!(logs
+            .iter()
+            .any(|(f, m)| f.ends_with("garbage.fits") && m.contains("not a FITS file")));
+        assert!(logs
+            .iter()
+            .any(|(f, m)| *f == no_time_path.display().to_string()
+                && m.contains("no observation time")));
+        assert_eq!(
+            (progress.frames, progress.skipped, progress.finished),
+            (8, 2, 10)
+        );
     }
 
     #[test]
@@ -1557,7 +1661,12 @@ mod tests {
         let mut keys = HashMap::new();
         for t in [0, 10, 20, 30] {
             let f = FakeFrame::new("P", t * S, 1.0, 0.0, t as f64, 0.0);
-            keys.insert(t, write(dir.path(), &format!("p{t}.fits"), &f).display().to_string());
+            keys.insert(
+                t,
+                write(dir.path(), &format!("p{t}.fits"), &f)
+                    .display()
+                    .to_string(),
+            );
         }
         // 12 → P10, 16 → P20, 25 → tie → earlier (P20), 39 → P30 (9 s), 45 → unmatched (> 10 s).
         for t in [12, 16, 25, 39, 45] {
@@ -1586,7 +1695,10 @@ mod tests {
         }
         let logs = logs(&records);
         assert_eq!(logs.len(), 1);
-        assert!(logs[0].0.ends_with("f45.fits") && logs[0].1.contains("unmatched"), "{logs:?}");
+        assert!(
+            logs[0].0.ends_with("f45.fits") && logs[0].1.contains("unmatched"),
+            "{logs:?}"
+        );
         // The partner changed three times (P10, P20, P30).
         let changes = records
             .iter()
@@ -1601,7 +1713,14 @@ mod tests {
         for t in 0..12 {
             for ch in ["A", "B", "C"] {
                 let offset = (ch.as_bytes()[0] - b'A') as i64 + 1;
-                let f = FakeFrame::new(ch, (t * 10 + offset) * S, 1.0 + 1e-4 * t as f64, 1e-4 * t as f64, t as f64, -(t as f64));
+                let f = FakeFrame::new(
+                    ch,
+                    (t * 10 + offset) * S,
+                    1.0 + 1e-4 * t as f64,
+                    1e-4 * t as f64,
+                    t as f64,
+                    -(t as f64),
+                );
                 write(dir.path(), &format!("{ch}{t:02}.fits"), &f);
             }
         }
@@ -1609,7 +1728,13 @@ mod tests {
             let mut config = Config::default();
             config.daemon.workers = workers;
             config.reference.keyframe_every_frames = 5;
-            config.channels.insert("C".into(), ChannelConfig { policy: Some(PolicySpec::Channel("A".into())), ..Default::default() });
+            config.channels.insert(
+                "C".into(),
+                ChannelConfig {
+                    policy: Some(PolicySpec::Channel("A".into())),
+                    ..Default::default()
+                },
+            );
             let (_, mut records) = replay(dir.path(), config, History::default());
             records.sort_by_key(|r| (r.topic(), r.log_time_ns(), format!("{r:?}")));
             records
@@ -1624,7 +1749,11 @@ mod tests {
     fn frames_already_in_the_log_are_not_processed_again() {
         let dir = tempfile::tempdir().unwrap();
         for t in 0..6 {
-            write(dir.path(), &format!("f{t}.fits"), &FakeFrame::new("A", t * S, 1.0, 0.0, t as f64, 0.0));
+            write(
+                dir.path(),
+                &format!("f{t}.fits"),
+                &FakeFrame::new("A", t * S, 1.0, 0.0, t as f64, 0.0),
+            );
         }
         let mut config = Config::default();
         config.reference.keyframe_every_frames = 4;
@@ -1640,7 +1769,11 @@ mod tests {
         }
         let (progress, rest) = replay(dir.path(), config, history);
         assert_eq!(progress.frames, 2);
-        assert_eq!(&full[cut + 1..], &rest[..], "the resumed run continues the same series");
+        assert_eq!(
+            &full[cut + 1..],
+            &rest[..],
+            "the resumed run continues the same series"
+        );
     }
 
     #[test]
@@ -1650,7 +1783,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let cases = [
             ("aia_171_20110215T000000_128.fits", 17_280 + 131_072),
-            ("iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits", 2_750_400 + 80_460),
+            (
+                "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits",
+                2_750_400 + 80_460,
+            ),
         ];
         for (name, needed) in cases {
             let bytes = std::fs::read(Path::new("data/real").join(name)).unwrap();
@@ -1668,7 +1804,14 @@ mod tests {
         }
         let bomb = dir.path().join("bomb.fits");
         let mut header = String::new();
-        for card in ["SIMPLE  =                    T", "BITPIX  =                   16", "NAXIS   =                    2", "NAXIS1  =           2000000000", "NAXIS2  =           2000000000", "END"] {
+        for card in [
+            "SIMPLE  =                    T",
+            "BITPIX  =                   16",
+            "NAXIS   =                    2",
+            "NAXIS1  =           2000000000",
+            "NAXIS2  =           2000000000",
+            "END",
+        ] {
             header.push_str(&format!("{card:<80}"));
         }
         std::fs::write(&bomb, format!("{header:<2880}")).unwrap();
@@ -1678,7 +1821,9 @@ mod tests {
         std::fs::write(&bomb, b"").unwrap();
         assert_eq!(fits_completeness(&bomb).unwrap_err(), "empty file");
         let not = Path::new("data/malformed/not_actually_fits.fits");
-        assert!(fits_completeness(not).unwrap_err().starts_with("not a FITS file"));
+        assert!(fits_completeness(not)
+            .unwrap_err()
+            .starts_with("not a FITS file"));
     }
 
     #[test]
@@ -1717,14 +1862,22 @@ mod tests {
         let memory = MemorySink::default();
         let (tx, rx) = mpsc::channel(4);
         let (ptx, prx) = watch::channel(Progress::default());
-        let handle = spawn_writer(Box::new(Flaky(memory.clone(), 3)), rx, ptx, Arc::new(AtomicBool::new(false)));
+        let handle = spawn_writer(
+            Box::new(Flaky(memory.clone(), 3)),
+            rx,
+            ptx,
+            Arc::new(AtomicBool::new(false)),
+        );
         for i in 0..3 {
             let r = Record::log(LogLevel::Error, &format!("f{i}"), "x", i);
             tx.blocking_send(WriterMsg::Record(r)).unwrap();
         }
         drop(tx);
         handle.join().unwrap().unwrap();
-        let files: Vec<String> = logs(&memory.records()).into_iter().map(|(f, _)| f).collect();
+        let files: Vec<String> = logs(&memory.records())
+            .into_iter()
+            .map(|(f, _)| f)
+            .collect();
         assert_eq!(files, ["f0", "f1", "f2"]);
         assert_eq!((prx.borrow().write_errors, prx.borrow().finished), (3, 3));
     }

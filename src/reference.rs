@@ -76,9 +76,7 @@ impl FromStr for PolicySpec {
             "keyframe" => Ok(PolicySpec::Keyframe),
             other => match other.split_once(':') {
                 Some(("fixed", file)) if !file.is_empty() => Ok(PolicySpec::Fixed(file.into())),
-                Some(("channel", name)) if !name.is_empty() => {
-                    Ok(PolicySpec::Channel(name.into()))
-                }
+                Some(("channel", name)) if !name.is_empty() => Ok(PolicySpec::Channel(name.into())),
                 _ => Err(bad()),
             },
         }
@@ -559,13 +557,22 @@ impl ChannelState {
         let ref_image = match reference.image(ctx) {
             Ok(image) => image,
             Err(e) => {
-                self.restart_reason = Some(format!("previous reference unreadable ({e}): new chain"));
+                self.restart_reason =
+                    Some(format!("previous reference unreadable ({e}): new chain"));
                 return self.start_chain(frame, sequence, records);
             }
         };
         let outcome = ctx.align(&ref_image, &frame.image);
         let chain = chain_after(reference.chain.as_ref(), &outcome);
-        let emitted = self.emit(frame, sequence, "previous", &reference.key, outcome, chain, records);
+        let emitted = self.emit(
+            frame,
+            sequence,
+            "previous",
+            &reference.key,
+            outcome,
+            chain,
+            records,
+        );
         if emitted.message.align.status == Status::Failed {
             self.reference = Some(reference);
             self.note_failure();
@@ -628,7 +635,13 @@ impl ChannelState {
             } else {
                 format!("refresh every {} s", self.policy.keyframe_every_s)
             };
-            self.install(RefSlot::from_frame(frame, chain), frame, sequence, reason, records);
+            self.install(
+                RefSlot::from_frame(frame, chain),
+                frame,
+                sequence,
+                reason,
+                records,
+            );
             self.candidate = None;
             self.frames_on_reference = 0;
             self.consecutive_failures = 0;
@@ -686,7 +699,12 @@ impl ChannelState {
                     Ok(image) => {
                         slot.obs_time_ns = image.meta.obs_time_ns.unwrap_or(frame.obs_time_ns);
                         slot.chain = Some(Chain::origin(image_center(&image)));
-                        records.push(self.change_record(&slot, frame, sequence, "fixed reference".into()));
+                        records.push(self.change_record(
+                            &slot,
+                            frame,
+                            sequence,
+                            "fixed reference".into(),
+                        ));
                         slot
                     }
                     Err(e) => {
@@ -709,7 +727,15 @@ impl ChannelState {
                 }
             };
             let chain = chain_after(reference.chain.as_ref(), &outcome);
-            self.emit(frame, sequence, "fixed", &reference.key, outcome, chain, records)
+            self.emit(
+                frame,
+                sequence,
+                "fixed",
+                &reference.key,
+                outcome,
+                chain,
+                records,
+            )
         };
         self.reference = Some(reference);
         emitted
@@ -734,8 +760,10 @@ impl ChannelState {
                     image: None,
                 };
                 let dt = (frame.obs_time_ns - partner.obs_time_ns) as f64 * 1e-9;
-                let reason =
-                    format!("nearest {} frame (frame − reference = {dt:+.3} s)", partner.channel);
+                let reason = format!(
+                    "nearest {} frame (frame − reference = {dt:+.3} s)",
+                    partner.channel
+                );
                 records.push(self.change_record(&slot, frame, sequence, reason));
                 slot
             }
@@ -748,7 +776,15 @@ impl ChannelState {
             }
         };
         let chain = chain_after(reference.chain.as_ref(), &outcome);
-        let emitted = self.emit(frame, sequence, "channel", &reference.key, outcome, chain, records);
+        let emitted = self.emit(
+            frame,
+            sequence,
+            "channel",
+            &reference.key,
+            outcome,
+            chain,
+            records,
+        );
         self.reference = Some(reference);
         emitted
     }
@@ -810,7 +846,7 @@ impl ChannelState {
             chain_center_px: chain.map(|c| c.transform.center),
         };
         Record::Reference {
-            change,
+            change: Box::new(change),
             log_time_ns: frame.obs_time_ns,
         }
     }
@@ -913,7 +949,7 @@ impl ChannelState {
             sigma_chained_scale: sig.map(|s| s[0]),
         };
         records.push(Record::Frame {
-            message: message.clone(),
+            message: Box::new(message.clone()),
             log_time_ns: frame.obs_time_ns,
         });
         Emitted { message, chain }
@@ -1054,8 +1090,10 @@ mod tests {
 
     impl World {
         fn new(frames: &[(String, FakeFrame)], cov: Cov4) -> World {
-            let map: HashMap<PathBuf, FakeFrame> =
-                frames.iter().map(|(k, f)| (PathBuf::from(k), f.clone())).collect();
+            let map: HashMap<PathBuf, FakeFrame> = frames
+                .iter()
+                .map(|(k, f)| (PathBuf::from(k), f.clone()))
+                .collect();
             let lookup = map.clone();
             World {
                 frames: map,
@@ -1139,7 +1177,7 @@ mod tests {
         records
             .iter()
             .filter_map(|r| match r {
-                Record::Frame { message, .. } => Some(message),
+                Record::Frame { message, .. } => Some(message.as_ref()),
                 _ => None,
             })
             .collect()
@@ -1149,7 +1187,7 @@ mod tests {
         records
             .iter()
             .filter_map(|r| match r {
-                Record::Reference { change, .. } => Some(change),
+                Record::Reference { change, .. } => Some(change.as_ref()),
                 _ => None,
             })
             .collect()
@@ -1157,16 +1195,29 @@ mod tests {
 
     fn assert_chained_is_truth(m: &FrameAlignment, truth: &Similarity) {
         let tol = 1e-9;
-        assert!((m.chained_scale.unwrap() - truth.scale).abs() < tol, "{m:?}");
+        assert!(
+            (m.chained_scale.unwrap() - truth.scale).abs() < tol,
+            "{m:?}"
+        );
         let rot = m.chained_rotation_arcsec.unwrap() / ARCSEC_PER_RAD;
         assert!((rot - truth.rotation_rad).abs() < tol, "{m:?}");
-        assert!((m.chained_dx_px.unwrap() - truth.dx).abs() < tol, "{} vs {}", m.chained_dx_px.unwrap(), truth.dx);
+        assert!(
+            (m.chained_dx_px.unwrap() - truth.dx).abs() < tol,
+            "{} vs {}",
+            m.chained_dx_px.unwrap(),
+            truth.dx
+        );
         assert!((m.chained_dy_px.unwrap() - truth.dy).abs() < tol, "{m:?}");
     }
 
     #[test]
     fn policy_names_parse_and_print() {
-        for s in ["previous", "keyframe", "fixed:/a/b.fits[2]", "channel:SJI_1400"] {
+        for s in [
+            "previous",
+            "keyframe",
+            "fixed:/a/b.fits[2]",
+            "channel:SJI_1400",
+        ] {
             assert_eq!(s.parse::<PolicySpec>().unwrap().to_string(), s);
         }
         assert_eq!(
@@ -1192,12 +1243,21 @@ mod tests {
         let m = messages(&records)[0];
         assert_eq!((m.reference_kind.as_str(), m.sequence), ("self", 0));
         assert_eq!(m.align.status, Status::Ok);
-        assert_eq!((m.align.scale, m.align.dx_px, m.align.dy_px), (Some(1.0), Some(0.0), Some(0.0)));
-        assert_eq!((m.align.sigma_dx_px, m.sigma_chained_dx_px), (Some(0.0), Some(0.0)));
+        assert_eq!(
+            (m.align.scale, m.align.dx_px, m.align.dy_px),
+            (Some(1.0), Some(0.0), Some(0.0))
+        );
+        assert_eq!(
+            (m.align.sigma_dx_px, m.sigma_chained_dx_px),
+            (Some(0.0), Some(0.0))
+        );
         assert_eq!((m.chained_scale, m.chained_dx_px), (Some(1.0), Some(0.0)));
         assert_eq!(m.align.reference, m.align.frame);
         assert_eq!(changes(&records)[0].reason, "first frame");
-        assert!(world.calls.borrow().is_empty(), "no engine call for the self frame");
+        assert!(
+            world.calls.borrow().is_empty(),
+            "no engine call for the self frame"
+        );
     }
 
     #[test]
@@ -1242,7 +1302,14 @@ mod tests {
         // origin, aligned to its keyframe, has σ² = (k + 1)·SX²; a keyframe itself k·SX².
         let frames: Vec<(String, FakeFrame)> = (0..9)
             .map(|i| {
-                let f = FakeFrame::new("C", i * 1_000_000_000, 1.0, 0.0, 0.3 * i as f64, -0.2 * i as f64);
+                let f = FakeFrame::new(
+                    "C",
+                    i * 1_000_000_000,
+                    1.0,
+                    0.0,
+                    0.3 * i as f64,
+                    -0.2 * i as f64,
+                );
                 (format!("/d/t{i}.fits"), f)
             })
             .collect();
@@ -1254,18 +1321,40 @@ mod tests {
         let records = run(&mut state, &world, &keys);
         for (i, m) in messages(&records).iter().enumerate() {
             let handovers = (i / 3) as f64;
-            let links = if i % 3 == 0 { handovers } else { handovers + 1.0 };
+            let links = if i % 3 == 0 {
+                handovers
+            } else {
+                handovers + 1.0
+            };
             let expect = (links * SX * SX).sqrt();
-            assert!((m.sigma_chained_dx_px.unwrap() - expect).abs() < 1e-12, "frame {i}");
-            assert!((m.sigma_chained_dy_px.unwrap() - expect).abs() < 1e-12, "frame {i}");
+            assert!(
+                (m.sigma_chained_dx_px.unwrap() - expect).abs() < 1e-12,
+                "frame {i}"
+            );
+            assert!(
+                (m.sigma_chained_dy_px.unwrap() - expect).abs() < 1e-12,
+                "frame {i}"
+            );
         }
     }
 
     #[test]
     fn covariance_propagation_matches_a_numerical_jacobian() {
         // Independent check: differentiate Similarity::after numerically and form J Σ Jᵀ.
-        let a = Similarity { scale: 1.003, rotation_rad: 0.02, dx: 1.5, dy: -2.0, center: [40.0, 30.0] };
-        let t = Similarity { scale: 0.998, rotation_rad: -0.01, dx: -3.0, dy: 0.7, center: [50.5, 20.5] };
+        let a = Similarity {
+            scale: 1.003,
+            rotation_rad: 0.02,
+            dx: 1.5,
+            dy: -2.0,
+            center: [40.0, 30.0],
+        };
+        let t = Similarity {
+            scale: 0.998,
+            rotation_rad: -0.01,
+            dx: -3.0,
+            dy: 0.7,
+            center: [50.5, 20.5],
+        };
         let ca = [
             [1e-6, 2e-8, 1e-6, 0.0],
             [2e-8, 4e-8, 0.0, 3e-7],
@@ -1279,14 +1368,26 @@ mod tests {
         let with = |s: &Similarity, i: usize, h: f64| {
             let mut p = params(s);
             p[i] += h;
-            Similarity { scale: p[0], rotation_rad: p[1], dx: p[2], dy: p[3], center: s.center }
+            Similarity {
+                scale: p[0],
+                rotation_rad: p[1],
+                dx: p[2],
+                dy: p[3],
+                center: s.center,
+            }
         };
         let h = 1e-6;
         let mut ja = [[0.0; 4]; 4];
         let mut jt = [[0.0; 4]; 4];
         for i in 0..4 {
-            let (pa, ma) = (params(&with(&a, i, h).after(&t)), params(&with(&a, i, -h).after(&t)));
-            let (pt, mt) = (params(&a.after(&with(&t, i, h))), params(&a.after(&with(&t, i, -h))));
+            let (pa, ma) = (
+                params(&with(&a, i, h).after(&t)),
+                params(&with(&a, i, -h).after(&t)),
+            );
+            let (pt, mt) = (
+                params(&a.after(&with(&t, i, h))),
+                params(&a.after(&with(&t, i, -h))),
+            );
             for r in 0..4 {
                 ja[r][i] = (pa[r] - ma[r]) / (2.0 * h);
                 jt[r][i] = (pt[r] - mt[r]) / (2.0 * h);
@@ -1306,7 +1407,12 @@ mod tests {
         for r in 0..4 {
             for k in 0..4 {
                 let scale = expect[r][r].sqrt() * expect[k][k].sqrt();
-                assert!((cov[r][k] - expect[r][k]).abs() <= 1e-6 * scale, "[{r}][{k}] {} vs {}", cov[r][k], expect[r][k]);
+                assert!(
+                    (cov[r][k] - expect[r][k]).abs() <= 1e-6 * scale,
+                    "[{r}][{k}] {} vs {}",
+                    cov[r][k],
+                    expect[r][k]
+                );
             }
         }
     }
@@ -1317,8 +1423,10 @@ mod tests {
         frames[4].1.degraded = true; // degraded against keyframe 0 … and against frame 3 too
         let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
         // Make only the pair (f00, f04) degraded: frame 4 is fine against frame 3.
-        let lookup: HashMap<PathBuf, FakeFrame> =
-            frames.iter().map(|(k, f)| (PathBuf::from(k), f.clone())).collect();
+        let lookup: HashMap<PathBuf, FakeFrame> = frames
+            .iter()
+            .map(|(k, f)| (PathBuf::from(k), f.clone()))
+            .collect();
         let mut world = World::new(&frames, diag(0.0, 0.0, SX, SX));
         let k0 = PathBuf::from(&keys[0]);
         world.aligner = TruthAligner {
@@ -1345,7 +1453,10 @@ mod tests {
         }
         let msgs = messages(&records);
         assert_eq!(msgs.len(), 6);
-        assert_eq!(msgs[4].align.reference, keys[3], "frame 4 re-aligned to frame 3");
+        assert_eq!(
+            msgs[4].align.reference, keys[3],
+            "frame 4 re-aligned to frame 3"
+        );
         assert_eq!(msgs[4].align.status, Status::Ok);
         assert_eq!(msgs[5].align.reference, keys[3]);
         for (i, m) in msgs.iter().enumerate() {
@@ -1354,7 +1465,11 @@ mod tests {
         let ch = changes(&records);
         assert_eq!(ch.len(), 2);
         assert_eq!(ch[1].file, keys[3]);
-        assert!(ch[1].reason.starts_with("match degraded"), "{}", ch[1].reason);
+        assert!(
+            ch[1].reason.starts_with("match degraded"),
+            "{}",
+            ch[1].reason
+        );
         // Frame 3 was logged once (aligned to frame 0), never as `self`.
         assert_eq!(msgs.iter().filter(|m| m.align.frame == keys[3]).count(), 1);
     }
@@ -1380,12 +1495,22 @@ mod tests {
         // Three failures in a row (restart_after_failures = 3): frame 5 starts a new chain.
         assert_eq!(msgs[5].reference_kind, "self");
         assert_eq!(msgs[5].chained_dx_px, Some(0.0));
-        let last = changes(&records).into_iter().find(|c| c.file == keys[5]).unwrap();
-        assert!(last.reason.contains("3 consecutive failed"), "{}", last.reason);
+        let last = changes(&records)
+            .into_iter()
+            .find(|c| c.file == keys[5])
+            .unwrap();
+        assert!(
+            last.reason.contains("3 consecutive failed"),
+            "{}",
+            last.reason
+        );
         // Frames 6, 7 continue the new chain: pointing relative to frame 5.
         let rel = frames[7].1.truth.after(&frames[5].1.truth.inverse());
         assert_chained_is_truth(msgs[7], &rel);
-        assert_eq!(msgs.iter().map(|m| m.sequence).collect::<Vec<_>>(), (0..8).collect::<Vec<_>>());
+        assert_eq!(
+            msgs.iter().map(|m| m.sequence).collect::<Vec<_>>(),
+            (0..8).collect::<Vec<_>>()
+        );
     }
 
     #[test]
@@ -1423,7 +1548,10 @@ mod tests {
         let records = run(&mut state, &world, &keys);
         let msgs = messages(&records);
         for (i, m) in msgs.iter().enumerate() {
-            assert_eq!((m.reference_kind.as_str(), m.align.reference.as_str()), ("fixed", "/d/ref.fits"));
+            assert_eq!(
+                (m.reference_kind.as_str(), m.align.reference.as_str()),
+                ("fixed", "/d/ref.fits")
+            );
             let rel = frames[i].1.truth.after(&fixed.truth.inverse());
             assert_chained_is_truth(m, &rel);
             assert!((m.align.dx_px.unwrap() - rel.dx).abs() < 1e-9);
@@ -1440,10 +1568,8 @@ mod tests {
         all.push(("/d/p.fits".into(), partner_frame.clone()));
         let world = World::new(&all, diag(0.0, 0.0, SX, SX));
         // The partner frame's own chain (e.g. its keyframe series): origin → partner.
-        let partner_chain = Chain::origin(Similarity::array_center(WIDTH, HEIGHT)).then(
-            &partner_frame.truth,
-            Some(&diag(0.0, 0.0, SX, SX)),
-        );
+        let partner_chain = Chain::origin(Similarity::array_center(WIDTH, HEIGHT))
+            .then(&partner_frame.truth, Some(&diag(0.0, 0.0, SX, SX)));
         let partner = PartnerFrame {
             channel: "P".into(),
             key: "/d/p.fits".into(),
@@ -1454,11 +1580,18 @@ mod tests {
         let mut state = ChannelState::new("C", policy(PolicySpec::Channel("P".into())));
         let mut records = Vec::new();
         for k in &keys[1..3] {
-            records.extend(state.process(&world.loaded(k), Some(&partner), &world).records);
+            records.extend(
+                state
+                    .process(&world.loaded(k), Some(&partner), &world)
+                    .records,
+            );
         }
         let msgs = messages(&records);
         for (m, i) in msgs.iter().zip(1..) {
-            assert_eq!((m.reference_kind.as_str(), m.align.reference.as_str()), ("channel", "/d/p.fits"));
+            assert_eq!(
+                (m.reference_kind.as_str(), m.align.reference.as_str()),
+                ("channel", "/d/p.fits")
+            );
             // Partner chain then partner→frame = the frame's true pointing.
             assert_chained_is_truth(m, &frames[i].1.truth);
             // One link (partner → frame) after the partner's own: SX² + s² SX².
@@ -1477,7 +1610,14 @@ mod tests {
         // (pure translations: diagonal covariances, so nothing is lost by the log's σ).
         let frames: Vec<(String, FakeFrame)> = (0..11)
             .map(|i| {
-                let f = FakeFrame::new("C", i * 1_000_000_000, 1.0, 0.0, (i as f64).sin(), 0.1 * i as f64);
+                let f = FakeFrame::new(
+                    "C",
+                    i * 1_000_000_000,
+                    1.0,
+                    0.0,
+                    (i as f64).sin(),
+                    0.1 * i as f64,
+                );
                 (format!("/d/r{i:02}.fits"), f)
             })
             .collect();

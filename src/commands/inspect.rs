@@ -8,5 +8,7 @@ pub struct Args {
 }
 
 pub fn run(_args: &Args) -> crate::Result<i32> {
-    Err(crate::Error::Usage("`inspect` is not implemented yet".into()))
+    Err(crate::Error::Usage(
+        "`inspect` is not implemented yet".into(),
+    ))
 }

@@ -70,8 +70,14 @@ impl FakeFrame {
         cards.push(format!("T_ROT   = {:>20e}", t.rotation_rad));
         cards.push(format!("T_DX    = {:>20e}", t.dx));
         cards.push(format!("T_DY    = {:>20e}", t.dy));
-        cards.push(format!("T_BAD   = {:>20}", if self.bad { "T" } else { "F" }));
-        cards.push(format!("T_DEGR  = {:>20}", if self.degraded { "T" } else { "F" }));
+        cards.push(format!(
+            "T_BAD   = {:>20}",
+            if self.bad { "T" } else { "F" }
+        ));
+        cards.push(format!(
+            "T_DEGR  = {:>20}",
+            if self.degraded { "T" } else { "F" }
+        ));
         cards.push("END".to_string());
         let mut bytes = Vec::new();
         for card in cards {
@@ -186,11 +192,13 @@ impl FrameReader for FakeReader {
     }
 }
 
+/// Finds the truth of a fake image by its file.
+pub type TruthLookup = Box<dyn Fn(&Path) -> Option<FakeFrame> + Send + Sync>;
+
 /// Answers the true relative transform between two fake frames, with covariance `cov`.
 pub struct TruthAligner {
     pub cov: Cov4,
-    /// Truth lookup: the image's file → its frame.
-    pub truth: Box<dyn Fn(&Path) -> Option<FakeFrame> + Send + Sync>,
+    pub truth: TruthLookup,
 }
 
 impl TruthAligner {
@@ -227,7 +235,13 @@ impl Aligner for TruthAligner {
 }
 
 /// An engine-like outcome for a known transform and covariance.
-pub fn outcome(reference: &str, frame: &str, t: Similarity, cov: Cov4, status: Status) -> AlignOutcome {
+pub fn outcome(
+    reference: &str,
+    frame: &str,
+    t: Similarity,
+    cov: Cov4,
+    status: Status,
+) -> AlignOutcome {
     let arcsec = crate::geometry::ARCSEC_PER_RAD;
     let sd = |i: usize| Some(cov[i][i].sqrt());
     AlignOutcome {
