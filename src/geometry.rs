@@ -105,6 +105,99 @@ impl Similarity {
     }
 }
 
+/// Covariance of the parameters `(scale, rotation_rad, dx, dy)`.
+pub type Covariance4 = [[f64; 4]; 4];
+
+impl Similarity {
+    /// Parameters as a vector `(scale, rotation_rad, dx, dy)`.
+    pub fn params(&self) -> [f64; 4] {
+        [self.scale, self.rotation_rad, self.dx, self.dy]
+    }
+
+    /// Rebuild from `(scale, rotation_rad, dx, dy)` about `center`.
+    pub fn from_params(p: [f64; 4], center: [f64; 2]) -> Self {
+        Similarity {
+            scale: p[0],
+            rotation_rad: p[1],
+            dx: p[2],
+            dy: p[3],
+            center,
+        }
+    }
+}
+
+/// `outer ∘ inner` with first-order propagation of independent parameter covariances:
+/// `Cov = J_o Cov_o J_oᵀ + J_i Cov_i J_iᵀ`, Jacobians by central differences
+/// (the composition is smooth and cheap, so this avoids error-prone hand derivatives).
+pub fn compose_with_covariance(
+    outer: &Similarity,
+    outer_cov: &Covariance4,
+    inner: &Similarity,
+    inner_cov: &Covariance4,
+) -> (Similarity, Covariance4) {
+    let composed = outer.after(inner);
+    let jac = |which_outer: bool| -> [[f64; 4]; 4] {
+        let base = if which_outer {
+            outer.params()
+        } else {
+            inner.params()
+        };
+        let mut j = [[0.0; 4]; 4];
+        for k in 0..4 {
+            let h = 1e-6 * base[k].abs().max(1e-3);
+            let mut plus = base;
+            let mut minus = base;
+            plus[k] += h;
+            minus[k] -= h;
+            let eval = |p: [f64; 4]| -> [f64; 4] {
+                if which_outer {
+                    Similarity::from_params(p, outer.center)
+                        .after(inner)
+                        .params()
+                } else {
+                    outer
+                        .after(&Similarity::from_params(p, inner.center))
+                        .params()
+                }
+            };
+            let (fp, fm) = (eval(plus), eval(minus));
+            for r in 0..4 {
+                j[r][k] = (fp[r] - fm[r]) / (2.0 * h);
+            }
+        }
+        j
+    };
+    let sandwich = |j: &[[f64; 4]; 4], c: &Covariance4| -> Covariance4 {
+        let mut out = [[0.0; 4]; 4];
+        for r in 0..4 {
+            for s in 0..4 {
+                let mut acc = 0.0;
+                for a in 0..4 {
+                    for b in 0..4 {
+                        acc += j[r][a] * c[a][b] * j[s][b];
+                    }
+                }
+                out[r][s] = acc;
+            }
+        }
+        out
+    };
+    let co = sandwich(&jac(true), outer_cov);
+    let ci = sandwich(&jac(false), inner_cov);
+    let mut cov = [[0.0; 4]; 4];
+    for r in 0..4 {
+        for s in 0..4 {
+            cov[r][s] = co[r][s] + ci[r][s];
+        }
+    }
+    (composed, cov)
+}
+
+/// Standard errors (square roots of the diagonal).
+pub fn sigmas(cov: &Covariance4) -> [f64; 4] {
+    [0, 1, 2, 3].map(|k| cov[k][k].max(0.0).sqrt())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -142,5 +235,67 @@ mod tests {
         assert!(id.dx.abs() < 1e-9 && id.dy.abs() < 1e-9);
         let moved = t.recentered([0.0, 0.0]);
         assert!(close(moved.apply(p), t.apply(p)));
+    }
+
+    #[test]
+    fn composition_covariance_matches_monte_carlo_of_known_errors() {
+        // Truth: perturb `inner` by known Gaussian errors, compose, measure the spread.
+        let outer = Similarity {
+            scale: 1.01,
+            rotation_rad: 0.3,
+            dx: 4.0,
+            dy: -2.0,
+            center: [50.0, 40.0],
+        };
+        let inner = Similarity {
+            scale: 0.999,
+            rotation_rad: -0.01,
+            dx: 1.0,
+            dy: 0.5,
+            center: [50.0, 40.0],
+        };
+        let sd = [1e-4, 2e-4, 0.05, 0.03];
+        let mut cov_i = [[0.0; 4]; 4];
+        for k in 0..4 {
+            cov_i[k][k] = sd[k] * sd[k];
+        }
+        let zero = [[0.0; 4]; 4];
+        let (_, cov) = compose_with_covariance(&outer, &zero, &inner, &cov_i);
+        // Deterministic pseudo-normal draws (Box-Muller on a fixed LCG).
+        let mut state: u64 = 12345;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let n = 20000;
+        let mut sum = [0.0; 4];
+        let mut sum2 = [0.0; 4];
+        for _ in 0..n {
+            let mut p = inner.params();
+            for k in 0..4 {
+                let z =
+                    (-2.0 * uniform().ln()).sqrt() * (2.0 * std::f64::consts::PI * uniform()).cos();
+                p[k] += sd[k] * z;
+            }
+            let c = outer
+                .after(&Similarity::from_params(p, inner.center))
+                .params();
+            for k in 0..4 {
+                sum[k] += c[k];
+                sum2[k] += c[k] * c[k];
+            }
+        }
+        let predicted = sigmas(&cov);
+        for k in 0..4 {
+            let mean = sum[k] / n as f64;
+            let sample_sd = (sum2[k] / n as f64 - mean * mean).sqrt();
+            assert!(
+                (sample_sd / predicted[k] - 1.0).abs() < 0.03,
+                "param {k}: {sample_sd} vs {}",
+                predicted[k]
+            );
+        }
     }
 }

@@ -23,9 +23,11 @@ pub mod coarse;
 pub mod preprocess;
 pub mod resample;
 
+pub mod crosscorr;
 pub mod fit;
 pub mod flow;
 pub mod sampling;
+pub mod stats;
 
 pub mod engine;
 pub mod simulate;

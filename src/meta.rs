@@ -1,5 +1,12 @@
 //! Header metadata, normalised across instruments (the `info` command's fields).
+//!
+//! Everything here is a pure function of a parsed [`Header`]; the file reading is in
+//! [`crate::fits`]. Conventions (see the contract, "Geometry and units"):
+//! plate scale in arcsec/pixel, roll in degrees in the `CROTA2` sense (solar north points to
+//! pixel direction (sin ρ, cos ρ)), sun centre as 0-based pixel coordinates.
 
+use crate::header::Header;
+use crate::time::{self, TimeScale};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -29,4 +36,624 @@ pub struct FrameMeta {
     /// 0-based pixel where helioprojective (0″, 0″) falls.
     pub sun_center_px: [f64; 2],
     pub rsun_arcsec: Option<f64>,
+}
+
+impl FrameMeta {
+    /// Observation time as ISO 8601 UTC (`YYYY-MM-DDTHH:MM:SS.sssZ`), if known.
+    pub fn obs_time_iso(&self) -> Option<String> {
+        self.obs_time_ns.map(time::format_iso_utc)
+    }
+}
+
+/// Where the image sits in its file and how big it is (what the header alone cannot say).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImagePlace {
+    pub file: PathBuf,
+    pub hdu: usize,
+    pub frame: Option<usize>,
+    pub width: usize,
+    pub height: usize,
+    pub bitpix: i32,
+}
+
+/// Normalise one image's header. `Err` carries a one-line reason (a `BadHeader`).
+///
+/// The observation time here is the header's; cube readers replace it per frame.
+pub fn from_header(header: &Header, place: ImagePlace) -> Result<FrameMeta, String> {
+    let wcs = CelestialWcs::from_header(header)?;
+    let instrument = instrument(header);
+    let wavelength = wavelength(header);
+    Ok(FrameMeta {
+        channel: channel(header, instrument.as_deref(), wavelength),
+        instrument,
+        wavelength,
+        obs_time_ns: obs_time_ns(header),
+        exptime_s: exptime_s(header),
+        plate_scale_arcsec: wcs.plate_scale_arcsec(),
+        rotation_deg: wcs.rotation_deg,
+        sun_center_px: wcs.sun_center_px()?,
+        rsun_arcsec: rsun_arcsec(header, wcs.cdelt_arcsec[0]),
+        file: place.file,
+        hdu: place.hdu,
+        frame: place.frame,
+        width: place.width,
+        height: place.height,
+        bitpix: place.bitpix,
+    })
+}
+
+/// Arcsec per unit of a `CUNITi` value; missing or blank means arcsec (solar convention).
+fn angle_unit_arcsec(unit: Option<&str>) -> Result<f64, String> {
+    let u = unit.unwrap_or("").trim().to_ascii_lowercase();
+    Ok(match u.as_str() {
+        "" | "arcsec" | "arcsecs" | "asec" | "arcseconds" => 1.0,
+        "arcmin" | "amin" => 60.0,
+        "deg" | "degree" | "degrees" => 3600.0,
+        "rad" | "radian" | "radians" => 180.0 * 3600.0 / std::f64::consts::PI,
+        "mas" => 1e-3,
+        other => return Err(format!("CUNIT '{other}' is not an angle unit")),
+    })
+}
+
+/// The helioprojective part of the WCS, in arcsec: the linear map from pixel offsets to
+/// intermediate coordinates, `M = diag(CDELT) · PC` (or `CD`), plus the reference point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CelestialWcs {
+    /// 1-based reference pixel (`CRPIX1`, `CRPIX2`).
+    pub crpix: [f64; 2],
+    /// Reference value, arcsec.
+    pub crval_arcsec: [f64; 2],
+    /// Pixel spacing, arcsec (`CDELTi`, or the column norms of `CD`).
+    pub cdelt_arcsec: [f64; 2],
+    /// Arcsec per pixel matrix `M[i][j]` (world axis i, pixel axis j).
+    pub matrix: [[f64; 2]; 2],
+    /// Roll in degrees, `CROTA2` sense.
+    pub rotation_deg: f64,
+    /// Gnomonic (`-TAN`) projection; otherwise the axes are treated as linear.
+    pub tan: bool,
+}
+
+impl CelestialWcs {
+    /// Read `CRPIX`/`CRVAL`/`CDELT`/`CUNIT` and the rotation (`PCi_j`, `CDi_j`, `CROTA2`, or
+    /// `SC_ROLL` for raw SOHO files that carry none of those).
+    pub fn from_header(h: &Header) -> Result<Self, String> {
+        let unit = [
+            angle_unit_arcsec(h.str("CUNIT1"))?,
+            angle_unit_arcsec(h.str("CUNIT2"))?,
+        ];
+        let crpix = [
+            h.f64("CRPIX1")
+                .ok_or("CRPIX1 is missing: no reference pixel")?,
+            h.f64("CRPIX2")
+                .ok_or("CRPIX2 is missing: no reference pixel")?,
+        ];
+        // FITS default for a missing CRVAL is 0.
+        let crval_arcsec = [
+            h.f64("CRVAL1").unwrap_or(0.0) * unit[0],
+            h.f64("CRVAL2").unwrap_or(0.0) * unit[1],
+        ];
+        let tan = ["CTYPE1", "CTYPE2"].iter().all(|k| {
+            h.str(k)
+                .is_some_and(|t| t.to_ascii_uppercase().ends_with("-TAN"))
+        });
+        let (cdelt_arcsec, matrix, rotation_deg) = match cd_matrix(h) {
+            Some(cd) => from_cd(cd, unit)?,
+            None => from_cdelt_and_rotation(h, unit)?,
+        };
+        Ok(CelestialWcs {
+            crpix,
+            crval_arcsec,
+            cdelt_arcsec,
+            matrix,
+            rotation_deg,
+            tan,
+        })
+    }
+
+    /// `[CDELT1, CDELT2]` in arcsec.
+    pub fn plate_scale_arcsec(&self) -> [f64; 2] {
+        self.cdelt_arcsec
+    }
+
+    /// 0-based pixel of helioprojective (0″, 0″): project it to intermediate coordinates
+    /// around the reference point (gnomonic for `-TAN`), then invert `M`.
+    pub fn sun_center_px(&self) -> Result<[f64; 2], String> {
+        let [x, y] = self.intermediate_of_sun_centre()?;
+        let [[a, b], [c, d]] = self.matrix;
+        let det = a * d - b * c;
+        if det.abs() < 1e-300 || !det.is_finite() {
+            return Err("the CDELT/PC matrix is singular".into());
+        }
+        let dx = (d * x - b * y) / det;
+        let dy = (-c * x + a * y) / det;
+        Ok([self.crpix[0] - 1.0 + dx, self.crpix[1] - 1.0 + dy])
+    }
+
+    /// Intermediate world coordinates (arcsec) of (0″, 0″) relative to the reference point.
+    fn intermediate_of_sun_centre(&self) -> Result<[f64; 2], String> {
+        let [lon0, lat0] = self.crval_arcsec;
+        if !self.tan {
+            return Ok([-lon0, -lat0]);
+        }
+        let rad = std::f64::consts::PI / (180.0 * 3600.0);
+        let (a0, d0) = (lon0 * rad, lat0 * rad);
+        let cos_c = d0.cos() * a0.cos();
+        if cos_c <= 0.0 {
+            return Err("disk centre is more than 90° from the reference point".into());
+        }
+        // Gnomonic projection of (α, δ) = (0, 0) about (α0, δ0) (Calabretta & Greisen 2002).
+        let x = -a0.sin() / cos_c;
+        let y = -d0.sin() * a0.cos() / cos_c;
+        Ok([x / rad, y / rad])
+    }
+}
+
+/// `CDi_j` if present (already in CUNIT per pixel).
+fn cd_matrix(h: &Header) -> Option<[[f64; 2]; 2]> {
+    let keys = ["CD1_1", "CD1_2", "CD2_1", "CD2_2"];
+    if !keys.iter().any(|k| h.contains(k)) {
+        return None;
+    }
+    let v = |k: &str| h.f64(k).unwrap_or(0.0);
+    Some([[v("CD1_1"), v("CD1_2")], [v("CD2_1"), v("CD2_2")]])
+}
+
+type LinearPart = ([f64; 2], [[f64; 2]; 2], f64);
+
+/// From a `CD` matrix: scales are the column norms, roll from the matrix (CDELT > 0 assumed).
+fn from_cd(cd: [[f64; 2]; 2], unit: [f64; 2]) -> Result<LinearPart, String> {
+    let m = [
+        [cd[0][0] * unit[0], cd[0][1] * unit[0]],
+        [cd[1][0] * unit[1], cd[1][1] * unit[1]],
+    ];
+    let scale = [m[0][0].hypot(m[1][0]), m[0][1].hypot(m[1][1])];
+    if scale[0] == 0.0 || scale[1] == 0.0 {
+        return Err("the CD matrix is singular".into());
+    }
+    Ok((scale, m, roll_from_matrix(m, scale)))
+}
+
+/// From `CDELTi` with `PCi_j`, else `CROTA2`, else `SC_ROLL`, else no roll.
+fn from_cdelt_and_rotation(h: &Header, unit: [f64; 2]) -> Result<LinearPart, String> {
+    let cdelt = [
+        h.f64("CDELT1").ok_or("CDELT1 is missing: no plate scale")? * unit[0],
+        h.f64("CDELT2").ok_or("CDELT2 is missing: no plate scale")? * unit[1],
+    ];
+    if cdelt[0] == 0.0 || cdelt[1] == 0.0 {
+        return Err("CDELT1/CDELT2 is zero".into());
+    }
+    let crota = h
+        .f64("CROTA2")
+        .or_else(|| h.f64("CROTA1"))
+        .or_else(|| h.f64("CROTA"));
+    if let Some(pc) = pc_matrix(h) {
+        let m = [
+            [cdelt[0] * pc[0][0], cdelt[0] * pc[0][1]],
+            [cdelt[1] * pc[1][0], cdelt[1] * pc[1][1]],
+        ];
+        let roll = roll_from_matrix(m, cdelt);
+        if let Some(c) = crota {
+            if angle_difference_deg(c, roll).abs() > 0.01 {
+                return Err(format!(
+                    "CROTA2 = {c}° disagrees with the PCi_j matrix ({roll:.4}°)"
+                ));
+            }
+        }
+        return Ok((cdelt, m, roll));
+    }
+    // SOHO raw files: no CROTA, the spacecraft roll is SC_ROLL ("solar north + CCW from
+    // nominal", i.e. the camera turned CCW, which is the CROTA2 sense). sunpy ignores it.
+    let roll = crota.or_else(|| h.f64("SC_ROLL")).unwrap_or(0.0);
+    let (s, c) = roll.to_radians().sin_cos();
+    // CROTA2 → M (Calabretta & Greisen 2002, eq. 189 with CDELT applied).
+    let m = [[cdelt[0] * c, -cdelt[1] * s], [cdelt[0] * s, cdelt[1] * c]];
+    Ok((cdelt, m, roll))
+}
+
+/// `PCi_j` (or the older `PC00i00j`) if any element is present; missing ones default to identity.
+fn pc_matrix(h: &Header) -> Option<[[f64; 2]; 2]> {
+    let get = |i: usize, j: usize| {
+        h.f64(&format!("PC{i}_{j}"))
+            .or_else(|| h.f64(&format!("PC{i:03}{j:03}")))
+    };
+    let present = (1..=2).any(|i| (1..=2).any(|j| get(i, j).is_some()));
+    if !present {
+        return None;
+    }
+    let v = |i, j| get(i, j).unwrap_or(if i == j { 1.0 } else { 0.0 });
+    Some([[v(1, 1), v(1, 2)], [v(2, 1), v(2, 2)]])
+}
+
+/// Roll (CROTA2 sense) of an arcsec/pixel matrix: mean of the two column estimates,
+/// `atan2(M21/CDELT1, M11/CDELT1)` and `atan2(−M12/CDELT2, M22/CDELT2)`.
+fn roll_from_matrix(m: [[f64; 2]; 2], cdelt: [f64; 2]) -> f64 {
+    let (s1, c1) = (m[1][0] / cdelt[0], m[0][0] / cdelt[0]);
+    let (s2, c2) = (-m[0][1] / cdelt[1], m[1][1] / cdelt[1]);
+    let r1 = s1.atan2(c1);
+    let r2 = s2.atan2(c2);
+    (r1.sin() + r2.sin())
+        .atan2(r1.cos() + r2.cos())
+        .to_degrees()
+}
+
+/// a − b wrapped into (−180°, 180°].
+fn angle_difference_deg(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(360.0);
+    if d > 180.0 {
+        d - 360.0
+    } else {
+        d
+    }
+}
+
+/// The header's observation time in UTC ns.
+///
+/// Preference: `T_OBS` (the observation's mid-time; SDO writes it, in TAI for HMI), then
+/// `DATE-OBS`, then `DATE_OBS` (start of exposure), each combined with `TIME-OBS`/`TIME_OBS`
+/// when it holds a date only. `TIMESYS = 'TAI'` applies where a string names no scale.
+/// Unparseable values are skipped with a warning.
+pub fn obs_time_ns(h: &Header) -> Option<i64> {
+    let scale = match h.str("TIMESYS").map(str::to_ascii_uppercase).as_deref() {
+        Some("TAI") => TimeScale::Tai,
+        _ => TimeScale::Utc,
+    };
+    for key in ["T_OBS", "DATE-OBS", "DATE_OBS"] {
+        let Some(text) = h.str(key) else { continue };
+        let time_of_day = h.str("TIME-OBS").or_else(|| h.str("TIME_OBS"));
+        let parsed = match time_of_day {
+            Some(tod) if is_date_only(text) => time::parse_date_and_time(text, tod, scale),
+            _ => time::parse_fits_time(text, scale),
+        };
+        match parsed {
+            Ok(ns) => return Some(ns),
+            Err(e) => tracing::warn!("{key}: {e}; trying the next time keyword"),
+        }
+    }
+    None
+}
+
+fn is_date_only(text: &str) -> bool {
+    !text.contains(':')
+}
+
+/// A reference time for a cube's time axis or table: `DATEREF`, `STARTOBS`, else the obs time.
+pub fn time_reference_ns(h: &Header) -> Option<i64> {
+    ["DATEREF", "STARTOBS"]
+        .iter()
+        .find_map(|k| {
+            h.str(k)
+                .and_then(|t| time::parse_fits_time(t, TimeScale::Utc).ok())
+        })
+        .or_else(|| obs_time_ns(h))
+}
+
+/// Seconds of frame `frame` (0-based) on a cube's time axis (`CTYPEk = 'TIME'`, k ≥ 3),
+/// `CRVALk + (frame + 1 − CRPIXk)·CDELTk` in `CUNITk` (seconds when missing).
+pub fn time_axis_seconds(h: &Header, frame: usize) -> Option<f64> {
+    // Tile-compressed images describe the image in ZNAXIS (NAXIS is the table's).
+    let naxis = h.i64("ZNAXIS").or_else(|| h.i64("NAXIS")).unwrap_or(0);
+    (3..=naxis.clamp(0, 999)).find_map(|k| {
+        let ctype = h.str(&format!("CTYPE{k}"))?.to_ascii_uppercase();
+        if !(ctype.starts_with("TIME") || ctype == "UTC") {
+            return None;
+        }
+        let unit_s = match h
+            .str(&format!("CUNIT{k}"))
+            .unwrap_or("s")
+            .to_ascii_lowercase()
+            .as_str()
+        {
+            "s" | "sec" | "secs" | "second" | "seconds" => 1.0,
+            "min" => 60.0,
+            "h" | "hr" | "hour" | "hours" => 3600.0,
+            "d" | "day" | "days" => 86_400.0,
+            _ => return None,
+        };
+        let crval = h.f64(&format!("CRVAL{k}")).unwrap_or(0.0);
+        let crpix = h.f64(&format!("CRPIX{k}")).unwrap_or(0.0);
+        let cdelt = h.f64(&format!("CDELT{k}")).unwrap_or(1.0);
+        Some((crval + (frame as f64 + 1.0 - crpix) * cdelt) * unit_s)
+    })
+}
+
+/// Exposure time in seconds: `EXPTIME`, `EXPOSURE`, else TRACE's measured `SHT_MDUR`.
+pub fn exptime_s(h: &Header) -> Option<f64> {
+    ["EXPTIME", "EXPOSURE", "SHT_MDUR"]
+        .iter()
+        .find_map(|k| h.f64(k))
+}
+
+/// Apparent solar radius in arcsec: `RSUN_OBS`; else `SOLAR_R`·|CDELT1| (SOLAR_R is in pixels,
+/// as in EIT files); else `asin(RSUN_REF / DSUN_OBS)` (the sphere's apparent radius, as sunpy
+/// computes it); else unknown.
+pub fn rsun_arcsec(h: &Header, cdelt1_arcsec: f64) -> Option<f64> {
+    if let Some(r) = h.f64("RSUN_OBS").filter(|r| *r > 0.0) {
+        return Some(r);
+    }
+    if let Some(r) = h.f64("SOLAR_R").filter(|r| *r > 0.0) {
+        return Some(r * cdelt1_arcsec.abs());
+    }
+    let (rsun_m, dsun_m) = (h.f64("RSUN_REF")?, h.f64("DSUN_OBS")?);
+    (rsun_m > 0.0 && dsun_m > rsun_m).then(|| (rsun_m / dsun_m).asin().to_degrees() * 3600.0)
+}
+
+/// Short instrument name: first token of `INSTRUME` (`AIA_3` → `AIA`, `HMI_FRONT2` → `HMI`),
+/// else the last part of `TELESCOP` (`SDO/AIA` → `AIA`).
+pub fn instrument(h: &Header) -> Option<String> {
+    if let Some(i) = h.str("INSTRUME") {
+        let token = i.split(['_', ' ']).find(|t| !t.is_empty())?;
+        return Some(sanitise(token));
+    }
+    let t = h.str("TELESCOP")?;
+    t.rsplit('/').find(|t| !t.trim().is_empty()).map(sanitise)
+}
+
+/// Wavelength in the header's unit: `WAVELNTH`, IRIS's `TWAVE1`, TRACE's `WAVE_LEN`.
+pub fn wavelength(h: &Header) -> Option<f64> {
+    ["WAVELNTH", "TWAVE1", "WAVE_LEN"]
+        .iter()
+        .find_map(|k| h.f64(k))
+}
+
+/// Channel name: IRIS's `TDESC1` (`SJI_1400`), else instrument + wavelength (`AIA_171`),
+/// else instrument + a non-numeric wavelength label (`TRACE_WL`), else what is known.
+pub fn channel(h: &Header, instrument: Option<&str>, wavelength: Option<f64>) -> String {
+    if let Some(desc) = h.str("TDESC1") {
+        return sanitise(desc);
+    }
+    let label = match wavelength {
+        Some(w) => Some(format!("{}", w.round() as i64)),
+        None => ["WAVELNTH", "WAVE_LEN"]
+            .iter()
+            .find_map(|k| h.str(k))
+            .map(sanitise),
+    };
+    match (instrument, label) {
+        (Some(i), Some(l)) => format!("{i}_{l}"),
+        (Some(i), None) => i.to_string(),
+        (None, Some(l)) => format!("UNKNOWN_{l}"),
+        (None, None) => "UNKNOWN".to_string(),
+    }
+}
+
+/// Upper-case, with anything but letters, digits and `-` turned into `_` (safe in topic names).
+fn sanitise(text: &str) -> String {
+    text.trim()
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c.to_ascii_uppercase()
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::header::HeaderValue;
+
+    fn header(cards: &[(&str, HeaderValue)]) -> Header {
+        let mut h = Header::new();
+        for (k, v) in cards {
+            h.push(k, v.clone());
+        }
+        h
+    }
+
+    fn f(v: f64) -> HeaderValue {
+        HeaderValue::Float(v)
+    }
+
+    fn s(v: &str) -> HeaderValue {
+        HeaderValue::Str(v.into())
+    }
+
+    #[test]
+    fn crota2_and_equivalent_pc_give_the_same_geometry() {
+        // A 30° roll written both ways (PC from CROTA2 by Calabretta & Greisen eq. 189).
+        let (sn, cs) = 30f64.to_radians().sin_cos();
+        let base = [
+            ("CRPIX1", f(10.0)),
+            ("CRPIX2", f(20.0)),
+            ("CRVAL1", f(100.0)),
+            ("CRVAL2", f(-50.0)),
+            ("CDELT1", f(2.0)),
+            ("CDELT2", f(1.0)),
+        ];
+        let mut a = header(&base);
+        a.push("CROTA2", f(30.0));
+        let mut b = header(&base);
+        for (k, v) in [
+            ("PC1_1", cs),
+            ("PC1_2", -sn * 1.0 / 2.0),
+            ("PC2_1", sn * 2.0 / 1.0),
+            ("PC2_2", cs),
+        ] {
+            b.push(k, f(v));
+        }
+        let (wa, wb) = (
+            CelestialWcs::from_header(&a).unwrap(),
+            CelestialWcs::from_header(&b).unwrap(),
+        );
+        assert!((wb.rotation_deg - 30.0).abs() < 1e-12);
+        let (ca, cb) = (wa.sun_center_px().unwrap(), wb.sun_center_px().unwrap());
+        assert!((ca[0] - cb[0]).abs() < 1e-9 && (ca[1] - cb[1]).abs() < 1e-9);
+        // Hand computation, linear axes: offset = R(−30°)·(−100/2, 50/1) in pixels… via M⁻¹.
+        // M = [[2c, −s],[2s, c]], det = 2; M⁻¹·(−100, 50) = ((c·−100 + s·50)/2, (−2s·−100 + 2c·50)/2).
+        let expect = [
+            9.0 + (cs * -100.0 + sn * 50.0) / 2.0,
+            19.0 + (200.0 * sn + 100.0 * cs) / 2.0,
+        ];
+        assert!(
+            (ca[0] - expect[0]).abs() < 1e-9 && (ca[1] - expect[1]).abs() < 1e-9,
+            "{ca:?} vs {expect:?}"
+        );
+        // Both present and agreeing is fine; disagreeing is a bad header.
+        let mut agreeing = b.clone();
+        agreeing.push("CROTA2", f(30.0));
+        assert!(CelestialWcs::from_header(&agreeing).is_ok());
+        let mut contradicting = b;
+        contradicting.push("CROTA2", f(31.0));
+        assert!(CelestialWcs::from_header(&contradicting)
+            .unwrap_err()
+            .contains("disagrees"));
+    }
+
+    /// Far from the reference point the gnomonic projection matters (3.6′ off-centre: ≈ 4 px
+    /// at 0.1″/px). Truth: astropy `WCS(header).wcs_world2pix([[0, 0]], 0)` for this header
+    /// → [-33011.7774183, -14467.71473282].
+    #[test]
+    fn tan_projection_matches_astropy_far_from_the_reference() {
+        let h = header(&[
+            ("CTYPE1", s("HPLN-TAN")),
+            ("CTYPE2", s("HPLT-TAN")),
+            ("CRVAL1", f(3000.0)),
+            ("CRVAL2", f(2000.0)),
+            ("CDELT1", f(0.1)),
+            ("CDELT2", f(0.1)),
+            ("CRPIX1", f(10.0)),
+            ("CRPIX2", f(20.0)),
+            ("CROTA2", f(10.0)),
+        ]);
+        let c = CelestialWcs::from_header(&h)
+            .unwrap()
+            .sun_center_px()
+            .unwrap();
+        assert!((c[0] - -33011.7774183).abs() < 1e-5, "{c:?}");
+        assert!((c[1] - -14467.71473282).abs() < 1e-5, "{c:?}");
+    }
+
+    #[test]
+    fn sc_roll_is_used_only_without_crota_or_pc() {
+        let base = [
+            ("CRPIX1", f(64.5)),
+            ("CRPIX2", f(64.5)),
+            ("CDELT1", f(2.63)),
+            ("CDELT2", f(2.63)),
+            ("SC_ROLL", f(180.0)),
+        ];
+        let w = CelestialWcs::from_header(&header(&base)).unwrap();
+        assert_eq!(w.rotation_deg, 180.0);
+        let mut with_crota = header(&base);
+        with_crota.push("CROTA2", f(0.5));
+        assert_eq!(
+            CelestialWcs::from_header(&with_crota).unwrap().rotation_deg,
+            0.5
+        );
+    }
+
+    #[test]
+    fn units_and_missing_keys() {
+        let h = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CDELT1", f(1.0 / 3600.0)),
+            ("CDELT2", f(1.0 / 3600.0)),
+            ("CUNIT1", s("deg")),
+            ("CUNIT2", s("deg")),
+        ]);
+        let w = CelestialWcs::from_header(&h).unwrap();
+        assert!((w.cdelt_arcsec[0] - 1.0).abs() < 1e-12);
+        let bad = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CDELT1", f(1.0)),
+            ("CDELT2", f(1.0)),
+            ("CUNIT1", s("m")),
+        ]);
+        assert!(CelestialWcs::from_header(&bad)
+            .unwrap_err()
+            .contains("CUNIT"));
+        let none = header(&[("CRPIX1", f(1.0)), ("CRPIX2", f(1.0))]);
+        assert!(CelestialWcs::from_header(&none)
+            .unwrap_err()
+            .contains("CDELT1 is missing"));
+    }
+
+    #[test]
+    fn rsun_from_reference_radius_and_distance() {
+        // sunpy.coordinates.sun._angular_radius(696000 km, 1 AU) = 959.645″.
+        let h = header(&[
+            ("RSUN_REF", f(696_000_000.0)),
+            ("DSUN_OBS", f(149_597_870_700.0)),
+        ]);
+        let r = rsun_arcsec(&h, 1.0).unwrap();
+        assert!((r - 959.645).abs() < 0.001, "{r}");
+        assert_eq!(
+            rsun_arcsec(&header(&[("SOLAR_R", f(372.27))]), 2.63),
+            Some(372.27 * 2.63)
+        );
+        assert_eq!(rsun_arcsec(&header(&[("DSUN_OBS", f(1.5e11))]), 1.0), None);
+    }
+
+    #[test]
+    fn channel_names() {
+        let aia = header(&[
+            ("INSTRUME", s("AIA_3")),
+            ("WAVELNTH", HeaderValue::Int(171)),
+        ]);
+        assert_eq!(
+            channel(&aia, instrument(&aia).as_deref(), wavelength(&aia)),
+            "AIA_171"
+        );
+        let trace_wl = header(&[("INSTRUME", s("TRACE")), ("WAVE_LEN", s("WL"))]);
+        assert_eq!(
+            channel(
+                &trace_wl,
+                instrument(&trace_wl).as_deref(),
+                wavelength(&trace_wl)
+            ),
+            "TRACE_WL"
+        );
+        let iris = header(&[
+            ("INSTRUME", s("SJI")),
+            ("TDESC1", s("SJI_1400")),
+            ("TWAVE1", f(1400.0)),
+        ]);
+        assert_eq!(
+            channel(&iris, instrument(&iris).as_deref(), wavelength(&iris)),
+            "SJI_1400"
+        );
+        let tel = header(&[("TELESCOP", s("SDO/HMI"))]);
+        assert_eq!(instrument(&tel).as_deref(), Some("HMI"));
+        assert_eq!(channel(&Header::new(), None, None), "UNKNOWN");
+    }
+
+    #[test]
+    fn time_preference_and_time_axis() {
+        let h = header(&[
+            ("DATE-OBS", s("2014-03-01T00:00:27.90")),
+            ("T_OBS", s("2014.03.01_00:01:25_TAI")),
+        ]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&h).unwrap()),
+            "2014-03-01T00:00:50.000Z"
+        );
+        let split = header(&[("DATE-OBS", s("2004-03-01")), ("TIME-OBS", s("00:00:10"))]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&split).unwrap()),
+            "2004-03-01T00:00:10.000Z"
+        );
+        let garbled = header(&[
+            ("T_OBS", s("soon")),
+            ("DATE_OBS", s("1998-05-19T22:21:43.000")),
+        ]);
+        assert_eq!(
+            time::format_iso_utc(obs_time_ns(&garbled).unwrap()),
+            "1998-05-19T22:21:43.000Z"
+        );
+        let cube = header(&[
+            ("NAXIS", HeaderValue::Int(3)),
+            ("CTYPE3", s("Time")),
+            ("CUNIT3", s("seconds")),
+            ("CRPIX3", f(27.0)),
+            ("CRVAL3", f(6726.79)),
+            ("CDELT3", f(21.4087)),
+        ]);
+        assert!((time_axis_seconds(&cube, 26).unwrap() - 6726.79).abs() < 1e-9);
+        assert!((time_axis_seconds(&cube, 0).unwrap() - (6726.79 - 26.0 * 21.4087)).abs() < 1e-9);
+    }
 }

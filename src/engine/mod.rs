@@ -3,6 +3,9 @@
 //! INTERFACE ONLY for now: `align_images` is a placeholder that reports `failed`.
 //! The real engine lands with issue 3; callers (pipeline, commands) code against this API.
 
+pub mod output;
+pub mod quality;
+
 use crate::geometry::Similarity;
 use crate::meta::FrameMeta;
 use crate::record::{AlignResult, Status};

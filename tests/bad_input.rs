@@ -1,0 +1,250 @@
+//! Bad input through the real binary: exit code 2, exactly one line on stderr that names the
+//! file and the problem, no panic. Truth: the FITS standard (a file starts with `SIMPLE = T`,
+//! headers end with `END`, data size = |BITPIX|/8 · ΠNAXISn) and the contract's exit codes.
+
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
+const MALFORMED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/malformed/");
+
+/// Run `sunjitter info FILE` and check the bad-input contract; returns the stderr line.
+fn expect_bad(file: &Path, problem: &str) -> String {
+    expect_bad_arg(file.as_os_str(), &file.display().to_string(), problem)
+}
+
+fn expect_bad_arg(arg: &OsStr, shown_name: &str, problem: &str) -> String {
+    for json in [false, true] {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_sunjitter"));
+        cmd.arg("info");
+        if json {
+            cmd.arg("--json");
+        }
+        let out = cmd.arg(arg).output().expect("run sunjitter");
+        let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+        assert_eq!(
+            out.status.code(),
+            Some(2),
+            "exit code for {shown_name}: {stderr}"
+        );
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        assert_eq!(stderr.lines().count(), 1, "one line expected: {stderr:?}");
+        let line = stderr.trim_end();
+        assert!(
+            line.starts_with(&format!("sunjitter: {shown_name}: ")),
+            "file not named: {line}"
+        );
+        assert!(line.contains(problem), "problem {problem:?} not in: {line}");
+        if json {
+            assert_eq!(String::from_utf8_lossy(&out.stdout).trim(), "[]");
+        }
+    }
+    String::new()
+}
+
+/// A primary header from `cards` (80 columns each, then END, padded to 2880) plus `data` bytes.
+fn fits_bytes(cards: &[&str], data: &[u8]) -> Vec<u8> {
+    let mut bytes: Vec<u8> = cards
+        .iter()
+        .chain(["END"].iter())
+        .flat_map(|c| format!("{c:<80}").into_bytes())
+        .collect();
+    bytes.resize(bytes.len().div_ceil(2880) * 2880, b' ');
+    bytes.extend_from_slice(data);
+    bytes
+}
+
+fn temp_file(dir: &tempfile::TempDir, name: &str, bytes: &[u8]) -> PathBuf {
+    let path = dir.path().join(name);
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+#[test]
+fn not_actually_fits() {
+    expect_bad(
+        &PathBuf::from(MALFORMED).join("not_actually_fits.fits"),
+        "not a FITS file",
+    );
+}
+
+#[test]
+fn zero_length_file() {
+    let dir = tempfile::tempdir().unwrap();
+    expect_bad(&temp_file(&dir, "empty.fits", b""), "empty file");
+}
+
+#[test]
+fn truncated_in_the_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let whole =
+        std::fs::read(PathBuf::from(REAL).join("trace_171_19980519T222143_1024.fits")).unwrap();
+    // Header is 2 blocks; 1024² int16 needs 2 MiB of data, keep 100 kB of it.
+    let cut = temp_file(&dir, "trace_cut.fits", &whole[..5760 + 100_000]);
+    expect_bad(
+        &cut,
+        "truncated: the header announces 2097152 bytes of data, the file holds 100000",
+    );
+    // The out-of-order IDL file, truncated too: still a clear error.
+    let idl =
+        std::fs::read(PathBuf::from(MALFORMED).join("trace_171_naxis_cards_out_of_order.fits"))
+            .unwrap();
+    expect_bad(
+        &temp_file(&dir, "idl_cut.fits", &idl[..idl.len() / 2]),
+        "truncated",
+    );
+}
+
+#[test]
+fn truncated_in_the_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let whole =
+        std::fs::read(PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits")).unwrap();
+    expect_bad(
+        &temp_file(&dir, "aia_cut.fits", &whole[..4000]),
+        "ends without an END card",
+    );
+}
+
+#[test]
+fn cube_truncated_in_an_extension() {
+    let dir = tempfile::tempdir().unwrap();
+    let whole = std::fs::read(
+        PathBuf::from(REAL).join("iris_l2_20140329_140938_3860258481_SJI_2832_t000.fits"),
+    )
+    .unwrap();
+    // Cut inside the last HDU (the ASCII table), as a file still being written would be.
+    expect_bad(
+        &temp_file(&dir, "iris_cut.fits", &whole[..whole.len() - 3000]),
+        "HDU 2: truncated",
+    );
+}
+
+#[test]
+fn absurd_naxis1_is_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                   16",
+        "NAXIS   =                    2",
+        "NAXIS1  =           2000000000",
+        "NAXIS2  =                    1",
+    ];
+    let path = temp_file(&dir, "huge.fits", &fits_bytes(&cards, &[0u8; 2880]));
+    expect_bad(&path, "absurd image size: NAXIS1 = 2000000000");
+}
+
+#[test]
+fn absurd_gigapixel_square_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                  -64",
+        "NAXIS   =                    2",
+        "NAXIS1  =           1000000000",
+        "NAXIS2  =           1000000000",
+    ];
+    expect_bad(
+        &temp_file(&dir, "square.fits", &fits_bytes(&cards, &[])),
+        "absurd image size",
+    );
+}
+
+#[test]
+fn sizes_that_overflow_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    // Each axis is within the per-axis limit, the product overflows a frame.
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                   16",
+        "NAXIS   =                    2",
+        "NAXIS1  =                65536",
+        "NAXIS2  =                65536",
+    ];
+    expect_bad(
+        &temp_file(&dir, "wide.fits", &fits_bytes(&cards, &[])),
+        "absurd image size 65536 × 65536",
+    );
+}
+
+#[test]
+fn header_without_wcs_is_a_bad_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                    8",
+        "NAXIS   =                    2",
+        "NAXIS1  =                    4",
+        "NAXIS2  =                    4",
+        "CRPIX1  =                  2.5",
+        "CRPIX2  =                  2.5",
+    ];
+    expect_bad(
+        &temp_file(&dir, "nowcs.fits", &fits_bytes(&cards, &[7u8; 16])),
+        "header: CDELT1 is missing",
+    );
+}
+
+#[test]
+fn no_image_in_any_hdu() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                    8",
+        "NAXIS   =                    0",
+    ];
+    expect_bad(
+        &temp_file(&dir, "empty_primary.fits", &fits_bytes(&cards, &[])),
+        "no image data",
+    );
+}
+
+#[test]
+fn invalid_bitpix() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                   12",
+        "NAXIS   =                    2",
+        "NAXIS1  =                    4",
+        "NAXIS2  =                    4",
+    ];
+    expect_bad(
+        &temp_file(&dir, "bitpix.fits", &fits_bytes(&cards, &[0u8; 2880])),
+        "BITPIX = 12",
+    );
+}
+
+#[test]
+fn missing_file_and_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    expect_bad(&dir.path().join("nope.fits"), "cannot open");
+    expect_bad(dir.path(), "is a directory");
+}
+
+#[test]
+fn frame_out_of_range() {
+    let file = PathBuf::from(REAL).join("iris_l2_20140329_140938_3860258481_SJI_2832_t000.fits");
+    let arg = format!("{}[18]", file.display());
+    expect_bad_arg(
+        OsStr::new(&arg),
+        &file.display().to_string(),
+        "frame 18 does not exist",
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn non_utf8_path() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let name = OsStr::from_bytes(b"caf\xe9.fits");
+    let path = dir.path().join(name);
+    std::fs::copy(
+        PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits"),
+        &path,
+    )
+    .unwrap();
+    expect_bad(&path, "the path is not valid UTF-8");
+}
