@@ -31,6 +31,7 @@ use notify::{RecursiveMode, Watcher};
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::future::Future;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 use tokio::sync::{mpsc, watch};
@@ -84,9 +85,10 @@ pub async fn run_daemon(
         parts.reader.clone(),
         Arc::new(parts.history.clone()),
     );
+    let pending = ingest.pending.clone();
     let ingest_task = tokio::spawn(ingest.run(signal_rx, input_tx, stop_rx.clone()));
 
-    let result = run_pipeline(parts, input_rx, stop_rx).await;
+    let result = run_pipeline(parts, input_rx, stop_rx, Some(pending)).await;
     drop(watcher);
     stopper.abort();
     match ingest_task.await {
@@ -184,6 +186,8 @@ struct Ingest {
     files: HashMap<PathBuf, FileState>,
     ready: VecDeque<PathBuf>,
     waiting: BTreeSet<(Instant, PathBuf)>,
+    /// Paths in `files` not yet `Done` (shared with the scheduler's reorder window).
+    pending: Arc<AtomicUsize>,
 }
 
 impl Ingest {
@@ -201,6 +205,33 @@ impl Ingest {
             files: HashMap::new(),
             ready: VecDeque::new(),
             waiting: BTreeSet::new(),
+            pending: Arc::new(AtomicUsize::new(0)),
+        }
+    }
+
+    /// Change a path's state, keeping the count of pending (not `Done`) paths.
+    fn set(&mut self, path: PathBuf, state: FileState) {
+        let now_pending = !matches!(state, FileState::Done(_));
+        let was_pending = self
+            .files
+            .insert(path, state)
+            .is_some_and(|s| !matches!(s, FileState::Done(_)));
+        match (was_pending, now_pending) {
+            (false, true) => {
+                self.pending.fetch_add(1, Ordering::SeqCst);
+            }
+            (true, false) => {
+                self.pending.fetch_sub(1, Ordering::SeqCst);
+            }
+            _ => {}
+        }
+    }
+
+    fn forget(&mut self, path: &Path) {
+        if let Some(old) = self.files.remove(path) {
+            if !matches!(old, FileState::Done(_)) {
+                self.pending.fetch_sub(1, Ordering::SeqCst);
+            }
         }
     }
 
@@ -239,7 +270,7 @@ impl Ingest {
                 let Some(FileState::Queued(origin, tries)) = self.files.get(&path).cloned() else {
                     continue;
                 };
-                self.files.insert(path.clone(), FileState::Reading(tries));
+                self.set(path.clone(), FileState::Reading(tries));
                 let (reader, config, history) = (
                     self.reader.clone(),
                     self.config.clone(),
@@ -329,7 +360,7 @@ impl Ingest {
                 self.ready.push_back(path);
             }
             Some(FileState::Queued(Origin::Scan, tries)) if origin == Origin::Event => {
-                self.files.insert(path, FileState::Queued(origin, tries));
+                self.set(path, FileState::Queued(origin, tries));
             }
             Some(FileState::Queued(..)) | Some(FileState::Reading(_)) => {}
             Some(FileState::Waiting {
@@ -348,7 +379,7 @@ impl Ingest {
                 }
                 let now_stamp = std::fs::metadata(&path).ok().map(|m| file_stamp(&m));
                 if now_stamp.is_some() && now_stamp != stamp {
-                    self.files.insert(path.clone(), FileState::Done(now_stamp));
+                    self.set(path.clone(), FileState::Done(now_stamp));
                     return Some(Record::note(
                         &crate::reference::frame_key(&path, None),
                         "modified after it was processed: not processed again",
@@ -378,7 +409,7 @@ impl Ingest {
                 return true;
             }
             Examined::Dir => {
-                self.files.remove(&path);
+                self.forget(&path);
                 if self.d().recursive && wanted_dir(&path, self.d()) {
                     self.rescan(Some(path)).await;
                 }
@@ -388,7 +419,7 @@ impl Ingest {
         };
         match outcome {
             FileOutcome::Frames(items, records) => {
-                self.files.insert(path, FileState::Done(stamp));
+                // Send first, then count the file done (see `run_pipeline`'s pending files).
                 for record in records {
                     if input.send(Input::Record(record)).await.is_err() {
                         return false;
@@ -399,14 +430,17 @@ impl Ingest {
                         return false;
                     }
                 }
+                self.set(path, FileState::Done(stamp));
                 true
             }
             FileOutcome::Skip(record) => {
-                self.files.insert(path, FileState::Done(stamp));
-                match record {
-                    Some(r) => input.send(Input::Record(r)).await.is_ok(),
-                    None => true,
+                if let Some(r) = record {
+                    if input.send(Input::Record(r)).await.is_err() {
+                        return false;
+                    }
                 }
+                self.set(path, FileState::Done(stamp));
+                true
             }
             FileOutcome::NotReady(reason) => {
                 // Attempts count only while the file stands still.
@@ -417,9 +451,12 @@ impl Ingest {
                 };
                 if attempts >= self.d().retry_attempts.max(1) {
                     tracing::warn!(file = %path.display(), "giving up after {attempts} attempts: {reason}");
-                    self.files.insert(path.clone(), FileState::Done(stamp));
                     let record = unreadable_record(&path, &reason);
-                    return input.send(Input::Record(record)).await.is_ok();
+                    if input.send(Input::Record(record)).await.is_err() {
+                        return false;
+                    }
+                    self.set(path, FileState::Done(stamp));
+                    return true;
                 }
                 let delay = backoff(self.d(), attempts);
                 tracing::debug!(file = %path.display(), attempts, "not ready ({reason}); retry in {delay:?}");

@@ -23,8 +23,9 @@ use crate::reference::{
     RestoredChannel, StepContext,
 };
 use crate::{Error, Result};
-use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::collections::{BTreeMap, HashSet, VecDeque};
 use std::path::Path;
+use std::sync::atomic::AtomicUsize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
@@ -79,8 +80,8 @@ pub enum Record {
         log_time_ns: i64,
     },
     /// `/log`. `file` is a frame key (`PATH` or `PATH[N]`). In a log read back, an entry at
-    /// `Warning` or above marks that frame (or file) finished: notes are only ever written
-    /// after the frame's own message, so the rule holds for them too.
+    /// `Error` marks that frame (or file) finished for good; warnings are notes about frames
+    /// that have their own message.
     Log {
         level: LogLevel,
         file: String,
@@ -92,7 +93,7 @@ pub enum Record {
 }
 
 impl Record {
-    /// A `/log` entry that finishes its input (at `Warning` or `Error`).
+    /// A `/log` entry; at `Error` it finishes its input (no message will come for it).
     pub fn log(
         level: LogLevel,
         file: &str,
@@ -104,7 +105,7 @@ impl Record {
             file: file.to_string(),
             message: message.into(),
             log_time_ns,
-            finishes: level >= LogLevel::Warning,
+            finishes: level >= LogLevel::Error,
         }
     }
 
@@ -283,7 +284,7 @@ impl History {
                 }
             }
             Record::Log { level, file, .. } => {
-                if *level >= LogLevel::Warning && !file.is_empty() {
+                if *level >= LogLevel::Error && !file.is_empty() {
                     self.done.insert(file.clone());
                 }
             }
@@ -384,7 +385,7 @@ pub fn inspect_file(
         Ok(m) => m,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return FileOutcome::Skip(Some(Record::log(
-                LogLevel::Warning,
+                LogLevel::Error,
                 &key,
                 "vanished before it could be read",
                 now_ns(),
@@ -394,7 +395,7 @@ pub fn inspect_file(
     };
     if link_meta.file_type().is_symlink() && !follow_symlinks {
         return FileOutcome::Skip(Some(Record::log(
-            LogLevel::Warning,
+            LogLevel::Error,
             &key,
             "symbolic link not followed (set daemon.follow_symlinks = true to take it)",
             system_time_ns(link_meta.modified().ok()),
@@ -410,7 +411,7 @@ pub fn inspect_file(
     let mtime_ns = system_time_ns(before.modified().ok());
     if !before.is_file() {
         return FileOutcome::Skip(Some(Record::log(
-            LogLevel::Warning,
+            LogLevel::Error,
             &key,
             "not a regular file",
             mtime_ns,
@@ -419,9 +420,7 @@ pub fn inspect_file(
     if history.is_done(&key) {
         return FileOutcome::Skip(None);
     }
-    if let Err(reason) = fits_completeness(path) {
-        return FileOutcome::NotReady(reason);
-    }
+    // The reader refuses incomplete files (truncated headers or data) with the reason.
     let metas = match reader.read_meta(path) {
         Ok(m) if m.is_empty() => return FileOutcome::NotReady("no image in file".into()),
         Ok(m) => m,
@@ -482,144 +481,6 @@ pub fn unreadable_record(path: &Path, reason: &str) -> Record {
         reason,
         system_time_ns(mtime),
     )
-}
-
-/// Check that `path` holds complete FITS HDUs: every header has its END card and the file is
-/// as long as the headers say. A file still being written fails here (and is retried);
-/// absurd headers (`NAXIS1 = 2000000000`) fail with the size they claim.
-pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
-    use std::io::{Read, Seek, SeekFrom};
-    const BLOCK: u64 = 2880;
-    const MAX_HEADER_BLOCKS: u64 = 10_000;
-    let mut file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
-    let size = file
-        .metadata()
-        .map_err(|e| format!("cannot stat: {e}"))?
-        .len();
-    if size == 0 {
-        return Err("empty file".into());
-    }
-    let mut start = Vec::with_capacity(9);
-    (&mut file)
-        .take(9)
-        .read_to_end(&mut start)
-        .map_err(|e| format!("cannot read: {e}"))?;
-    if start.starts_with(&[0x1f, 0x8b]) {
-        return Ok(()); // gzip: the reader checks it as it decompresses
-    }
-    if !b"SIMPLE  =".starts_with(&start) {
-        return Err("not a FITS file (it does not start with SIMPLE)".into());
-    }
-    let mut offset = 0u64;
-    let mut hdu = 0usize;
-    let mut block = [0u8; BLOCK as usize];
-    loop {
-        // Header
-        let mut cards: HashMap<String, String> = HashMap::new();
-        let mut blocks = 0u64;
-        let mut ended = false;
-        while !ended {
-            if offset + (blocks + 1) * BLOCK > size {
-                return Err(format!(
-                    "incomplete: HDU {hdu} header is cut off at byte {size} (no END card)"
-                ));
-            }
-            if blocks >= MAX_HEADER_BLOCKS {
-                return Err(format!(
-                    "HDU {hdu} header has no END card in {MAX_HEADER_BLOCKS} blocks"
-                ));
-            }
-            file.seek(SeekFrom::Start(offset + blocks * BLOCK))
-                .and_then(|_| file.read_exact(&mut block))
-                .map_err(|e| format!("cannot read: {e}"))?;
-            if blocks == 0 {
-                let first = String::from_utf8_lossy(&block[..9]).to_string();
-                let expected = if hdu == 0 { "SIMPLE  =" } else { "XTENSION=" };
-                if first != expected {
-                    if hdu == 0 {
-                        return Err("not a FITS file (it does not start with SIMPLE)".into());
-                    }
-                    return Ok(()); // trailing bytes after the last HDU
-                }
-            }
-            for card in block.chunks(80) {
-                let card = String::from_utf8_lossy(card);
-                let name = card[..8.min(card.len())].trim_end().to_string();
-                if name == "END" {
-                    ended = true;
-                    break;
-                }
-                if card.len() > 10 && &card[8..10] == "= " {
-                    let value = card[10..]
-                        .split('/')
-                        .next()
-                        .unwrap_or("")
-                        .trim()
-                        .to_string();
-                    cards.entry(name).or_insert(value);
-                }
-            }
-            blocks += 1;
-        }
-        let int = |k: &str| -> std::result::Result<i64, String> {
-            cards
-                .get(k)
-                .ok_or_else(|| format!("HDU {hdu} header lacks {k}"))?
-                .parse::<i64>()
-                .map_err(|_| format!("HDU {hdu} header: {k} is not an integer"))
-        };
-        let bitpix = int("BITPIX")?;
-        let naxis = int("NAXIS")?;
-        if !(0..=999).contains(&naxis) || ![8, 16, 32, 64, -32, -64].contains(&bitpix) {
-            return Err(format!(
-                "HDU {hdu} header: BITPIX {bitpix} / NAXIS {naxis} invalid"
-            ));
-        }
-        let mut pixels: u64 = if naxis == 0 { 0 } else { 1 };
-        for i in 1..=naxis {
-            let n = int(&format!("NAXIS{i}"))?;
-            if n < 0 {
-                return Err(format!("HDU {hdu} header: NAXIS{i} = {n}"));
-            }
-            pixels = pixels
-                .checked_mul(n as u64)
-                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
-        }
-        let pcount = if hdu == 0 {
-            0
-        } else {
-            int("PCOUNT").unwrap_or(0).max(0) as u64
-        };
-        let gcount = if hdu == 0 {
-            1
-        } else {
-            int("GCOUNT").unwrap_or(1).max(0) as u64
-        };
-        let data = if naxis == 0 {
-            0
-        } else {
-            pixels
-                .checked_add(pcount)
-                .and_then(|n| n.checked_mul(gcount))
-                .and_then(|n| n.checked_mul(bitpix.unsigned_abs() / 8))
-                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?
-        };
-        let data_start = offset + blocks * BLOCK;
-        let data_end = data_start
-            .checked_add(data)
-            .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
-        if data_end > size {
-            return Err(format!(
-                "incomplete: HDU {hdu} needs {data_end} bytes, the file has {size}"
-            ));
-        }
-        let padded = data_end.div_ceil(BLOCK) * BLOCK;
-        if padded + BLOCK > size {
-            return Ok(());
-        }
-        offset = padded;
-        hdu += 1;
-    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -766,9 +627,13 @@ struct Lane {
     state: Option<ChannelState>,
     buffer: BTreeMap<(i64, String), FrameItem>,
     in_flight: bool,
+    /// Observation time of the frame being processed.
+    in_flight_ns: Option<i64>,
     last_dispatched_ns: Option<i64>,
     /// Processed, usable frames of this channel (candidates for `channel:` followers).
     history: VecDeque<PartnerFrame>,
+    /// Last time a frame of this channel arrived or finished (wall clock).
+    last_activity: Option<Instant>,
 }
 
 enum PartnerChoice {
@@ -785,6 +650,8 @@ pub struct SchedulerSettings {
     pub workers: usize,
     pub reorder_window_frames: usize,
     pub reorder_window: Duration,
+    /// Longest a frame is held while files are still in the pipe (window + settle time).
+    pub reorder_cap: Duration,
 }
 
 impl SchedulerSettings {
@@ -794,6 +661,9 @@ impl SchedulerSettings {
             workers: config.daemon.workers.max(1),
             reorder_window_frames: config.daemon.reorder_window_frames,
             reorder_window: Duration::from_secs_f64(config.daemon.reorder_window_s),
+            reorder_cap: Duration::from_secs_f64(
+                config.daemon.reorder_window_s + config.daemon.settle_s,
+            ),
         }
     }
 }
@@ -806,6 +676,8 @@ pub struct Scheduler {
     lanes: BTreeMap<String, Lane>,
     running: usize,
     eof: bool,
+    /// The front end has no file in hand that could still yield frames.
+    pipe_empty: bool,
 }
 
 /// Partner history kept per channel beyond what waiting followers need.
@@ -820,7 +692,13 @@ impl Scheduler {
             lanes: BTreeMap::new(),
             running: 0,
             eof: false,
+            pipe_empty: true,
         }
+    }
+
+    /// Whether the front end still has files in hand (see [`run_pipeline`]).
+    pub fn set_pipe_empty(&mut self, empty: bool) {
+        self.pipe_empty = empty;
     }
 
     pub fn offer(&mut self, item: FrameItem) {
@@ -882,12 +760,15 @@ impl Scheduler {
         if !self.settings.live {
             return false;
         }
-        lane.last_dispatched_ns.is_some_and(|last| *t < last)
+        if lane.last_dispatched_ns.is_some_and(|last| *t < last)
             || lane.buffer.len() > self.settings.reorder_window_frames
-            || lane
-                .buffer
-                .values()
-                .any(|i| now.saturating_duration_since(i.arrived) >= self.settings.reorder_window)
+        {
+            return true;
+        }
+        let oldest = lane.buffer.values().map(|i| i.arrived).min();
+        let age = oldest.map_or(Duration::ZERO, |a| now.saturating_duration_since(a));
+        // Files still in the pipe may hold earlier frames: wait for them, within the cap.
+        (age >= self.settings.reorder_window && self.pipe_empty) || age >= self.settings.reorder_cap
     }
 
     fn poll_lane(&mut self, name: &str, now: Instant) -> Option<Action> {
@@ -955,15 +836,31 @@ impl Scheduler {
         let lane = self.lanes.get(partner);
         let history = lane.map(|l| &l.history);
         let t = item.obs_time_ns;
+        let tolerance_ns = (tolerance_s * 1e9) as i64;
+        // A partner frame still to be processed may be nearer than any processed one.
+        let nearer_pending = lane.is_some_and(|l| {
+            l.buffer
+                .keys()
+                .next()
+                .is_some_and(|(pt, _)| *pt <= t + tolerance_ns)
+                || (l.in_flight && l.in_flight_ns.is_some_and(|pt| pt <= t + tolerance_ns))
+        });
+        if nearer_pending {
+            return PartnerChoice::Wait;
+        }
         let before = history.and_then(|h| h.iter().rev().find(|p| p.obs_time_ns <= t));
         let after = history.and_then(|h| h.iter().find(|p| p.obs_time_ns >= t));
-        let exhausted = self.eof && lane.is_none_or(|l| l.buffer.is_empty() && !l.in_flight);
+        let idle = lane.is_none_or(|l| l.buffer.is_empty() && !l.in_flight);
+        let exhausted = self.eof && idle;
+        // Live: give up only once the partner has nothing pending and has been quiet for
+        // `hold_s` (a partner that is merely busy is waited for).
         let expired = self.settings.live
-            && now.saturating_duration_since(item.arrived) >= Duration::from_secs_f64(hold_s);
+            && idle
+            && now.saturating_duration_since(self.hold_start(partner, item))
+                >= Duration::from_secs_f64(hold_s);
         if after.is_none() && !exhausted && !expired {
             return PartnerChoice::Wait;
         }
-        let tolerance_ns = (tolerance_s * 1e9) as i64;
         let mut best: Option<&PartnerFrame> = None;
         for p in [before, after].into_iter().flatten() {
             let dt = (p.obs_time_ns - t).abs();
@@ -979,11 +876,20 @@ impl Scheduler {
         }
     }
 
+    /// When a frame's wait for a partner began counting: its arrival or the partner's last
+    /// activity, whichever is later.
+    fn hold_start(&self, partner: &str, item: &FrameItem) -> Instant {
+        let activity = self.lanes.get(partner).and_then(|l| l.last_activity);
+        activity.map_or(item.arrived, |a| a.max(item.arrived))
+    }
+
     /// A job finished: take its state back and record the frame for followers.
     pub fn complete(&mut self, done: JobDone) {
         self.running = self.running.saturating_sub(1);
         let lane = self.lanes.entry(done.channel.clone()).or_default();
         lane.in_flight = false;
+        lane.in_flight_ns = None;
+        lane.last_activity = Some(Instant::now());
         lane.state = Some(done.state);
         if let Some(p) = done.partner {
             let at = lane
@@ -1048,11 +954,13 @@ impl Scheduler {
             }
             if let Some(first) = lane.buffer.values().map(|i| i.arrived).min() {
                 consider(first + self.settings.reorder_window);
+                consider(first + self.settings.reorder_cap);
             }
             let policy = self.config.channel_policy(name);
-            if matches!(policy.policy, PolicySpec::Channel(_)) {
+            if let PolicySpec::Channel(partner) = &policy.policy {
                 if let Some((_, head)) = lane.buffer.first_key_value() {
-                    consider(head.arrived + Duration::from_secs_f64(policy.hold_s));
+                    let start = self.hold_start(partner, head);
+                    consider(start + Duration::from_secs_f64(policy.hold_s));
                 }
             }
         }
@@ -1175,10 +1083,13 @@ pub struct RunParts {
 
 /// Run the pipeline until the input ends (replay) or `stop` turns true (daemon: frames in
 /// hand are finished, buffered ones are left for the next start), then close the sink.
+/// `pending_files` (daemon) counts files the front end holds that may still yield frames;
+/// it decrements a file only after sending its frames.
 pub async fn run_pipeline(
     parts: RunParts,
     input: mpsc::Receiver<Input>,
     stop: watch::Receiver<bool>,
+    pending_files: Option<Arc<AtomicUsize>>,
 ) -> Result<Progress> {
     let RunParts {
         config,
@@ -1193,11 +1104,8 @@ pub async fn run_pipeline(
     let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
     let progress_rx = progress.subscribe();
     let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
-    let scheduler = Scheduler::new(
-        config.clone(),
-        SchedulerSettings::from_config(&config, live),
-        &history,
-    );
+    let settings = SchedulerSettings::from_config(&config, live);
+    let scheduler = Scheduler::new(config.clone(), settings, &history);
     let ctx = JobContext { reader, aligner };
     let flush_every = Duration::from_secs_f64(config.sink.flush_interval_s.max(0.01));
     let driven = drive(
@@ -1208,6 +1116,7 @@ pub async fn run_pipeline(
         stop,
         stopping,
         flush_every,
+        pending_files,
     )
     .await;
     let written = tokio::task::spawn_blocking(move || writer.join())
@@ -1220,6 +1129,7 @@ pub async fn run_pipeline(
     Ok(last)
 }
 
+#[allow(clippy::too_many_arguments)]
 async fn drive(
     mut input: mpsc::Receiver<Input>,
     mut scheduler: Scheduler,
@@ -1228,6 +1138,7 @@ async fn drive(
     mut stop: watch::Receiver<bool>,
     stopping: Arc<AtomicBool>,
     flush_every: Duration,
+    pending_files: Option<Arc<AtomicUsize>>,
 ) -> Result<()> {
     let gone = || Error::output("log writer", "stopped unexpectedly");
     let mut jobs: JoinSet<JobDone> = JoinSet::new();
@@ -1244,6 +1155,28 @@ async fn drive(
                 input.close();
             }
         } else {
+            // Read the front end's count first, then take what it already sent: a file it
+            // finished before the count was read has its frames in the queue by now.
+            let pipe_empty = pending_files
+                .as_ref()
+                .is_none_or(|p| p.load(Ordering::SeqCst) == 0);
+            while accepting {
+                match input.try_recv() {
+                    Ok(Input::Frame(item)) => scheduler.offer(item),
+                    Ok(Input::Record(record)) => {
+                        writer
+                            .send(WriterMsg::Record(record))
+                            .await
+                            .map_err(|_| gone())?;
+                    }
+                    Err(mpsc::error::TryRecvError::Empty) => break,
+                    Err(mpsc::error::TryRecvError::Disconnected) => {
+                        accepting = false;
+                        scheduler.set_eof();
+                    }
+                }
+            }
+            scheduler.set_pipe_empty(pipe_empty);
             for action in scheduler.poll(Instant::now()) {
                 match action {
                     Action::Run(job) => {
@@ -1465,6 +1398,7 @@ pub async fn run_replay(
         },
         rx,
         stop_rx,
+        None,
     )
     .await;
     producer.abort();
@@ -1475,65 +1409,14 @@ pub async fn run_replay(
 // ---------------------------------------------------------------------------------------------
 // Paths and time
 
-/// ISO 8601 UTC with milliseconds, e.g. `2014-03-29T14:09:38.680Z`.
+/// ISO 8601 UTC with milliseconds, e.g. `2014-03-29T14:09:38.680Z` (the contract's `obs_time`).
 pub fn iso8601_utc(ns: i64) -> String {
-    let secs = ns.div_euclid(1_000_000_000);
-    let millis = ns.rem_euclid(1_000_000_000) / 1_000_000;
-    let days = secs.div_euclid(86_400);
-    let sod = secs.rem_euclid(86_400);
-    let (y, m, d) = civil_from_days(days);
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{millis:03}Z",
-        sod / 3600,
-        sod % 3600 / 60,
-        sod % 60
-    )
+    crate::time::format_iso_utc(ns)
 }
 
-/// Parse what [`iso8601_utc`] writes (and plain `YYYY-MM-DDTHH:MM:SS[.fff][Z]`).
+/// Parse an ISO 8601 UTC time back to ns since the epoch.
 pub fn parse_iso8601_utc(s: &str) -> Option<i64> {
-    let s = s.trim().trim_end_matches('Z');
-    let (date, time) = s.split_once('T')?;
-    let mut dp = date.split('-');
-    let y: i64 = dp.next()?.parse().ok()?;
-    let m: u32 = dp.next()?.parse().ok()?;
-    let d: u32 = dp.next()?.parse().ok()?;
-    let mut tp = time.split(':');
-    let hh: i64 = tp.next()?.parse().ok()?;
-    let mm: i64 = tp.next()?.parse().ok()?;
-    let sec = tp.next()?;
-    let (whole, frac) = sec.split_once('.').unwrap_or((sec, ""));
-    let ss: i64 = whole.parse().ok()?;
-    let mut frac_ns: i64 = 0;
-    for (i, c) in frac.chars().take(9).enumerate() {
-        frac_ns += i64::from(c.to_digit(10)?) * 10i64.pow(8 - i as u32);
-    }
-    let days = days_from_civil(y, m, d);
-    Some(((days * 86_400 + hh * 3600 + mm * 60 + ss) * 1_000_000_000) + frac_ns)
-}
-
-// Howard Hinnant's civil calendar algorithms (proleptic Gregorian).
-fn civil_from_days(z: i64) -> (i64, u32, u32) {
-    let z = z + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z.rem_euclid(146_097);
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let y = yoe + era * 400;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
-    (if m <= 2 { y + 1 } else { y }, m, d)
-}
-
-fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
-    let y = if m <= 2 { y - 1 } else { y };
-    let era = y.div_euclid(400);
-    let yoe = y.rem_euclid(400);
-    let m = i64::from(m);
-    let doy = (153 * (if m > 2 { m - 3 } else { m + 9 }) + 2) / 5 + i64::from(d) - 1;
-    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
-    era * 146_097 + doe - 719_468
+    crate::time::parse_fits_time(s, crate::time::TimeScale::Utc).ok()
 }
 
 #[cfg(test)]
@@ -1541,6 +1424,7 @@ mod tests {
     use super::fake::{FakeFrame, FakeReader, TruthAligner};
     use super::*;
     use crate::config::ChannelConfig;
+    use std::collections::HashMap;
 
     const S: i64 = 1_000_000_000;
 
@@ -1774,56 +1658,6 @@ mod tests {
             &rest[..],
             "the resumed run continues the same series"
         );
-    }
-
-    #[test]
-    fn completeness_check_matches_astropy_offsets() {
-        // Offsets from astropy (`HDU.fileinfo()`): AIA data starts at 17280 and holds
-        // 131072 bytes; the IRIS cube's last HDU (a table) ends at 2750400 + 80460.
-        let dir = tempfile::tempdir().unwrap();
-        let cases = [
-            ("aia_171_20110215T000000_128.fits", 17_280 + 131_072),
-            (
-                "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits",
-                2_750_400 + 80_460,
-            ),
-        ];
-        for (name, needed) in cases {
-            let bytes = std::fs::read(Path::new("data/real").join(name)).unwrap();
-            let full = dir.path().join(name);
-            std::fs::write(&full, &bytes).unwrap();
-            assert_eq!(fits_completeness(&full), Ok(()));
-            let cut = dir.path().join("cut.fits");
-            std::fs::write(&cut, &bytes[..needed]).unwrap();
-            assert_eq!(fits_completeness(&cut), Ok(()), "unpadded but complete");
-            std::fs::write(&cut, &bytes[..needed - 1]).unwrap();
-            let err = fits_completeness(&cut).unwrap_err();
-            assert!(err.contains(&format!("needs {needed} bytes")), "{err}");
-            std::fs::write(&cut, &bytes[..1000]).unwrap();
-            assert!(fits_completeness(&cut).unwrap_err().contains("cut off"));
-        }
-        let bomb = dir.path().join("bomb.fits");
-        let mut header = String::new();
-        for card in [
-            "SIMPLE  =                    T",
-            "BITPIX  =                   16",
-            "NAXIS   =                    2",
-            "NAXIS1  =           2000000000",
-            "NAXIS2  =           2000000000",
-            "END",
-        ] {
-            header.push_str(&format!("{card:<80}"));
-        }
-        std::fs::write(&bomb, format!("{header:<2880}")).unwrap();
-        let err = fits_completeness(&bomb).unwrap_err();
-        // One header block, then 2e9 × 2e9 × 2 bytes of data.
-        assert!(err.contains("needs 8000000000000002880 bytes"), "{err}");
-        std::fs::write(&bomb, b"").unwrap();
-        assert_eq!(fits_completeness(&bomb).unwrap_err(), "empty file");
-        let not = Path::new("data/malformed/not_actually_fits.fits");
-        assert!(fits_completeness(not)
-            .unwrap_err()
-            .starts_with("not a FITS file"));
     }
 
     #[test]

@@ -17,23 +17,27 @@
 //! ```
 //!
 //! The covariance is propagated to first order, treating `A` and `T_R` as independent
-//! (they come from different image pairs): `Σ = J_A Σ_A J_Aᵀ + J_T Σ_T J_Tᵀ` with
+//! (they come from different image pairs): `Σ = J_A Σ_A J_Aᵀ + J_T Σ_T J_Tᵀ`
+//! ([`crate::geometry::compose_with_covariance`]), where analytically
 //! `∂s/∂s_A = s_T, ∂s/∂s_T = s_A; ∂θ/∂θ_A = ∂θ/∂θ_T = 1; ∂d/∂s_A = R_A u, ∂d/∂θ_A = s_A R'_A u,
-//! ∂d/∂d_A = I, ∂d/∂d_T = s_A R_A`. The first reference has the identity chain with zero
-//! covariance, so `sigma_chained_*` grow like a random walk over keyframe hand-overs.
+//! ∂d/∂d_A = I, ∂d/∂d_T = s_A R_A`. `Σ_A` is the engine's calibrated covariance. The first
+//! reference has the identity chain with zero covariance, so `sigma_chained_*` grow like a
+//! random walk over keyframe hand-overs. Messages carry σ only; a restart continues from the
+//! full covariance stored in the last `/reference` message.
 
 use crate::engine::{AlignOutcome, Image};
 use crate::fits::FrameSpec;
-use crate::geometry::{Similarity, ARCSEC_PER_RAD};
-use crate::pipeline::{iso8601_utc, LogLevel, Record};
+use crate::geometry::{compose_with_covariance, sigmas, Similarity, ARCSEC_PER_RAD};
+use crate::pipeline::{LogLevel, Record};
 use crate::record::{AlignResult, FrameAlignment, Status, TransformFields};
+use crate::time::format_iso_utc as iso8601_utc;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 use std::sync::Arc;
 
 /// Covariance of (scale, rotation_rad, dx_px, dy_px).
-pub type Cov4 = [[f64; 4]; 4];
+pub type Cov4 = crate::geometry::Covariance4;
 
 // ---------------------------------------------------------------------------------------------
 // Policy names
@@ -145,117 +149,73 @@ impl Chain {
     }
 
     /// `step ∘ self`, with first-order covariance propagation (see the module docs).
+    /// The covariance is unknown when either factor's is.
     pub fn then(&self, step: &Similarity, step_cov: Option<&Cov4>) -> Chain {
-        let (transform, covariance) =
-            compose_with_covariance(step, step_cov, &self.transform, self.covariance.as_ref());
-        Chain {
-            transform,
-            covariance,
+        match (step_cov, self.covariance.as_ref()) {
+            (Some(sc), Some(cc)) => {
+                let (transform, cov) = compose_with_covariance(step, sc, &self.transform, cc);
+                Chain {
+                    transform,
+                    covariance: Some(cov),
+                }
+            }
+            _ => Chain {
+                transform: step.after(&self.transform),
+                covariance: None,
+            },
         }
     }
 
     /// 1-σ of (scale, rotation_rad, dx, dy).
     pub fn sigmas(&self) -> Option<[f64; 4]> {
-        self.covariance
-            .map(|c| [0, 1, 2, 3].map(|i| c[i][i].max(0.0).sqrt()))
+        self.covariance.as_ref().map(sigmas)
     }
-}
-
-/// `a ∘ t` (apply `t`, then `a`) about `t`'s centre, and its covariance to first order.
-pub fn compose_with_covariance(
-    a: &Similarity,
-    a_cov: Option<&Cov4>,
-    t: &Similarity,
-    t_cov: Option<&Cov4>,
-) -> (Similarity, Option<Cov4>) {
-    let composed = a.after(t);
-    let (Some(a_cov), Some(t_cov)) = (a_cov, t_cov) else {
-        return (composed, None);
-    };
-    let (ca, sa) = (a.rotation_rad.cos(), a.rotation_rad.sin());
-    let u = [
-        t.center[0] + t.dx - a.center[0],
-        t.center[1] + t.dy - a.center[1],
-    ];
-    let ru = [ca * u[0] - sa * u[1], sa * u[0] + ca * u[1]];
-    // R'(θ) u = [-sin u0 - cos u1, cos u0 - sin u1]
-    let dru = [-sa * u[0] - ca * u[1], ca * u[0] - sa * u[1]];
-    // Rows: (s, θ, dx, dy); columns: (s, θ, dx, dy) of the factor.
-    let j_a: Cov4 = [
-        [t.scale, 0.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0, 0.0],
-        [ru[0], a.scale * dru[0], 1.0, 0.0],
-        [ru[1], a.scale * dru[1], 0.0, 1.0],
-    ];
-    let j_t: Cov4 = [
-        [a.scale, 0.0, 0.0, 0.0],
-        [0.0, 1.0, 0.0, 0.0],
-        [0.0, 0.0, a.scale * ca, -a.scale * sa],
-        [0.0, 0.0, a.scale * sa, a.scale * ca],
-    ];
-    let mut out = [[0.0; 4]; 4];
-    for (j, c) in [(&j_a, a_cov), (&j_t, t_cov)] {
-        let jc = matmul(j, c);
-        let jcjt = matmul_bt(&jc, j);
-        for r in 0..4 {
-            for k in 0..4 {
-                out[r][k] += jcjt[r][k];
-            }
-        }
-    }
-    (composed, Some(out))
-}
-
-fn matmul(a: &Cov4, b: &Cov4) -> Cov4 {
-    let mut out = [[0.0; 4]; 4];
-    for r in 0..4 {
-        for k in 0..4 {
-            out[r][k] = (0..4).map(|i| a[r][i] * b[i][k]).sum();
-        }
-    }
-    out
-}
-
-/// `a · bᵀ`.
-fn matmul_bt(a: &Cov4, b: &Cov4) -> Cov4 {
-    let mut out = [[0.0; 4]; 4];
-    for r in 0..4 {
-        for k in 0..4 {
-            out[r][k] = (0..4).map(|i| a[r][i] * b[k][i]).sum();
-        }
-    }
-    out
 }
 
 // ---------------------------------------------------------------------------------------------
 // The /reference/<channel> record
 
-/// One `/reference/<channel>` message: a reference was chosen or replaced.
+/// One `/reference/<channel>` message: a reference was chosen or replaced. The first eight
+/// fields are the sink's `sunjitter.ReferenceChange` schema; the chain fields are extra
+/// (kept by sinks that store them) and let a restart continue the chain exactly.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReferenceChange {
     pub channel: String,
-    /// The new reference (`FILE` or `FILE[N]`).
+    /// The new reference's file, and its frame within a cube.
     pub file: String,
+    pub frame: Option<usize>,
+    /// The new reference's observation time, ISO 8601 UTC.
+    pub obs_time: String,
     pub reason: String,
     /// `keyframe`, `previous`, `fixed` or `channel`.
     pub reference_kind: String,
-    pub reference_obs_time: Option<String>,
-    /// The frame being processed when the change was made, and its sequence number.
-    pub frame: String,
+    /// `sequence` of the first frame aligned to this reference.
     pub sequence: u64,
+    /// The reference it replaces (`FILE` or `FILE[N]`), `None` for the first.
+    pub replaces: Option<String>,
     /// The new reference's pointing relative to the chain origin (as in `chained_*`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chained_scale: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chained_rotation_arcsec: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chained_dx_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chained_dy_px: Option<f64>,
-    /// Full covariance of the chain, order (scale, rotation_rad, dx_px, dy_px); lets a
-    /// restarted daemon continue the chain with correlated errors intact.
+    /// Full covariance of the chain, order (scale, rotation_rad, dx_px, dy_px).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chained_covariance: Option<Cov4>,
     /// Centre the chained transform is expressed about (the origin's array centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chain_center_px: Option<[f64; 2]>,
 }
 
 impl ReferenceChange {
+    /// The new reference as a frame key (`FILE` or `FILE[N]`).
+    pub fn key(&self) -> String {
+        frame_key(std::path::Path::new(&self.file), self.frame)
+    }
+
     /// The chain this change recorded, if any.
     pub fn chain(&self) -> Option<Chain> {
         let center = self.chain_center_px?;
@@ -309,6 +269,9 @@ struct RefSlot {
     obs_time_ns: i64,
     chain: Option<Chain>,
     image: Option<Arc<Image>>,
+    /// Restart: the chain as the reference's own message logged it (σ only); completed with
+    /// the image centre when the image is loaded.
+    chain_hint: Option<FrameAlignment>,
 }
 
 impl RefSlot {
@@ -319,14 +282,33 @@ impl RefSlot {
             obs_time_ns: frame.obs_time_ns,
             chain,
             image: Some(frame.image.clone()),
+            chain_hint: None,
         }
     }
 
+    /// A reference known only by name (restart, partner, fixed file): read when needed.
+    fn named(key: &str, obs_time_ns: i64, chain: Option<Chain>) -> RefSlot {
+        RefSlot {
+            key: key.to_string(),
+            spec: parse_frame_key(key),
+            obs_time_ns,
+            chain,
+            image: None,
+            chain_hint: None,
+        }
+    }
+
+    /// The image (read on first use). Always called before `chain` is used.
     fn image(&mut self, ctx: &dyn StepContext) -> crate::Result<Arc<Image>> {
         if let Some(image) = &self.image {
             return Ok(image.clone());
         }
         let image = Arc::new(ctx.load(&self.spec)?);
+        if self.chain.is_none() {
+            if let Some(m) = self.chain_hint.take() {
+                self.chain = chain_from_message(&m, Some(image_center(&image)));
+            }
+        }
         self.image = Some(image.clone());
         Ok(image)
     }
@@ -360,6 +342,8 @@ pub struct ChannelState {
     consecutive_failures: u32,
     /// Why the next frame starts a new chain (None: first frame).
     restart_reason: Option<String>,
+    /// The last reference announced (for `replaces`).
+    announced: Option<String>,
 }
 
 /// A processed frame as the scheduler sees it afterwards.
@@ -388,6 +372,7 @@ impl ChannelState {
             frames_on_reference: 0,
             consecutive_failures: 0,
             restart_reason: None,
+            announced: None,
         }
     }
 
@@ -405,6 +390,8 @@ impl ChannelState {
         let Some((change, change_time)) = &restored.last_reference else {
             return state;
         };
+        let key = change.key();
+        state.announced = Some(key.clone());
         if change.reference_kind != state.policy.policy.kind() {
             state.restart_reason = Some(format!(
                 "policy changed from {} to {}: new chain",
@@ -414,9 +401,17 @@ impl ChannelState {
             return state;
         }
         if let PolicySpec::Fixed(_) | PolicySpec::Channel(_) = state.policy.policy {
-            // Nothing to continue: the reference is re-chosen (and re-announced) as before.
+            // Nothing to continue: the reference is re-read (and re-announced if it changes).
             return state;
         }
+        let own_message = |k: &str| {
+            restored
+                .recent
+                .iter()
+                .rev()
+                .find(|(m, _)| m.align.frame == k)
+                .map(|(m, _)| m.clone())
+        };
         let after: Vec<&(FrameAlignment, i64)> = restored
             .recent
             .iter()
@@ -424,7 +419,7 @@ impl ChannelState {
             .collect();
         state.frames_on_reference = after
             .iter()
-            .filter(|(m, _)| m.align.reference == change.file && m.reference_kind != "self")
+            .filter(|(m, _)| m.align.reference == key && m.reference_kind != "self")
             .count() as u32;
         state.consecutive_failures = restored
             .recent
@@ -432,28 +427,29 @@ impl ChannelState {
             .rev()
             .take_while(|(m, _)| m.align.status == Status::Failed)
             .count() as u32;
-        state.reference = Some(RefSlot {
-            key: change.file.clone(),
-            spec: parse_frame_key(&change.file),
-            obs_time_ns: *change_time,
-            chain: change.chain(),
-            image: None,
-        });
+        let ref_time = restored
+            .recent
+            .iter()
+            .find(|(m, _)| m.align.frame == key)
+            .map_or(*change_time, |(_, t)| *t);
+        let mut slot = RefSlot::named(&key, ref_time, change.chain());
+        if slot.chain.is_none() {
+            slot.chain_hint = own_message(&key);
+        }
+        state.reference = Some(slot);
         if state.policy.policy == PolicySpec::Keyframe {
             state.candidate = after
                 .iter()
                 .rev()
                 .find(|(m, _)| {
-                    m.align.reference == change.file
+                    m.align.reference == key
                         && m.align.status == Status::Ok
                         && m.reference_kind != "self"
                 })
-                .map(|(m, t)| RefSlot {
-                    key: m.align.frame.clone(),
-                    spec: parse_frame_key(&m.align.frame),
-                    obs_time_ns: *t,
-                    chain: chain_from_message(m, change.chain_center_px),
-                    image: None,
+                .map(|(m, t)| {
+                    let mut slot = RefSlot::named(&m.align.frame, *t, None);
+                    slot.chain_hint = Some(m.clone());
+                    slot
                 });
         }
         state
@@ -579,7 +575,8 @@ impl ChannelState {
         } else {
             self.consecutive_failures = 0;
             let slot = RefSlot::from_frame(frame, chain);
-            self.install(slot, frame, sequence, "previous frame".into(), records);
+            // The first frame aligned to it is the next one.
+            self.install(slot, frame, sequence + 1, "previous frame".into(), records);
         }
         emitted
     }
@@ -688,13 +685,8 @@ impl ChannelState {
             Some(slot) => slot,
             None => {
                 let spec = parse_frame_key(file);
-                let mut slot = RefSlot {
-                    key: frame_key(&spec.path, spec.frame),
-                    spec,
-                    obs_time_ns: frame.obs_time_ns,
-                    chain: None,
-                    image: None,
-                };
+                let mut slot =
+                    RefSlot::named(&frame_key(&spec.path, spec.frame), frame.obs_time_ns, None);
                 match slot.image(ctx) {
                     Ok(image) => {
                         slot.obs_time_ns = image.meta.obs_time_ns.unwrap_or(frame.obs_time_ns);
@@ -752,13 +744,8 @@ impl ChannelState {
         let mut reference = match self.reference.take() {
             Some(slot) if slot.key == partner.key => slot,
             _ => {
-                let slot = RefSlot {
-                    key: partner.key.clone(),
-                    spec: partner.spec.clone(),
-                    obs_time_ns: partner.obs_time_ns,
-                    chain: partner.chain,
-                    image: None,
-                };
+                let mut slot = RefSlot::named(&partner.key, partner.obs_time_ns, partner.chain);
+                slot.spec = partner.spec.clone();
                 let dt = (frame.obs_time_ns - partner.obs_time_ns) as f64 * 1e-9;
                 let reason = format!(
                     "nearest {} frame (frame − reference = {dt:+.3} s)",
@@ -822,22 +809,24 @@ impl ChannelState {
         }
     }
 
+    /// The `/reference` record for `slot`; `first_sequence` is the first frame aligned to it.
     fn change_record(
-        &self,
+        &mut self,
         slot: &RefSlot,
         frame: &LoadedFrame,
-        sequence: u64,
+        first_sequence: u64,
         reason: String,
     ) -> Record {
         let chain = slot.chain;
         let change = ReferenceChange {
             channel: self.name.clone(),
-            file: slot.key.clone(),
+            file: slot.spec.path.display().to_string(),
+            frame: slot.spec.frame,
+            obs_time: iso8601_utc(slot.obs_time_ns),
             reason,
             reference_kind: self.policy.policy.kind().into(),
-            reference_obs_time: Some(iso8601_utc(slot.obs_time_ns)),
-            frame: frame.key.clone(),
-            sequence,
+            sequence: first_sequence,
+            replaces: self.announced.replace(slot.key.clone()),
             chained_scale: chain.map(|c| c.transform.scale),
             chained_rotation_arcsec: chain.map(|c| c.transform.rotation_arcsec()),
             chained_dx_px: chain.map(|c| c.transform.dx),
@@ -1327,20 +1316,22 @@ mod tests {
                 handovers + 1.0
             };
             let expect = (links * SX * SX).sqrt();
+            // (geometry's Jacobian is numerical: agreement to 1e-8 relative)
             assert!(
-                (m.sigma_chained_dx_px.unwrap() - expect).abs() < 1e-12,
+                (m.sigma_chained_dx_px.unwrap() - expect).abs() <= 1e-8 * expect,
                 "frame {i}"
             );
             assert!(
-                (m.sigma_chained_dy_px.unwrap() - expect).abs() < 1e-12,
+                (m.sigma_chained_dy_px.unwrap() - expect).abs() <= 1e-8 * expect,
                 "frame {i}"
             );
         }
     }
 
     #[test]
-    fn covariance_propagation_matches_a_numerical_jacobian() {
-        // Independent check: differentiate Similarity::after numerically and form J Σ Jᵀ.
+    fn chained_covariance_matches_monte_carlo_composition() {
+        // Independent truth: perturb both factors with their covariances (correlated, via
+        // Cholesky), compose with Similarity::after, and measure the spread of the result.
         let a = Similarity {
             scale: 1.003,
             rotation_rad: 0.02,
@@ -1356,64 +1347,74 @@ mod tests {
             center: [50.5, 20.5],
         };
         let ca = [
-            [1e-6, 2e-8, 1e-6, 0.0],
-            [2e-8, 4e-8, 0.0, 3e-7],
-            [1e-6, 0.0, 0.01, 0.002],
-            [0.0, 3e-7, 0.002, 0.02],
+            [1e-6, 2e-8, 1e-5, 0.0],
+            [2e-8, 4e-8, 0.0, 3e-6],
+            [1e-5, 0.0, 0.01, 0.002],
+            [0.0, 3e-6, 0.002, 0.02],
         ];
-        let ct = diag(2e-3, 3e-4, 0.05, 0.08);
-        let (_, cov) = compose_with_covariance(&a, Some(&ca), &t, Some(&ct));
-        let cov = cov.unwrap();
-        let params = |s: &Similarity| [s.scale, s.rotation_rad, s.dx, s.dy];
-        let with = |s: &Similarity, i: usize, h: f64| {
-            let mut p = params(s);
-            p[i] += h;
-            Similarity {
-                scale: p[0],
-                rotation_rad: p[1],
-                dx: p[2],
-                dy: p[3],
-                center: s.center,
-            }
-        };
-        let h = 1e-6;
-        let mut ja = [[0.0; 4]; 4];
-        let mut jt = [[0.0; 4]; 4];
-        for i in 0..4 {
-            let (pa, ma) = (
-                params(&with(&a, i, h).after(&t)),
-                params(&with(&a, i, -h).after(&t)),
-            );
-            let (pt, mt) = (
-                params(&a.after(&with(&t, i, h))),
-                params(&a.after(&with(&t, i, -h))),
-            );
-            for r in 0..4 {
-                ja[r][i] = (pa[r] - ma[r]) / (2.0 * h);
-                jt[r][i] = (pt[r] - mt[r]) / (2.0 * h);
-            }
+        let ct = diag(2e-4, 3e-4, 0.05, 0.08);
+        let chain = Chain {
+            transform: t,
+            covariance: Some(ct),
         }
-        let expect = {
-            let x = matmul_bt(&matmul(&ja, &ca), &ja);
-            let y = matmul_bt(&matmul(&jt, &ct), &jt);
-            let mut e = [[0.0; 4]; 4];
-            for r in 0..4 {
-                for k in 0..4 {
-                    e[r][k] = x[r][k] + y[r][k];
-                }
-            }
-            e
-        };
+        .then(&a, Some(&ca));
+        let cov = chain.covariance.unwrap();
+        let la = cholesky(&ca);
+        let lt = cholesky(&ct);
+        let mut rng = crate::stats::SplitMix64::new(7);
+        let n = 40_000;
+        let mut samples = Vec::with_capacity(n);
+        for _ in 0..n {
+            let za: [f64; 4] = std::array::from_fn(|_| rng.gaussian());
+            let zt: [f64; 4] = std::array::from_fn(|_| rng.gaussian());
+            let pa = perturb(&a, &la, &za);
+            let pt = perturb(&t, &lt, &zt);
+            let c = pa.after(&pt);
+            samples.push([c.scale, c.rotation_rad, c.dx, c.dy]);
+        }
+        let mean: [f64; 4] =
+            std::array::from_fn(|k| samples.iter().map(|s| s[k]).sum::<f64>() / n as f64);
         for r in 0..4 {
             for k in 0..4 {
-                let scale = expect[r][r].sqrt() * expect[k][k].sqrt();
+                let emp = samples
+                    .iter()
+                    .map(|s| (s[r] - mean[r]) * (s[k] - mean[k]))
+                    .sum::<f64>()
+                    / (n - 1) as f64;
+                // Sampling error of a covariance ≈ sqrt((σ_r²σ_k² + c_rk²)/n) ≤ 1.5 % here.
+                let scale = (cov[r][r] * cov[k][k]).sqrt();
                 assert!(
-                    (cov[r][k] - expect[r][k]).abs() <= 1e-6 * scale,
-                    "[{r}][{k}] {} vs {}",
-                    cov[r][k],
-                    expect[r][k]
+                    (emp - cov[r][k]).abs() < 0.03 * scale,
+                    "[{r}][{k}] empirical {emp} vs {}",
+                    cov[r][k]
                 );
             }
+        }
+    }
+
+    fn cholesky(c: &Cov4) -> Cov4 {
+        let mut l = [[0.0; 4]; 4];
+        for i in 0..4 {
+            for j in 0..=i {
+                let sum: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+                l[i][j] = if i == j {
+                    (c[i][i] - sum).sqrt()
+                } else {
+                    (c[i][j] - sum) / l[j][j]
+                };
+            }
+        }
+        l
+    }
+
+    fn perturb(s: &Similarity, l: &Cov4, z: &[f64; 4]) -> Similarity {
+        let d: [f64; 4] = std::array::from_fn(|i| (0..4).map(|k| l[i][k] * z[k]).sum());
+        Similarity {
+            scale: s.scale + d[0],
+            rotation_rad: s.rotation_rad + d[1],
+            dx: s.dx + d[2],
+            dy: s.dy + d[3],
+            center: s.center,
         }
     }
 
@@ -1530,8 +1531,9 @@ mod tests {
             assert_chained_is_truth(m, &frames[i].1.truth);
             let s = frames[i].1.truth.scale / frames[i - 1].1.truth.scale;
             var = SX * SX + s * s * var;
-            assert!((m.sigma_chained_dx_px.unwrap() - var.sqrt()).abs() < 1e-12);
-            assert!((m.sigma_chained_dy_px.unwrap() - var.sqrt()).abs() < 1e-12);
+            // (geometry's Jacobian is numerical: agreement to 1e-8 relative)
+            assert!((m.sigma_chained_dx_px.unwrap() - var.sqrt()).abs() <= 1e-8 * var.sqrt());
+            assert!((m.sigma_chained_dy_px.unwrap() - var.sqrt()).abs() <= 1e-8 * var.sqrt());
         }
         // Every frame becomes the next one's reference: one change per frame.
         assert_eq!(changes(&records).len(), 6);
@@ -1597,7 +1599,7 @@ mod tests {
             // One link (partner → frame) after the partner's own: SX² + s² SX².
             let s = frames[i].1.truth.scale / partner_frame.truth.scale;
             let expect = (SX * SX * (1.0 + s * s)).sqrt();
-            assert!((m.sigma_chained_dx_px.unwrap() - expect).abs() < 1e-12);
+            assert!((m.sigma_chained_dx_px.unwrap() - expect).abs() <= 1e-8 * expect);
         }
         let ch = changes(&records);
         assert_eq!(ch.len(), 1, "same partner twice: one change");
@@ -1630,13 +1632,53 @@ mod tests {
 
         let mut first = ChannelState::new("C", p.clone());
         let before = run(&mut first, &world, &keys[..6]);
+        let n_before = before.len();
         let mut history = crate::pipeline::History::default();
         for r in &before {
             history.add(r);
         }
-        let mut resumed = ChannelState::restore("C", p, &history.channels["C"]);
+        let mut resumed = ChannelState::restore("C", p.clone(), &history.channels["C"]);
         let after = run(&mut resumed, &world, &keys[6..]);
-        let n_before = before.len();
         assert_eq!(&all[n_before..], &after[..]);
+
+        // The MCAP schema keeps no chain in /reference messages: the restart then takes the
+        // chain from the reference frame's own message (σ only), which for these diagonal
+        // covariances is the same to rounding.
+        let mut bare = crate::pipeline::History::default();
+        for r in &before {
+            match r {
+                Record::Reference {
+                    change,
+                    log_time_ns,
+                } => {
+                    let mut c = (**change).clone();
+                    c.chained_scale = None;
+                    c.chain_center_px = None;
+                    c.chained_covariance = None;
+                    bare.add(&Record::Reference {
+                        change: Box::new(c),
+                        log_time_ns: *log_time_ns,
+                    });
+                }
+                other => bare.add(other),
+            }
+        }
+        let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
+        let after = run(&mut resumed, &world, &keys[6..]);
+        let expect = messages(&all[n_before..]);
+        let got = messages(&after);
+        assert_eq!(expect.len(), got.len());
+        for (e, g) in expect.iter().zip(&got) {
+            assert_eq!(
+                (&e.align.frame, &e.align.reference, e.sequence),
+                (&g.align.frame, &g.align.reference, g.sequence)
+            );
+            assert_chained_is_truth(g, &frames[g.sequence as usize].1.truth);
+            let (es, gs) = (
+                e.sigma_chained_dx_px.unwrap(),
+                g.sigma_chained_dx_px.unwrap(),
+            );
+            assert!((es - gs).abs() <= 1e-9 * es, "{es} vs {gs}");
+        }
     }
 }

@@ -33,7 +33,7 @@ fn cov() -> [[f64; 4]; 4] {
 /// Settings that keep the tests quick (defaults are for real instruments).
 fn quick_config() -> Config {
     let mut c = Config::default();
-    c.daemon.reorder_window_s = 0.05;
+    c.daemon.reorder_window_s = 0.3;
     c.daemon.settle_s = 0.2;
     c.daemon.retry_initial_s = 0.05;
     c.daemon.retry_max_s = 0.2;

@@ -179,6 +179,8 @@ impl FakeReader {
 
 impl FrameReader for FakeReader {
     fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        // Refuse incomplete files as the real reader does.
+        fits_completeness(path).map_err(|reason| Error::bad_input(path, reason))?;
         let frame = FakeFrame::parse(path)?;
         Ok(vec![fake_meta(path, &frame.channel, frame.obs_time_ns)])
     }
@@ -282,5 +284,143 @@ pub fn outcome(
         },
         transform: Some(t),
         covariance: Some(cov),
+    }
+}
+
+/// The fake reader's stand-in for the real reader's structure checks: `path` holds complete FITS HDUs: every header has its END card and the file is
+/// as long as the headers say. A file still being written fails here (and is retried);
+/// absurd headers (`NAXIS1 = 2000000000`) fail with the size they claim.
+pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
+    use std::io::{Read, Seek, SeekFrom};
+    const BLOCK: u64 = 2880;
+    const MAX_HEADER_BLOCKS: u64 = 10_000;
+    let mut file = std::fs::File::open(path).map_err(|e| format!("cannot open: {e}"))?;
+    let size = file
+        .metadata()
+        .map_err(|e| format!("cannot stat: {e}"))?
+        .len();
+    if size == 0 {
+        return Err("empty file".into());
+    }
+    let mut start = Vec::with_capacity(9);
+    (&mut file)
+        .take(9)
+        .read_to_end(&mut start)
+        .map_err(|e| format!("cannot read: {e}"))?;
+    if start.starts_with(&[0x1f, 0x8b]) {
+        return Ok(()); // gzip: the reader checks it as it decompresses
+    }
+    if !b"SIMPLE  =".starts_with(&start) {
+        return Err("not a FITS file (it does not start with SIMPLE)".into());
+    }
+    let mut offset = 0u64;
+    let mut hdu = 0usize;
+    let mut block = [0u8; BLOCK as usize];
+    loop {
+        // Header
+        let mut cards: std::collections::HashMap<String, String> = std::collections::HashMap::new();
+        let mut blocks = 0u64;
+        let mut ended = false;
+        while !ended {
+            if offset + (blocks + 1) * BLOCK > size {
+                return Err(format!(
+                    "incomplete: HDU {hdu} header is cut off at byte {size} (no END card)"
+                ));
+            }
+            if blocks >= MAX_HEADER_BLOCKS {
+                return Err(format!(
+                    "HDU {hdu} header has no END card in {MAX_HEADER_BLOCKS} blocks"
+                ));
+            }
+            file.seek(SeekFrom::Start(offset + blocks * BLOCK))
+                .and_then(|_| file.read_exact(&mut block))
+                .map_err(|e| format!("cannot read: {e}"))?;
+            if blocks == 0 {
+                let first = String::from_utf8_lossy(&block[..9]).to_string();
+                let expected = if hdu == 0 { "SIMPLE  =" } else { "XTENSION=" };
+                if first != expected {
+                    if hdu == 0 {
+                        return Err("not a FITS file (it does not start with SIMPLE)".into());
+                    }
+                    return Ok(()); // trailing bytes after the last HDU
+                }
+            }
+            for card in block.chunks(80) {
+                let card = String::from_utf8_lossy(card);
+                let name = card[..8.min(card.len())].trim_end().to_string();
+                if name == "END" {
+                    ended = true;
+                    break;
+                }
+                if card.len() > 10 && &card[8..10] == "= " {
+                    let value = card[10..]
+                        .split('/')
+                        .next()
+                        .unwrap_or("")
+                        .trim()
+                        .to_string();
+                    cards.entry(name).or_insert(value);
+                }
+            }
+            blocks += 1;
+        }
+        let int = |k: &str| -> std::result::Result<i64, String> {
+            cards
+                .get(k)
+                .ok_or_else(|| format!("HDU {hdu} header lacks {k}"))?
+                .parse::<i64>()
+                .map_err(|_| format!("HDU {hdu} header: {k} is not an integer"))
+        };
+        let bitpix = int("BITPIX")?;
+        let naxis = int("NAXIS")?;
+        if !(0..=999).contains(&naxis) || ![8, 16, 32, 64, -32, -64].contains(&bitpix) {
+            return Err(format!(
+                "HDU {hdu} header: BITPIX {bitpix} / NAXIS {naxis} invalid"
+            ));
+        }
+        let mut pixels: u64 = if naxis == 0 { 0 } else { 1 };
+        for i in 1..=naxis {
+            let n = int(&format!("NAXIS{i}"))?;
+            if n < 0 {
+                return Err(format!("HDU {hdu} header: NAXIS{i} = {n}"));
+            }
+            pixels = pixels
+                .checked_mul(n as u64)
+                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
+        }
+        let pcount = if hdu == 0 {
+            0
+        } else {
+            int("PCOUNT").unwrap_or(0).max(0) as u64
+        };
+        let gcount = if hdu == 0 {
+            1
+        } else {
+            int("GCOUNT").unwrap_or(1).max(0) as u64
+        };
+        let data = if naxis == 0 {
+            0
+        } else {
+            pixels
+                .checked_add(pcount)
+                .and_then(|n| n.checked_mul(gcount))
+                .and_then(|n| n.checked_mul(bitpix.unsigned_abs() / 8))
+                .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?
+        };
+        let data_start = offset + blocks * BLOCK;
+        let data_end = data_start
+            .checked_add(data)
+            .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
+        if data_end > size {
+            return Err(format!(
+                "incomplete: HDU {hdu} needs {data_end} bytes, the file has {size}"
+            ));
+        }
+        let padded = data_end.div_ceil(BLOCK) * BLOCK;
+        if padded + BLOCK > size {
+            return Ok(());
+        }
+        offset = padded;
+        hdu += 1;
     }
 }
