@@ -79,12 +79,15 @@ pub async fn run_daemon(
     tracing::info!(dir = %root.display(), recursive = config.daemon.recursive, "watching");
 
     let (input_tx, input_rx) = mpsc::channel::<Input>(capacity);
-    let ingest = Ingest::new(
+    let mut ingest = Ingest::new(
         root,
         config,
         parts.reader.clone(),
         Arc::new(parts.history.clone()),
     );
+    // The start scan: after the watcher is installed, so nothing falls in between.
+    ingest.rescan(None).await;
+    parts.progress.send_modify(|p| p.watching = true);
     let pending = ingest.pending.clone();
     let ingest_task = tokio::spawn(ingest.run(signal_rx, input_tx, stop_rx.clone()));
 
@@ -254,8 +257,7 @@ impl Ingest {
             86_400.0
         }));
         rescan_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        rescan_tick.tick().await; // the first tick is immediate; the start scan is here:
-        self.rescan(None).await;
+        rescan_tick.tick().await; // the first tick is immediate (the start scan is done)
 
         let mut reading: JoinSet<(PathBuf, Examined)> = JoinSet::new();
         let mut watcher_alive = true;
@@ -355,8 +357,7 @@ impl Ingest {
         }
         match self.files.get(&path).cloned() {
             None => {
-                self.files
-                    .insert(path.clone(), FileState::Queued(origin, Tries::default()));
+                self.set(path.clone(), FileState::Queued(origin, Tries::default()));
                 self.ready.push_back(path);
             }
             Some(FileState::Queued(Origin::Scan, tries)) if origin == Origin::Event => {
@@ -369,8 +370,7 @@ impl Ingest {
                 // New activity: look again now, with a fresh attempt count.
                 self.waiting.remove(&(due, path.clone()));
                 let origin = if was == Origin::Event { was } else { origin };
-                self.files
-                    .insert(path.clone(), FileState::Queued(origin, Tries::default()));
+                self.set(path.clone(), FileState::Queued(origin, Tries::default()));
                 self.ready.push_back(path);
             }
             Some(FileState::Done(stamp)) => {
@@ -472,8 +472,7 @@ impl Ingest {
 
     fn wait(&mut self, path: PathBuf, due: Instant, origin: Origin, tries: Tries) {
         self.waiting.insert((due, path.clone()));
-        self.files
-            .insert(path, FileState::Waiting { due, origin, tries });
+        self.set(path, FileState::Waiting { due, origin, tries });
     }
 
     fn release_due(&mut self, now: Instant) {
@@ -483,8 +482,7 @@ impl Ingest {
             }
             self.waiting.pop_first();
             if let Some(FileState::Waiting { origin, tries, .. }) = self.files.get(&path).cloned() {
-                self.files
-                    .insert(path.clone(), FileState::Queued(origin, tries));
+                self.set(path.clone(), FileState::Queued(origin, tries));
                 self.ready.push_back(path);
             }
         }
@@ -755,6 +753,7 @@ mod tests {
             Arc::new(FakeReader::default()),
             Arc::new(History::default()),
         );
+        let pending = ingest.pending.clone();
         let (sig_tx, sig_rx) = mpsc::channel(2);
         let (in_tx, mut in_rx) = mpsc::channel(2);
         let (stop_tx, stop_rx) = watch::channel(false);
@@ -802,6 +801,11 @@ mod tests {
         }
         assert_eq!(frames.len(), 21);
         assert!(frames.values().all(|n| *n == 1), "{frames:?}");
+        assert_eq!(
+            pending.load(Ordering::SeqCst),
+            0,
+            "every file finished, none pending"
+        );
         assert_eq!(logs.len(), 1, "{logs:?}");
         assert!(matches!(&logs[0], Record::Log { file, message, .. }
             if file.ends_with("junk.fits") && message.contains("not a FITS file")));

@@ -314,6 +314,9 @@ pub struct Progress {
     pub per_channel: BTreeMap<String, u64>,
     /// Inputs (frames or files) finished so far: `frames + skipped`.
     pub finished: u64,
+    /// Daemon: the watcher is installed and the files present at start are queued; files
+    /// written from now on are seen by events.
+    pub watching: bool,
     pub write_errors: u64,
     pub last_error: Option<String>,
 }
@@ -852,10 +855,11 @@ impl Scheduler {
         let after = history.and_then(|h| h.iter().find(|p| p.obs_time_ns >= t));
         let idle = lane.is_none_or(|l| l.buffer.is_empty() && !l.in_flight);
         let exhausted = self.eof && idle;
-        // Live: give up only once the partner has nothing pending and has been quiet for
-        // `hold_s` (a partner that is merely busy is waited for).
+        // Live: give up only once the partner has nothing pending, no file is in the pipe,
+        // and the partner has been quiet for `hold_s` (a busy partner is waited for).
         let expired = self.settings.live
             && idle
+            && self.pipe_empty
             && now.saturating_duration_since(self.hold_start(partner, item))
                 >= Duration::from_secs_f64(hold_s);
         if after.is_none() && !exhausted && !expired {
@@ -1107,7 +1111,7 @@ pub async fn run_pipeline(
     let settings = SchedulerSettings::from_config(&config, live);
     let scheduler = Scheduler::new(config.clone(), settings, &history);
     let ctx = JobContext { reader, aligner };
-    let flush_every = Duration::from_secs_f64(config.sink.flush_interval_s.max(0.01));
+    let flush_every = Duration::from_secs_f64(config.daemon.flush_interval_s.max(0.01));
     let driven = drive(
         input,
         scheduler,
@@ -1250,12 +1254,145 @@ async fn sleep_until_opt(deadline: Option<Instant>) {
 // The output directory
 
 /// Open the MCAP output in `out` for a new run, with what earlier runs already logged there.
-pub fn open_output(out: &Path, _config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
-    // Wired to `sink::McapSink` and `sink::read_logs` when the MCAP sink lands.
-    Err(Error::output(
-        out,
-        "the MCAP sink is not available in this build yet",
-    ))
+/// Unfinished segments (a crash) are first rewritten as finished files so every MCAP reader
+/// opens them; what they held counts as logged.
+pub fn open_output(out: &Path, config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
+    let history = if out.is_dir() {
+        read_history(out)?
+    } else {
+        History::default()
+    };
+    let sink = crate::sink::McapSink::new(out, config.sink.clone(), config.to_json().to_string())?;
+    Ok((Box::new(McapRecordSink(sink)), history))
+}
+
+/// Read the segments in `out` (recovering unfinished ones) as a [`History`].
+pub fn read_history(out: &Path) -> Result<History> {
+    let dirs = [out.to_path_buf()];
+    let contents = crate::sink::read_logs(&dirs)?;
+    for segment in contents.segments.iter().filter(|s| !s.complete) {
+        match crate::sink::recover_segment(&segment.path) {
+            Ok(outcome) => {
+                tracing::warn!(segment = %segment.path.display(), "unfinished segment recovered: {outcome:?}")
+            }
+            Err(e) => tracing::error!("{e} (its flushed part is still counted as logged)"),
+        }
+    }
+    let mut history = History::default();
+    for m in &contents.jitter {
+        history.add(&Record::Frame {
+            message: Box::new(m.record.clone()),
+            log_time_ns: clamp_ns(m.log_time_ns),
+        });
+    }
+    for m in &contents.references {
+        let c = &m.change;
+        let change = ReferenceChange {
+            channel: c.channel.clone(),
+            file: c.file.clone(),
+            frame: c.frame,
+            obs_time: c.obs_time.clone(),
+            reason: c.reason.clone(),
+            reference_kind: c.reference_kind.clone(),
+            sequence: c.sequence,
+            replaces: c.replaces.clone(),
+            chained_scale: None,
+            chained_rotation_arcsec: None,
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_covariance: None,
+            chain_center_px: None,
+        };
+        history.add(&Record::Reference {
+            change: Box::new(change),
+            log_time_ns: clamp_ns(m.log_time_ns),
+        });
+    }
+    for m in &contents.logs {
+        let level = LogLevel::from_foxglove(m.entry.level as u8);
+        history.add(&Record::Log {
+            level,
+            file: m.entry.file.clone(),
+            message: m.entry.message.clone(),
+            log_time_ns: clamp_ns(m.log_time_ns),
+            finishes: level >= LogLevel::Error,
+        });
+    }
+    Ok(history)
+}
+
+fn clamp_ns(ns: u64) -> i64 {
+    i64::try_from(ns).unwrap_or(i64::MAX)
+}
+
+/// MCAP timestamps are unsigned: times before 1970 are written as 0.
+fn mcap_ns(ns: i64) -> u64 {
+    u64::try_from(ns).unwrap_or(0)
+}
+
+/// The MCAP sink behind the [`RecordSink`] interface.
+pub struct McapRecordSink(pub crate::sink::McapSink);
+
+impl RecordSink for McapRecordSink {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
+        McapRecordSink::write_to(&mut self.0, record, publish_time_ns)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        // Idle flush, and rotation by time.
+        self.0.tick(mcap_ns(now_ns()))
+    }
+
+    fn finish(mut self: Box<Self>) -> Result<()> {
+        self.0.finish()
+    }
+}
+
+impl McapRecordSink {
+    /// Write one record to an MCAP sink.
+    pub fn write_to(
+        sink: &mut crate::sink::McapSink,
+        record: &Record,
+        publish_time_ns: i64,
+    ) -> Result<()> {
+        let publish = mcap_ns(publish_time_ns);
+        match record {
+            Record::Frame {
+                message,
+                log_time_ns,
+            } => sink.write_frame(message, mcap_ns(*log_time_ns), publish),
+            Record::Reference {
+                change,
+                log_time_ns,
+            } => {
+                let c = crate::sink::ReferenceChange {
+                    channel: change.channel.clone(),
+                    file: change.file.clone(),
+                    frame: change.frame,
+                    obs_time: change.obs_time.clone(),
+                    reason: change.reason.clone(),
+                    reference_kind: change.reference_kind.clone(),
+                    sequence: change.sequence,
+                    replaces: change.replaces.clone(),
+                };
+                sink.write_reference_change(&c, mcap_ns(*log_time_ns), publish)
+            }
+            Record::Log {
+                level,
+                file,
+                message,
+                log_time_ns,
+                ..
+            } => {
+                let level = match level {
+                    LogLevel::Info => crate::sink::LogLevel::Info,
+                    LogLevel::Warning => crate::sink::LogLevel::Warning,
+                    LogLevel::Error => crate::sink::LogLevel::Error,
+                };
+                sink.write_log(level, file, message, mcap_ns(*log_time_ns), publish)
+            }
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -350,7 +350,7 @@ pub struct ChannelState {
 #[derive(Debug, Clone)]
 pub struct StepOutput {
     pub records: Vec<Record>,
-    /// Set when the frame can serve as a partner reference (it was read and not failed).
+    /// The frame as a reference for `channel:` followers (every frame that was read).
     pub partner: Option<PartnerFrame>,
 }
 
@@ -503,7 +503,9 @@ impl ChannelState {
             self.last_obs_time_ns
                 .map_or(frame.obs_time_ns, |t| t.max(frame.obs_time_ns)),
         );
-        let partner = (emitted.message.align.status != Status::Failed).then(|| PartnerFrame {
+        // Any frame that was read can serve as a partner's reference image; its chain is
+        // absent when its own alignment failed.
+        let partner = Some(PartnerFrame {
             channel: self.name.clone(),
             key: frame.key.clone(),
             spec: frame.spec.clone(),

@@ -424,3 +424,41 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
         hdu += 1;
     }
 }
+
+/// One frame of a real cube written as its own FITS file (as `examples/split_cube.rs` does).
+#[derive(Debug, Clone)]
+pub struct SplitFrame {
+    pub name: String,
+    pub bytes: Vec<u8>,
+    pub obs_time_ns: i64,
+    pub channel: String,
+}
+
+/// Split a real cube into per-frame FITS files' bytes, in frame order (files are written in
+/// `scratch` and read back), for tests that feed a watcher a real sequence.
+pub fn split_cube(cube: &Path, scratch: &Path) -> Result<Vec<SplitFrame>> {
+    use crate::fits;
+    let metas = fits::read_meta(cube)?;
+    let (_, header) = fits::read_image_header(cube)?;
+    std::fs::create_dir_all(scratch).map_err(|e| Error::io(scratch, e))?;
+    let stem = cube.file_stem().and_then(|s| s.to_str()).unwrap_or("frame");
+    let mut out = Vec::new();
+    for meta in &metas {
+        let index = meta.frame.unwrap_or(0);
+        let image = fits::read_frame(&FrameSpec::cube_frame(cube, index))?;
+        let cards = fits::frame_header_cards(&header, &image.meta);
+        let name = format!("{stem}_f{index:04}.fits");
+        let path = scratch.join(&name);
+        fits::write_image(&path, image.data.view(), &cards)?;
+        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        out.push(SplitFrame {
+            name,
+            bytes,
+            obs_time_ns: meta
+                .obs_time_ns
+                .ok_or_else(|| Error::bad_header(cube, "frame without time"))?,
+            channel: meta.channel.clone(),
+        });
+    }
+    Ok(out)
+}
