@@ -56,7 +56,7 @@ pub fn run(args: &Args) -> Result<i32> {
     })
 }
 
-fn load_engine_config(path: Option<&std::path::Path>) -> Result<EngineConfig> {
+pub(crate) fn load_engine_config(path: Option<&std::path::Path>) -> Result<EngineConfig> {
     let Some(path) = path else {
         return Ok(EngineConfig::default());
     };

@@ -1,14 +1,138 @@
-//! `sunjitter inspect` (not yet implemented).
+//! `sunjitter inspect LOG.mcap|DIR… [--json] [--csv OUT.csv] [--plot OUT.png|OUT.svg]`
+//!
+//! Reads the `/jitter/<channel>` messages of one or more logs (a directory stands for its
+//! `*.mcap` files in name order, i.e. a run's segments in time order) as one series per channel,
+//! and prints a short summary, or with `--json` exactly one JSON document:
+//!
+//! ```text
+//! { "files": ["…mcap", …],
+//!   "channels": [ {
+//!     "channel": "SYNTH_171", "frames": 80, "ok": 78, "degraded": 1, "failed": 1,
+//!     "reference_kinds": {"keyframe": 79, "self": 1},
+//!     "start": "2024-05-01T12:00:00.000Z", "end": "…", "span_s": 948.0, "median_cadence_s": 12.0,
+//!     "raw":     { "dx_px": STATS, "dy_px": STATS, "rotation_arcsec": STATS, "scale": STATS },
+//!     "chained": { same } | null,
+//!     "series": "chained" | "raw",          // what periodogram, outliers and plot use
+//!     "periodogram": {
+//!       "series": "chained", "samples": 79, "span_s": 948.0,
+//!       "frequency_min_hz": 1/span, "frequency_max_hz": 1/(2·median Δt),
+//!       "frequency_step_hz": 1/(oversampling·span), "frequency_resolution_hz": 1/span,
+//!       "oversampling": 5.0, "frequencies": 190,
+//!       "peaks": { "dx_px": [PEAK, …], "dy_px": […], "rotation_arcsec": […], "scale": […] }
+//!     } | null,
+//!     "outliers": [ { "sequence", "obs_time", "log_time_ns", "frame", "parameter", "series",
+//!                     "value", "baseline", "deviation", "sigma", "z" }, … ]
+//!   } ] }
+//! STATS = { "n", "mean", "rms" (about the mean), "min", "max", "peak_to_peak", "median_sigma" }
+//! PEAK  = { "period_s", "frequency_hz", "power" (0–1, fraction of variance),
+//!           "false_alarm_probability" (Baluev 2008) }
+//! ```
+//!
+//! Numbers are `null` where there is nothing to compute. Definitions: [`crate::inspect`]
+//! (series choice, detrending), [`crate::inspect::lombscargle`] (periodogram and its grid:
+//! "within one frequency bin" means within `frequency_resolution_hz`),
+//! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
+//! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
+
+use crate::inspect::{self, InspectOptions, LoggedFrame};
+use crate::{Error, Result};
+use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// MCAP logs, or directories of them (segments of one run are read as one series).
+    #[arg(required = true)]
+    pub logs: Vec<PathBuf>,
     /// Print one JSON document on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Write the time series, one row per frame with every field.
+    #[arg(long, value_name = "OUT.csv")]
+    pub csv: Option<PathBuf>,
+    /// Draw the time series and periodogram (format from the extension: .png or .svg).
+    #[arg(long, value_name = "OUT.png|OUT.svg")]
+    pub plot: Option<PathBuf>,
 }
 
-pub fn run(_args: &Args) -> crate::Result<i32> {
-    Err(crate::Error::Usage(
-        "`inspect` is not implemented yet".into(),
-    ))
+pub fn run(args: &Args) -> Result<i32> {
+    if let Some(plot) = &args.plot {
+        let ext = plot
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        if !matches!(ext.as_deref(), Some("png") | Some("svg")) {
+            return Err(Error::Usage(format!(
+                "--plot {}: the file name must end in .png or .svg",
+                plot.display()
+            )));
+        }
+    }
+    let files = log_files(&args.logs)?;
+    let frames = read_frames(&files)?;
+    let analyses = inspect::analyse(&frames, &InspectOptions::default());
+    let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+    let report = inspect::report(&names, &analyses);
+
+    if let Some(path) = &args.csv {
+        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        let mut out = std::io::BufWriter::new(file);
+        inspect::csv::write_csv(&mut out, &analyses)
+            .and_then(|_| std::io::Write::flush(&mut out))
+            .map_err(|e| Error::io(path, e))?;
+    }
+    if let Some(path) = &args.plot {
+        inspect::plot::write_plot(&analyses, path)?;
+    }
+    if args.json {
+        let doc = serde_json::to_string_pretty(&report)
+            .map_err(|e| Error::Usage(format!("cannot encode the report: {e}")))?;
+        println!("{doc}");
+    } else {
+        print!("{}", inspect::render_text(&report));
+    }
+    Ok(0)
+}
+
+/// The logs to read: files as given, directories replaced by their `*.mcap` files in name order.
+pub fn log_files(args: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for arg in args {
+        let meta = std::fs::metadata(arg).map_err(|e| Error::io(arg, e))?;
+        if meta.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(arg)
+                .map_err(|e| Error::io(arg, e))?
+                .filter_map(|entry| entry.ok().map(|e| e.path()))
+                .filter(|p| {
+                    p.extension()
+                        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
+                })
+                .collect();
+            if found.is_empty() {
+                return Err(Error::bad_input(arg, "directory holds no .mcap files"));
+            }
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(arg.clone());
+        }
+    }
+    files.dedup();
+    Ok(files)
+}
+
+/// Every `/jitter/<channel>` message of `files`, with its `log_time`; damaged or unfinished
+/// segments are read as far as they go, with a warning naming what was skipped.
+pub fn read_frames(files: &[PathBuf]) -> Result<Vec<LoggedFrame>> {
+    let contents = crate::sink::read_logs(files)?;
+    for note in contents.notes() {
+        tracing::warn!("{note}");
+    }
+    Ok(contents
+        .jitter
+        .into_iter()
+        .map(|m| LoggedFrame {
+            log_time_ns: i64::try_from(m.log_time_ns).unwrap_or(i64::MAX),
+            record: m.record,
+        })
+        .collect())
 }

@@ -1,12 +1,209 @@
-//! `sunjitter synth` (not yet implemented).
+//! `sunjitter synth --out DIR [--frames N] [--size PX] [--cadence S] [--seed S] [--jitter SPEC]
+//! [--realtime] [--start UTC] [--json]`
+//!
+//! Writes `synth_NNNN.fits` (primary-HDU 2-D int16 images in DN, level-1-like headers with the
+//! nominal pointing, channel `SYNTH_171`) and `truth.csv` with
+//! `frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale`: the injected image motion of each
+//! frame in the contract's convention, relative to the nominal pointing. Each file is written
+//! under a temporary name and renamed into place, so a watcher never sees a partial frame.
+//!
+//! `--json` prints `{"out": DIR, "channel": "SYNTH_171", "frames": N, "size": PX,
+//! "cadence_s": S, "seed": S, "jitter": SPEC, "truth_csv": PATH, "files": [PATH…],
+//! "seconds_per_frame": T}`, where `seconds_per_frame` is the generation plus write time.
+
+use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
+use crate::time::{parse_fits_time, TimeScale};
+
+/// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
+const DEFAULT_START_NS: i64 = 1_714_564_800_000_000_000;
+use crate::{Error, Result};
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::FitsFile;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// Directory to write the frames and truth.csv into (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Number of frames.
+    #[arg(long, default_value_t = 30)]
+    pub frames: usize,
+    /// Frame width and height in pixels.
+    #[arg(long, default_value_t = 1024)]
+    pub size: usize,
+    /// Seconds between frames (DATE-OBS step).
+    #[arg(long, default_value_t = 12.0)]
+    pub cadence: f64,
+    /// Seed of the scene, the random walk and the noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Sum of terms: sine:AMP_PX:PERIOD_S[:x|y], walk:STEP_PX, step:PX:AT_S[:x|y],
+    /// rot:ARCSEC_PER_HOUR, scale:PER_HOUR (or `none`).
+    #[arg(long, default_value = synth::DEFAULT_JITTER)]
+    pub jitter: String,
+    /// Write one frame per cadence in wall-clock time (to feed `watch`).
+    #[arg(long)]
+    pub realtime: bool,
+    /// DATE-OBS of the first frame, UTC `YYYY-MM-DDTHH:MM:SS[.fff]` (default: 2024-05-01T12:00:00,
+    /// or now with --realtime).
+    #[arg(long)]
+    pub start: Option<String>,
     /// Print one JSON document on stdout.
     #[arg(long)]
     pub json: bool,
 }
 
-pub fn run(_args: &Args) -> crate::Result<i32> {
-    Err(crate::Error::Usage("`synth` is not implemented yet".into()))
+pub fn run(args: &Args) -> Result<i32> {
+    if args.frames == 0 {
+        return Err(Error::Usage("--frames must be at least 1".into()));
+    }
+    if !(args.cadence.is_finite() && args.cadence > 0.0) {
+        return Err(Error::Usage(format!(
+            "--cadence {} must be positive",
+            args.cadence
+        )));
+    }
+    let spec: JitterSpec = args.jitter.parse()?;
+    let start_ns = start_time(args)?;
+    let cfg = SynthConfig::new(args.size, args.seed, args.cadence);
+    let began = Instant::now();
+    let model = SunModel::new(&cfg)?;
+    let truth = synth::jitter_truth(&spec, args.frames, args.cadence, args.seed, args.size);
+    std::fs::create_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
+
+    let truth_path = args.out.join("truth.csv");
+    let mut truth_csv =
+        std::fs::File::create(&truth_path).map_err(|e| Error::io(&truth_path, e))?;
+    let csv_err = |e: std::io::Error| Error::io(&truth_path, e);
+    writeln!(
+        truth_csv,
+        "frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale"
+    )
+    .map_err(csv_err)?;
+
+    let digits = (args.frames - 1).to_string().len().max(4);
+    let wall_start = Instant::now();
+    let mut files = Vec::with_capacity(args.frames);
+    for (k, motion) in truth.iter().enumerate() {
+        let time_s = k as f64 * args.cadence;
+        let obs_ns = start_ns + (time_s * 1e9).round() as i64;
+        let image = model.render(motion, time_s, k as u64);
+        let name = format!("synth_{k:0digits$}.fits");
+        let path = args.out.join(&name);
+        if args.realtime {
+            let due = wall_start + Duration::from_secs_f64(time_s);
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        }
+        write_frame(&path, &synth::header_cards(&cfg, k, obs_ns), &image)?;
+        writeln!(
+            truth_csv,
+            "{k},{name},{},{:.6},{:.6},{:.6},{:.9}",
+            crate::time::format_iso_utc(obs_ns),
+            motion.dx,
+            motion.dy,
+            motion.rotation_arcsec(),
+            motion.scale
+        )
+        .map_err(csv_err)?;
+        truth_csv.flush().map_err(csv_err)?;
+        tracing::debug!(frame = k, file = %path.display(), "wrote frame");
+        files.push(path);
+    }
+    let per_frame = if args.realtime {
+        None
+    } else {
+        Some(began.elapsed().as_secs_f64() / args.frames as f64)
+    };
+
+    if args.json {
+        let doc = serde_json::json!({
+            "out": args.out,
+            "channel": synth::CHANNEL,
+            "frames": args.frames,
+            "size": args.size,
+            "cadence_s": args.cadence,
+            "seed": args.seed,
+            "jitter": args.jitter,
+            "truth_csv": truth_path,
+            "files": files,
+            "seconds_per_frame": per_frame,
+        });
+        println!("{doc}");
+    } else {
+        println!(
+            "wrote {} frames of {}x{} px (channel {}) to {}; truth in {}{}",
+            args.frames,
+            args.size,
+            args.size,
+            synth::CHANNEL,
+            args.out.display(),
+            truth_path.display(),
+            per_frame.map_or(String::new(), |s| format!("; {s:.2} s per frame"))
+        );
+    }
+    Ok(0)
+}
+
+fn start_time(args: &Args) -> Result<i64> {
+    match &args.start {
+        Some(s) => parse_fits_time(s, TimeScale::Utc).map_err(|_| {
+            Error::Usage(format!(
+                "--start '{s}' is not a UTC time like 2024-05-01T12:00:00"
+            ))
+        }),
+        None if args.realtime => {
+            let now = SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .unwrap_or_default();
+            Ok(now.as_secs() as i64 * 1_000_000_000)
+        }
+        None => Ok(DEFAULT_START_NS),
+    }
+}
+
+/// fitsio names a custom primary HDU `EXTNAME = '_PRIMARY'`; a level-1 file has no such card.
+fn remove_extname(f: &mut FitsFile) {
+    let mut status = 0;
+    // SAFETY: `f` is an open, writable cfitsio handle for the duration of the call, and the key
+    // name is a NUL-terminated literal; a missing key only sets `status`, which we ignore.
+    unsafe {
+        fitsio::sys::ffdkey(f.as_raw(), c"EXTNAME".as_ptr(), &mut status);
+    }
+}
+
+/// One primary-HDU int16 image; written to `NAME.tmp` then renamed into place.
+fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>) -> Result<()> {
+    let tmp = path.with_extension("fits.tmp");
+    let fail = |e: fitsio::errors::Error| Error::output(path, e.to_string());
+    let (h, w) = image.dim();
+    let desc = ImageDescription {
+        data_type: ImageType::Short,
+        dimensions: &[h, w],
+    };
+    {
+        let mut f = FitsFile::create(&tmp)
+            .with_custom_primary(&desc)
+            .overwrite()
+            .open()
+            .map_err(fail)?;
+        remove_extname(&mut f);
+        let hdu = f.primary_hdu().map_err(fail)?;
+        for card in cards {
+            match &card.value {
+                CardValue::Str(s) => hdu.write_key(&mut f, card.key, (s.as_str(), card.comment)),
+                CardValue::Float(v) => hdu.write_key(&mut f, card.key, (*v, card.comment)),
+                CardValue::Int(v) => hdu.write_key(&mut f, card.key, (*v, card.comment)),
+            }
+            .map_err(fail)?;
+        }
+        let pixels: Vec<i16> = image
+            .iter()
+            .map(|&v| v.round().clamp(i16::MIN as f32, i16::MAX as f32) as i16)
+            .collect();
+        hdu.write_image(&mut f, &pixels).map_err(fail)?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }

@@ -1,16 +1,31 @@
 //! One alignment: coarse (headers) → flow → sampling → fit → σ. No I/O here.
 //!
-//! INTERFACE ONLY for now: `align_images` is a placeholder that reports `failed`.
-//! The real engine lands with issue 3; callers (pipeline, commands) code against this API.
+//! The fine stage iterates: resample the frame onto the reference grid through the current
+//! estimate, measure the residual motion with dense flow, fit a similarity to grid-median
+//! vectors with RANSAC, compose, repeat until the update is negligible. Iterating drives the
+//! residual motion towards zero, where the flow's gain errors (a window measures a little
+//! less than the true rotation or scale) no longer matter; the σ come from the last pass.
 
 pub mod output;
 pub mod quality;
 
-use crate::geometry::Similarity;
+mod geometry_check;
+mod sigma;
+
+use crate::fit::{fit_similarity, FitFailure, RansacParams, SimilarityFit};
+use crate::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+use crate::geometry::{compose_with_covariance, sigmas, Covariance4, Similarity};
 use crate::meta::FrameMeta;
-use crate::record::{AlignResult, Status};
-use ndarray::Array2;
+use crate::preprocess;
+use crate::record::{AlignResult, Status, TransformFields};
+use crate::resample::SplineImage;
+use crate::sampling::grid_median_sample;
+use ndarray::{Array2, ArrayView2, Zip};
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+pub use geometry_check::{effective_geometry, EffectiveGeometry};
+pub use sigma::SigmaMethod;
 
 /// An image and what its header says about it.
 #[derive(Debug, Clone)]
@@ -20,30 +35,82 @@ pub struct Image {
     pub meta: FrameMeta,
 }
 
-/// Engine settings (filled from the configuration file; defaults generalise).
+/// Engine settings (from the configuration file's `[engine]` table). Every default is meant
+/// to work on any solar imager; sizes are derived from the plate scale and the image itself.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(default, deny_unknown_fields)]
 pub struct EngineConfig {
-    /// Farneback averaging window in arcsec (paper: about 63″), converted with the plate scale.
-    pub window_arcsec: f64,
+    /// Farneback averaging window in arcsec (the paper uses about 63″), converted with the
+    /// reference plate scale. `None` (the default): sized for the image's structure,
+    /// `window_structure_lengths` texture correlation lengths (measured in the reference).
+    /// Either way kept within `min_window_px` and a third of the disk radius (a quarter of the
+    /// image without a disk).
+    pub window_arcsec: Option<f64>,
+    /// Explicit window in pixels (overrides everything else).
+    pub window_px: Option<usize>,
+    pub min_window_px: usize,
+    pub window_structure_lengths: f64,
     /// Fraction of the solar radius kept in the disk mask (excludes the limb).
     pub mask_radius_fraction: f64,
     /// `sample × sample` grid of median vectors.
     pub sample: usize,
+    /// RANSAC inlier threshold, px.
     pub ransac_threshold_px: f64,
     pub ransac_max_trials: usize,
     pub seed: u64,
+    /// Pyramid levels of the first pass (`None`: as many as keep the coarsest level ≥ 64 px,
+    /// at most 4). Later passes measure a small residual and use one level.
+    pub pyramid_levels: Option<usize>,
+    pub iterations: usize,
+    /// Polynomial expansion neighbourhood (Farneback `poly_n`) and its Gaussian σ.
+    pub poly_n: usize,
+    pub poly_sigma: f64,
+    /// Fine passes at most; stop when the update moves no point of the mask by more than
+    /// `convergence_px`.
+    pub max_passes: usize,
+    pub convergence_px: f64,
+    /// Replace pixels deviating from their 3×3 median by more than this fraction of it
+    /// (cosmic rays, hot pixels); 0 disables.
+    pub hot_pixel_fraction: f32,
+    /// Systematic floor of the method, px (resampling and f32 arithmetic; measured with
+    /// `simulate` as the bias left when the random error vanishes). Added in quadrature to the
+    /// translation σ, and as `floor / rms radius of the vectors` to scale and rotation.
+    pub systematic_floor_px: f64,
+    /// Which σ is reported as `sigma_*` (the paper's plain UABJM is always reported too).
+    pub sigma: SigmaMethod,
+    /// Below this Bhattacharyya coefficient the result is `degraded`.
+    pub min_similarity: f64,
+    /// Below this structural correlation after alignment the result is `degraded`; below a
+    /// third of it, `failed`.
+    pub min_correlation: f64,
+    /// Below this fraction of RANSAC inliers the result is `degraded`.
+    pub min_inlier_fraction: f64,
 }
 
 impl Default for EngineConfig {
     fn default() -> Self {
         EngineConfig {
-            window_arcsec: 63.0,
+            window_arcsec: None,
+            window_px: None,
+            min_window_px: 15,
+            window_structure_lengths: 10.0,
             mask_radius_fraction: 0.9,
             sample: 20,
-            ransac_threshold_px: 0.5,
-            ransac_max_trials: 1000,
+            ransac_threshold_px: 1.0,
+            ransac_max_trials: 2000,
             seed: 0,
+            pyramid_levels: None,
+            iterations: 10,
+            poly_n: 5,
+            poly_sigma: 1.1,
+            max_passes: 4,
+            convergence_px: 2e-4,
+            hot_pixel_fraction: 1.0,
+            systematic_floor_px: 3e-5,
+            sigma: SigmaMethod::default(),
+            min_similarity: 0.3,
+            min_correlation: 0.3,
+            min_inlier_fraction: 0.5,
         }
     }
 }
@@ -54,12 +121,503 @@ pub struct AlignOutcome {
     pub result: AlignResult,
     /// Whole grid-to-grid transform (coarse then fine), `None` when failed.
     pub transform: Option<Similarity>,
+    /// The header-predicted (coarse) transform, when the headers could be used.
+    pub coarse: Option<Similarity>,
     /// Calibrated covariance of (scale, rotation_rad, dx_px, dy_px), `None` when failed.
-    pub covariance: Option<[[f64; 4]; 4]>,
+    pub covariance: Option<Covariance4>,
+    /// Plain UABJM covariance of the same parameters.
+    pub uabjm_covariance: Option<Covariance4>,
+    /// The solar-disk mask used on the reference grid.
+    pub mask: Option<Array2<bool>>,
 }
 
-/// Align `frame` to `reference`.
-pub fn align_images(reference: &Image, frame: &Image, _cfg: &EngineConfig) -> AlignOutcome {
+/// What the fine stage measured.
+struct FineResult {
+    transform: Similarity,
+    covariance: Covariance4,
+    uabjm_covariance: Covariance4,
+    fit: SimilarityFit,
+    points: usize,
+    warped: Array2<f32>,
+    passes: usize,
+    converged: bool,
+}
+
+/// Align `frame` to `reference`: where reference content appears in the frame.
+pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> AlignOutcome {
+    let started = Instant::now();
+    let mut outcome = match align_inner(reference, frame, cfg) {
+        Ok(o) => o,
+        Err(reason) => failed(reference, frame, reason),
+    };
+    outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+    outcome
+}
+
+fn align_inner(
+    reference: &Image,
+    frame: &Image,
+    cfg: &EngineConfig,
+) -> Result<AlignOutcome, String> {
+    let (h, w) = reference.data.dim();
+    check_usable("reference", &reference.data)?;
+    check_usable("frame", &frame.data)?;
+    let mut notes: Vec<String> = Vec::new();
+
+    let ref_data = cleaned(&reference.data, cfg.hot_pixel_fraction);
+    let frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
+
+    // Coarse: headers, checked against the disks the images show.
+    let geo = effective_geometry(reference, &ref_data, frame, &frame_data);
+    notes.extend(geo.notes.iter().cloned());
+    let coarse = crate::coarse::coarse_transform(&geo.reference, &geo.frame)
+        .map_err(|e| format!("coarse alignment: {e}"))?;
+
+    // Mask on the reference grid: the disk without its limb, or the whole valid field.
+    let mut mask = match geo.reference_disk_px {
+        Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
+        None => Array2::from_elem((h, w), true),
+    };
+    Zip::from(&mut mask)
+        .and(&ref_data)
+        .for_each(|m, v| *m = *m && v.is_finite());
+    let mask_pixels = mask.iter().filter(|m| **m).count();
+    if mask_pixels < 64 {
+        return Err(format!(
+            "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
+        ));
+    }
+    let mask_extent = mask_extent_px(&mask);
+
+    // Window sized for the plate scale, bounded by what the image's structure supports.
+    let plate = geo.reference.plate_scale_arcsec[0].abs();
+    let structure = structure_length_px(ref_data.view(), mask.view());
+    let winsize = choose_window(
+        cfg,
+        plate,
+        structure,
+        geo.reference_disk_px.map(|d| d.1),
+        w,
+        h,
+    );
+    tracing::debug!(?structure, winsize, plate, "window chosen");
+
+    // Resolution matching: degrade the sharper image to the other's resolution.
+    let grid_plate = plate;
+    let frame_plate_on_grid = geo.frame.plate_scale_arcsec[0].abs();
+    let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
+        preprocess::nyquist_fwhm_arcsec(plate),
+        preprocess::nyquist_fwhm_arcsec(frame_plate_on_grid),
+        grid_plate,
+    );
+    let ref_matched = preprocess::gaussian_smooth(ref_data.view(), sig_ref);
+
+    let fine = fine_alignment(
+        &ref_matched,
+        &frame_data,
+        &mask,
+        coarse,
+        winsize,
+        sig_frame,
+        cfg,
+    )
+    .map_err(|e| e.to_string())?;
+    if !fine.converged {
+        notes.push(format!(
+            "fine alignment did not converge to {} px in {} passes",
+            cfg.convergence_px, fine.passes
+        ));
+    }
+
+    // Quality of the final match.
+    let similarity = quality::bhattacharyya(ref_data.view(), fine.warped.view(), mask.view());
+    // Structure only: the large-scale disk brightness correlates even for unrelated images.
+    let trend_px = winsize as f64 / 4.0;
+    let correlation = quality::normalised_cross_correlation(
+        quality::high_pass(ref_matched.view(), trend_px).view(),
+        quality::high_pass(fine.warped.view(), trend_px).view(),
+        mask.view(),
+    );
+
+    let t = fine.transform;
+    let sig = sigmas(&fine.covariance);
+    let usig = sigmas(&fine.uabjm_covariance);
+    let header_residual = coarse.inverse().after(&t);
+    let inlier_fraction = fine.fit.n_inliers as f64 / fine.points.max(1) as f64;
+
+    let mut status = Status::Ok;
+    let mut reasons: Vec<String> = Vec::new();
+    if let Some(c) = correlation {
+        if c < cfg.min_correlation / 3.0 {
+            return Err(format!(
+                "no common structure: correlation {c:.3} after alignment (frame unrelated to the reference?)"
+            ));
+        }
+        if c < cfg.min_correlation {
+            status = Status::Degraded;
+            reasons.push(format!("weak common structure (correlation {c:.3})"));
+        }
+    }
+    if let Some(s) = similarity {
+        if s < cfg.min_similarity {
+            status = Status::Degraded;
+            reasons.push(format!("low histogram similarity {s:.3}"));
+        }
+    }
+    if inlier_fraction < cfg.min_inlier_fraction {
+        status = Status::Degraded;
+        reasons.push(format!(
+            "only {}/{} flow vectors agree with one similarity",
+            fine.fit.n_inliers, fine.points
+        ));
+    }
+    let _ = mask_extent;
+    reasons.extend(notes);
+    reasons.push(format!("window {winsize} px, {} passes", fine.passes));
+
+    let ps = reference.meta.plate_scale_arcsec;
+    let result = AlignResult {
+        reference: reference.meta.file.display().to_string(),
+        frame: frame.meta.file.display().to_string(),
+        scale: Some(t.scale),
+        rotation_arcsec: Some(t.rotation_arcsec()),
+        dx_px: Some(t.dx),
+        dy_px: Some(t.dy),
+        dx_arcsec: Some(t.dx * ps[0]),
+        dy_arcsec: Some(t.dy * ps[1]),
+        sigma_scale: Some(sig[0]),
+        sigma_rotation_arcsec: Some(sig[1] * crate::geometry::ARCSEC_PER_RAD),
+        sigma_dx_px: Some(sig[2]),
+        sigma_dy_px: Some(sig[3]),
+        uabjm_sigma_scale: Some(usig[0]),
+        uabjm_sigma_rotation_arcsec: Some(usig[1] * crate::geometry::ARCSEC_PER_RAD),
+        uabjm_sigma_dx_px: Some(usig[2]),
+        uabjm_sigma_dy_px: Some(usig[3]),
+        header_residual: Some(TransformFields {
+            scale: header_residual.scale,
+            rotation_arcsec: header_residual.rotation_arcsec(),
+            dx_px: header_residual.dx,
+            dy_px: header_residual.dy,
+        }),
+        points: fine.points,
+        inliers: fine.fit.n_inliers,
+        residual_rms_px: Some(fine.fit.residual_rms_px),
+        similarity,
+        status,
+        message: reasons.join("; "),
+        elapsed_ms: 0.0,
+    };
+    Ok(AlignOutcome {
+        result,
+        transform: Some(t),
+        coarse: Some(coarse),
+        covariance: Some(fine.covariance),
+        uabjm_covariance: Some(fine.uabjm_covariance),
+        mask: Some(mask),
+    })
+}
+
+/// Errors of the fine stage.
+#[derive(Debug, thiserror::Error)]
+enum FineError {
+    #[error("flow: {0}")]
+    Flow(String),
+    #[error("fit (pass {pass}): {source}")]
+    Fit {
+        pass: usize,
+        #[source]
+        source: FitFailure,
+    },
+}
+
+fn fine_alignment(
+    reference: &Array2<f32>,
+    frame: &Array2<f32>,
+    mask: &Array2<bool>,
+    coarse: Similarity,
+    winsize: usize,
+    frame_smoothing_px: f64,
+    cfg: &EngineConfig,
+) -> Result<FineResult, FineError> {
+    let (h, w) = reference.dim();
+    let center = Similarity::array_center(w, h);
+    let spline = SplineImage::new(frame.view());
+    let roi = mask_roi(mask);
+    let levels = cfg
+        .pyramid_levels
+        .unwrap_or_else(|| auto_levels(roi.width.min(roi.height)));
+    let ransac = RansacParams {
+        threshold_px: cfg.ransac_threshold_px,
+        max_trials: cfg.ransac_max_trials,
+        seed: cfg.seed,
+        ..RansacParams::default()
+    };
+    let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
+    let radius = mask_extent_px(mask);
+
+    let mut estimate = coarse.recentered(center);
+    let mut solver: Option<Farneback> = None;
+    let mut pass = 0;
+    loop {
+        pass += 1;
+        let mut warped = spline.warp_similarity(&estimate, w, h);
+        if frame_smoothing_px > 0.0 {
+            warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
+        }
+        let first = pass == 1;
+        let params = FarnebackParams {
+            pyr_scale: 0.5,
+            levels: if first { levels } else { 0 },
+            winsize,
+            iterations: if first {
+                cfg.iterations
+            } else {
+                cfg.iterations.min(4)
+            },
+            poly_n: cfg.poly_n,
+            poly_sigma: cfg.poly_sigma,
+            gaussian_window: false,
+        };
+        let options = FlowOptions::affine_grid(winsize);
+        // The solver keeps its buffers between passes when the parameters allow.
+        let mut s = match solver.take() {
+            Some(s) if s.params() == &params => s,
+            _ => Farneback::new(params.clone())
+                .and_then(|f| f.with_options(options.clone()))
+                .map_err(|e| FineError::Flow(e.to_string()))?,
+        };
+        let flow = s
+            .compute(reference.view(), warped.view(), Some(roi), None)
+            .map_err(|e| FineError::Flow(e.to_string()))?;
+        solver = Some(s);
+
+        // Sample only where the whole window saw data: a window cut by the frame's edge
+        // (or a blank region) measures a biased motion.
+        let mut valid = warped.mapv(f32::is_finite);
+        Zip::from(&mut valid)
+            .and(reference)
+            .for_each(|m, v| *m = *m && v.is_finite());
+        let mut sample_mask = erode(&valid, winsize / 2);
+        Zip::from(&mut sample_mask)
+            .and(mask)
+            .for_each(|a, b| *a = *a && *b);
+        let points = grid_median_sample(
+            flow.u.view(),
+            flow.v.view(),
+            sample_mask.view(),
+            stride,
+            cfg.sample,
+        );
+        let fit = fit_similarity(&points, center, &ransac)
+            .map_err(|source| FineError::Fit { pass, source })?;
+        let update = fit.transform;
+        let previous = estimate;
+        estimate = estimate.after(&update);
+        // Converged when the update is negligible, or lost in this pass's own noise.
+        let moved = max_motion_px(&update, radius);
+        let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
+        let converged = moved < cfg.convergence_px.max(0.1 * noise);
+        if converged || pass >= cfg.max_passes.max(1) {
+            let inliers = fit.inlier_points(&points);
+            let uabjm = fit.covariance;
+            let mut calibrated = sigma::calibrated_covariance(cfg.sigma, &inliers, &fit, winsize);
+            if cfg.sigma == SigmaMethod::Calibrated {
+                sigma::add_floor(&mut calibrated, &inliers, center, cfg.systematic_floor_px);
+            }
+            let zero = [[0.0; 4]; 4];
+            let (_, cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
+            let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
+            return Ok(FineResult {
+                transform: estimate,
+                covariance: cov,
+                uabjm_covariance: ucov,
+                points: points.len(),
+                fit,
+                warped,
+                passes: pass,
+                converged,
+            });
+        }
+    }
+}
+
+/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
+fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
+    let (h, w) = valid.dim();
+    // Integral image of invalid pixels.
+    let mut integral = Array2::<u32>::zeros((h + 1, w + 1));
+    for y in 0..h {
+        let mut row = 0u32;
+        for x in 0..w {
+            row += u32::from(!valid[[y, x]]);
+            integral[[y + 1, x + 1]] = integral[[y, x + 1]] + row;
+        }
+    }
+    Array2::from_shape_fn((h, w), |(y, x)| {
+        if y < r || x < r || y + r >= h || x + r >= w {
+            return false;
+        }
+        let (y0, y1, x0, x1) = (y - r, y + r + 1, x - r, x + r + 1);
+        integral[[y1, x1]] + integral[[y0, x0]] == integral[[y0, x1]] + integral[[y1, x0]]
+    })
+}
+
+/// Largest displacement the transform causes within `radius` of its centre.
+fn max_motion_px(t: &Similarity, radius: f64) -> f64 {
+    let (a, b) = t.ab();
+    let linear = ((a - 1.0).powi(2) + b * b).sqrt() * radius;
+    (t.dx * t.dx + t.dy * t.dy).sqrt() + linear
+}
+
+/// Half the diagonal of the mask's bounding box around the array centre.
+fn mask_extent_px(mask: &Array2<bool>) -> f64 {
+    let (h, w) = mask.dim();
+    let c = Similarity::array_center(w, h);
+    let mut r2: f64 = 0.0;
+    for ((y, x), &m) in mask.indexed_iter() {
+        if m {
+            r2 = r2.max((x as f64 - c[0]).powi(2) + (y as f64 - c[1]).powi(2));
+        }
+    }
+    r2.sqrt()
+}
+
+fn mask_roi(mask: &Array2<bool>) -> Roi {
+    let (h, w) = mask.dim();
+    match crate::sampling::mask_bounding_box(mask.view()) {
+        Some((x0, y0, x1, y1)) => Roi {
+            x: x0,
+            y: y0,
+            width: x1 - x0 + 1,
+            height: y1 - y0 + 1,
+        },
+        None => Roi {
+            x: 0,
+            y: 0,
+            width: w,
+            height: h,
+        },
+    }
+}
+
+/// Pyramid levels that keep the coarsest level at least 64 px across (at most 4).
+fn auto_levels(extent_px: usize) -> usize {
+    let mut levels = 0;
+    let mut size = extent_px as f64;
+    while levels < 4 && size / 2.0 >= 64.0 {
+        size /= 2.0;
+        levels += 1;
+    }
+    levels
+}
+
+/// The averaging window in pixels (odd).
+fn choose_window(
+    cfg: &EngineConfig,
+    plate_arcsec: f64,
+    structure_px: Option<f64>,
+    disk_radius_px: Option<f64>,
+    width: usize,
+    height: usize,
+) -> usize {
+    let odd = |n: f64| -> usize {
+        let n = n.round().max(3.0) as usize;
+        if n % 2 == 0 {
+            n + 1
+        } else {
+            n
+        }
+    };
+    if let Some(px) = cfg.window_px {
+        return odd(px as f64);
+    }
+    let from_arcsec = cfg
+        .window_arcsec
+        .filter(|_| plate_arcsec > 0.0 && plate_arcsec.is_finite())
+        .map(|a| a / plate_arcsec);
+    let nominal = from_arcsec
+        .or(structure_px.map(|l| l * cfg.window_structure_lengths))
+        .unwrap_or(cfg.min_window_px as f64);
+    let lo = cfg.min_window_px as f64;
+    let hi = match disk_radius_px {
+        Some(r) => r * cfg.mask_radius_fraction / 1.5,
+        None => width.min(height) as f64 / 4.0,
+    }
+    .max(lo);
+    odd(nominal.clamp(lo, hi))
+}
+
+/// Correlation length of the image's texture inside the mask, px:
+/// `ℓ = √(var(I) / var(∇I))`, exact for a Gaussian-correlated random field. The large-scale
+/// trend is removed first (a blur at 8 px would otherwise dominate var(I) on a full disk).
+fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f64> {
+    let (h, w) = img.dim();
+    if h < 8 || w < 8 {
+        return None;
+    }
+    let trend = preprocess::gaussian_smooth(img, 8.0);
+    let (mut n, mut s, mut s2, mut g2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            if !mask[[y, x]] {
+                continue;
+            }
+            let hp = |yy: usize, xx: usize| (img[[yy, xx]] - trend[[yy, xx]]) as f64;
+            let v = hp(y, x);
+            let gx = (hp(y, x + 1) - hp(y, x - 1)) / 2.0;
+            let gy = (hp(y + 1, x) - hp(y - 1, x)) / 2.0;
+            if !(v.is_finite() && gx.is_finite() && gy.is_finite()) {
+                continue;
+            }
+            n += 1.0;
+            s += v;
+            s2 += v * v;
+            g2 += (gx * gx + gy * gy) / 2.0;
+        }
+    }
+    if n < 64.0 {
+        return None;
+    }
+    let var = s2 / n - (s / n).powi(2);
+    let grad = g2 / n;
+    (var > 0.0 && grad > 0.0).then(|| (var / grad).sqrt())
+}
+
+fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
+    let (h, w) = data.dim();
+    if h < 16 || w < 16 {
+        return Err(format!("{which} image is {w}×{h} px; too small to align"));
+    }
+    let finite: Vec<f32> = data.iter().copied().filter(|v| v.is_finite()).collect();
+    if finite.len() < (h * w) / 10 {
+        return Err(format!(
+            "{which} image has {} finite pixels of {}; nothing to align",
+            finite.len(),
+            h * w
+        ));
+    }
+    let (lo, hi) = finite
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    if hi <= lo {
+        return Err(format!(
+            "{which} image is constant ({lo}); no structure to align"
+        ));
+    }
+    Ok(())
+}
+
+fn cleaned(data: &Array2<f32>, hot_pixel_fraction: f32) -> Array2<f32> {
+    let mut out = data.clone();
+    if hot_pixel_fraction > 0.0 {
+        preprocess::remove_hot_pixels(&mut out, hot_pixel_fraction);
+    }
+    out
+}
+
+fn failed(reference: &Image, frame: &Image, reason: String) -> AlignOutcome {
     AlignOutcome {
         result: AlignResult {
             reference: reference.meta.file.display().to_string(),
@@ -84,10 +642,60 @@ pub fn align_images(reference: &Image, frame: &Image, _cfg: &EngineConfig) -> Al
             residual_rms_px: None,
             similarity: None,
             status: Status::Failed,
-            message: "engine not implemented yet".into(),
+            message: reason,
             elapsed_ms: 0.0,
         },
         transform: None,
+        coarse: None,
         covariance: None,
+        uabjm_covariance: None,
+        mask: None,
+    }
+}
+
+/// The identity result of a frame aligned to itself (the first frame of a reference).
+pub fn self_alignment(image: &Image) -> AlignOutcome {
+    let (h, w) = image.data.dim();
+    let t = Similarity::identity(Similarity::array_center(w, h));
+    let zero = [[0.0; 4]; 4];
+    let name = image.meta.file.display().to_string();
+    let fields = TransformFields {
+        scale: 1.0,
+        rotation_arcsec: 0.0,
+        dx_px: 0.0,
+        dy_px: 0.0,
+    };
+    AlignOutcome {
+        result: AlignResult {
+            reference: name.clone(),
+            frame: name,
+            scale: Some(1.0),
+            rotation_arcsec: Some(0.0),
+            dx_px: Some(0.0),
+            dy_px: Some(0.0),
+            dx_arcsec: Some(0.0),
+            dy_arcsec: Some(0.0),
+            sigma_scale: Some(0.0),
+            sigma_rotation_arcsec: Some(0.0),
+            sigma_dx_px: Some(0.0),
+            sigma_dy_px: Some(0.0),
+            uabjm_sigma_scale: Some(0.0),
+            uabjm_sigma_rotation_arcsec: Some(0.0),
+            uabjm_sigma_dx_px: Some(0.0),
+            uabjm_sigma_dy_px: Some(0.0),
+            header_residual: Some(fields),
+            points: 0,
+            inliers: 0,
+            residual_rms_px: Some(0.0),
+            similarity: Some(1.0),
+            status: Status::Ok,
+            message: "reference frame (aligned to itself)".into(),
+            elapsed_ms: 0.0,
+        },
+        transform: Some(t),
+        coarse: Some(t),
+        covariance: Some(zero),
+        uabjm_covariance: Some(zero),
+        mask: None,
     }
 }

@@ -2,7 +2,7 @@
 //! intensity histograms, and a structural check (zero-mean normalised cross-correlation)
 //! that histograms cannot give — a flipped copy has identical histograms.
 
-use ndarray::ArrayView2;
+use ndarray::{Array2, ArrayView2};
 
 /// Bhattacharyya coefficient of the intensity histograms of `a` and `b` inside `mask`.
 ///
@@ -77,6 +77,14 @@ pub fn normalised_cross_correlation(
     Some(cov / (var_a * var_b).sqrt())
 }
 
+/// `img` minus its Gaussian blur at `sigma_px`: the structure without the large-scale trend.
+pub fn high_pass(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
+    let trend = crate::preprocess::gaussian_smooth(img, sigma_px);
+    let mut out = img.to_owned();
+    out.zip_mut_with(&trend, |v, t| *v -= t);
+    out
+}
+
 fn masked_values(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Vec<f64> {
     img.iter()
         .zip(mask.iter())
@@ -97,7 +105,6 @@ fn normalise_by_mean(mut v: Vec<f64>) -> Option<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use ndarray::Array2;
 
     #[test]
     fn identical_histograms_give_one_and_disjoint_give_zero() {

@@ -1,0 +1,296 @@
+//! Pyramid levels the way OpenCV's `calcOpticalFlowFarneback` builds them: every level is made
+//! from the full-resolution image (Gaussian blur with σ = (1/scale − 1)/2, kernel
+//! `round(5σ)|1` ≥ 3, border reflect-101, then a bilinear resize with pixel-centre alignment).
+//! Only the pixels of a level's domain are produced, and the blur is evaluated only on the
+//! full-resolution rows and columns that the resize reads, so coarse levels cost little.
+//! NaN (missing data) propagates through the blur and the resize on purpose: a level pixel is
+//! missing when any pixel it was made from is missing.
+
+use super::Rect;
+use rayon::prelude::*;
+
+/// OpenCV's `cvRound` (round half to even).
+pub(crate) fn cv_round(v: f64) -> i64 {
+    v.round_ties_even() as i64
+}
+
+/// Blur kernel OpenCV uses for a level with scale `scale` (radius, taps).
+fn level_kernel(scale: f64) -> Vec<f32> {
+    let sigma = (1.0 / scale - 1.0) * 0.5;
+    let size = ((cv_round(sigma * 5.0) | 1).max(3)) as usize;
+    if sigma <= 0.0 && size == 3 {
+        // getGaussianKernel's fixed table for ksize 3 when σ ≤ 0.
+        return vec![0.25, 0.5, 0.25];
+    }
+    let half = (size as f64 - 1.0) * 0.5;
+    let k: Vec<f64> = (0..size)
+        .map(|i| {
+            let x = i as f64 - half;
+            (-0.5 / (sigma * sigma) * x * x).exp()
+        })
+        .collect();
+    let sum: f64 = k.iter().sum();
+    k.iter().map(|v| (v / sum) as f32).collect()
+}
+
+/// Reflect-101 index (OpenCV's default border for GaussianBlur).
+#[inline]
+fn reflect101(i: isize, n: usize) -> usize {
+    let n = n as isize;
+    if n == 1 {
+        return 0;
+    }
+    let mut i = i;
+    loop {
+        if i < 0 {
+            i = -i;
+        } else if i >= n {
+            i = 2 * n - 2 - i;
+        } else {
+            return i as usize;
+        }
+    }
+}
+
+/// One resize tap pair: source index `i0`, `i1` and weight of `i1`.
+#[derive(Clone, Copy)]
+struct Tap {
+    i0: usize,
+    i1: usize,
+    w1: f32,
+}
+
+/// OpenCV INTER_LINEAR coefficients for destination index `d` (source size `src`, dest `dst`).
+fn resize_tap(d: usize, src: usize, dst: usize) -> Tap {
+    let scale = 1.0 / (dst as f64 / src as f64);
+    let f = ((d as f64 + 0.5) * scale - 0.5) as f32;
+    let mut s = f.floor() as isize;
+    let mut w = f - s as f32;
+    if s < 0 {
+        s = 0;
+        w = 0.0;
+    }
+    if s >= src as isize - 1 {
+        s = src as isize - 1;
+        w = 0.0;
+    }
+    let i0 = s as usize;
+    Tap {
+        i0,
+        i1: (i0 + 1).min(src - 1),
+        w1: w,
+    }
+}
+
+/// Taps of the bilinear resize for every destination index in `range` (used for flow upsampling too).
+pub(crate) fn resize_taps(
+    range: std::ops::Range<usize>,
+    src: usize,
+    dst: usize,
+) -> Vec<(usize, usize, f32)> {
+    range
+        .map(|d| {
+            let t = resize_tap(d, src, dst);
+            (t.i0, t.i1, t.w1)
+        })
+        .collect()
+}
+
+/// What one blurred source row needs.
+struct RowJob<'a> {
+    img: &'a [f32],
+    src_h: usize,
+    src_w: usize,
+    kernel: &'a [f32],
+    vlo: usize,
+    need_cols: &'a [usize],
+}
+
+super::simd::multiversion!(fn blur_row_mv(
+    job: &RowJob,
+    sy: usize,
+    vrow: &mut [f32],
+    dst: &mut [f32],
+) => blur_row);
+
+/// Vertical blur of source row `sy` over `vrow`'s columns, then the horizontal blur at the
+/// needed columns into `dst`.
+#[inline(always)]
+fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
+    let (kernel, vlo) = (job.kernel, job.vlo);
+    let r = kernel.len() / 2;
+    let vw = vrow.len();
+    vrow.iter_mut().for_each(|v| *v = 0.0);
+    for (t, &kw) in kernel.iter().enumerate() {
+        let yy = reflect101(sy as isize + t as isize - r as isize, job.src_h);
+        let row = &job.img[yy * job.src_w + vlo..][..vw];
+        for (acc, &v) in vrow.iter_mut().zip(row) {
+            *acc += kw * v;
+        }
+    }
+    for (d, &cx) in dst.iter_mut().zip(job.need_cols) {
+        let mut s = 0f32;
+        if cx >= r && cx + r < job.src_w {
+            // Interior: contiguous taps, no reflection.
+            let taps = &vrow[cx - r - vlo..][..kernel.len()];
+            for (&kw, &v) in kernel.iter().zip(taps) {
+                s += kw * v;
+            }
+        } else {
+            for (t, &kw) in kernel.iter().enumerate() {
+                let xx = reflect101(cx as isize + t as isize - r as isize, job.src_w);
+                s += kw * vrow[xx - vlo];
+            }
+        }
+        *d = s;
+    }
+}
+
+/// Fill `out` (domain-sized, row-major) with level pixels of `img` (`src_h × src_w`, already
+/// normalised).
+/// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
+pub(crate) fn build_level(
+    img: &[f32],
+    src_h: usize,
+    src_w: usize,
+    scale: f64,
+    level_size: (usize, usize),
+    dom: Rect,
+    out: &mut Vec<f32>,
+    rows_buf: &mut Vec<f32>,
+) {
+    let kernel = level_kernel(scale);
+    let r = kernel.len() / 2;
+    let (lh, lw) = level_size;
+
+    // Which source rows/columns the resize reads for this domain.
+    let ytaps: Vec<Tap> = (dom.y0..dom.y1)
+        .map(|d| {
+            if lh == src_h {
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
+            } else {
+                resize_tap(d, src_h, lh)
+            }
+        })
+        .collect();
+    let xtaps: Vec<Tap> = (dom.x0..dom.x1)
+        .map(|d| {
+            if lw == src_w {
+                Tap {
+                    i0: d,
+                    i1: d,
+                    w1: 0.0,
+                }
+            } else {
+                resize_tap(d, src_w, lw)
+            }
+        })
+        .collect();
+    let mut need_rows: Vec<usize> = ytaps.iter().flat_map(|t| [t.i0, t.i1]).collect();
+    need_rows.sort_unstable();
+    need_rows.dedup();
+    let col_lo = xtaps.iter().map(|t| t.i0).min().unwrap_or(0);
+    let col_hi = xtaps.iter().map(|t| t.i1).max().unwrap_or(0);
+    // Columns the horizontal blur reads (reflections stay inside this span, see reflect101).
+    let vlo = col_lo.saturating_sub(r);
+    let vhi = (col_hi + r).min(src_w - 1);
+    let vw = vhi - vlo + 1;
+
+    // Vertical blur of the needed rows over [vlo, vhi]; then horizontal blur at the needed
+    // columns only. Row buffer: one blurred row per needed source row.
+    let need_cols: Vec<usize> = {
+        let mut c: Vec<usize> = xtaps.iter().flat_map(|t| [t.i0, t.i1]).collect();
+        c.sort_unstable();
+        c.dedup();
+        c
+    };
+    let ncols = need_cols.len();
+    rows_buf.clear();
+    rows_buf.resize(need_rows.len() * ncols, 0.0);
+    rows_buf
+        .par_chunks_mut(ncols.max(1))
+        .zip(need_rows.par_iter())
+        .for_each_init(
+            || vec![0f32; vw],
+            |vrow, (dst, &sy)| {
+                let job = RowJob {
+                    img,
+                    src_h,
+                    src_w,
+                    kernel: &kernel,
+                    vlo,
+                    need_cols: &need_cols,
+                };
+                blur_row_mv(&job, sy, vrow, dst)
+            },
+        );
+
+    // Bilinear combination into the domain.
+    let row_pos = |sy: usize| need_rows.binary_search(&sy).unwrap_or(0);
+    let col_pos: Vec<(usize, usize, f32)> = xtaps
+        .iter()
+        .map(|t| {
+            (
+                need_cols.binary_search(&t.i0).unwrap_or(0),
+                need_cols.binary_search(&t.i1).unwrap_or(0),
+                t.w1,
+            )
+        })
+        .collect();
+    let dw = dom.width();
+    out.clear();
+    out.resize(dom.height() * dw, 0.0);
+    let rows_buf: &[f32] = rows_buf;
+    out.par_chunks_mut(dw.max(1))
+        .zip(ytaps.par_iter())
+        .for_each(|(orow, ty)| {
+            let a = &rows_buf[row_pos(ty.i0) * ncols..][..ncols];
+            let b = &rows_buf[row_pos(ty.i1) * ncols..][..ncols];
+            let wy = ty.w1;
+            for (o, &(c0, c1, wx)) in orow.iter_mut().zip(&col_pos) {
+                let top = a[c0] + wx * (a[c1] - a[c0]);
+                let bot = b[c0] + wx * (b[c1] - b[c0]);
+                *o = if wy == 0.0 {
+                    top
+                } else {
+                    top + wy * (bot - top)
+                };
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kernels_match_opencv_sizes() {
+        // cv2.getGaussianKernel sizes used by optflowgf.cpp for scales 1, 1/2, 1/4, 1/8, 1/16:
+        // round(5σ)|1 with σ = 0, 0.5, 1.5, 3.5, 7.5 → 3 (fixed table), 3, 9, 19, 39.
+        let sizes: Vec<usize> = [1.0, 0.5, 0.25, 0.125, 0.0625]
+            .iter()
+            .map(|&s| level_kernel(s).len())
+            .collect();
+        assert_eq!(sizes, vec![3, 3, 9, 19, 39]);
+        assert_eq!(level_kernel(1.0), vec![0.25, 0.5, 0.25]);
+        // cv2.getGaussianKernel(3, 0.5) = [0.10650698, 0.78698604, 0.10650698]
+        let k = level_kernel(0.5);
+        assert!((k[0] - 0.106_506_98).abs() < 1e-7 && (k[1] - 0.786_986_04).abs() < 1e-7);
+    }
+
+    #[test]
+    fn resize_taps_match_opencv_half_scale() {
+        // Halving: destination d reads source 2d and 2d+1 with equal weights (cv2.resize INTER_LINEAR).
+        let t = resize_tap(3, 16, 8);
+        assert_eq!((t.i0, t.i1, t.w1), (6, 7, 0.5));
+        // Doubling: d = 0 clamps to source 0; d = 1 reads 0 and 1 at 0.25.
+        let t = resize_tap(0, 8, 16);
+        assert_eq!((t.i0, t.w1), (0, 0.0));
+        let t = resize_tap(1, 8, 16);
+        assert_eq!((t.i0, t.i1, t.w1), (0, 1, 0.25));
+    }
+}

@@ -1,0 +1,40 @@
+//! Runtime CPU dispatch: hot loops are `#[inline(always)]` functions, instantiated twice by
+//! [`multiversion!`]: once for baseline x86-64 (SSE2) and once compiled for AVX2+FMA, chosen at
+//! run time. The crate itself is built for baseline x86-64, where LLVM may only use SSE2.
+
+/// `true` when the AVX2+FMA instantiation may run on this CPU.
+#[inline]
+pub(crate) fn has_avx2_fma() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// `multiversion!(fn name(args) -> R => body_fn);` defines `name`, which calls the
+/// `#[inline(always)]` function `body_fn` compiled for AVX2+FMA when the CPU has them.
+macro_rules! multiversion {
+    ($vis:vis fn $name:ident($($arg:ident : $ty:ty),* $(,)?) $(-> $ret:ty)? => $body:path) => {
+        #[allow(clippy::too_many_arguments)]
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[allow(clippy::too_many_arguments)]
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn fast($($arg: $ty),*) $(-> $ret)? {
+                    $body($($arg),*)
+                }
+                if $crate::flow::simd::has_avx2_fma() {
+                    // SAFETY: the CPU supports the features `fast` is compiled with.
+                    return unsafe { fast($($arg),*) };
+                }
+            }
+            $body($($arg),*)
+        }
+    };
+}
+pub(crate) use multiversion;
