@@ -609,17 +609,31 @@ impl ChannelState {
 
         if let Some(why) = self.degraded(&outcome) {
             // Hand over to the latest frame that still matched well, then try again.
+            let mut outcome = outcome;
+            self.reference = Some(keyframe);
             if let Some(mut candidate) = self.candidate.take() {
                 if let Ok(cand_image) = candidate.image(ctx) {
                     let reason = format!("match degraded ({why}): promoted the last good frame");
-                    let retry = ctx.align(&cand_image, &frame.image);
+                    outcome = ctx.align(&cand_image, &frame.image);
                     self.install(candidate, frame, sequence, reason, records);
                     self.frames_on_reference = 0;
-                    return self.keyframe_result(frame, sequence, retry, records);
+                    if self.degraded(&outcome).is_none() {
+                        return self.keyframe_result(frame, sequence, outcome, records);
+                    }
                 }
             }
-            self.reference = Some(keyframe);
-            return self.keyframe_result(frame, sequence, outcome, records);
+            // Still degraded: this frame, linked by its (degraded, honestly σ'd) alignment,
+            // becomes the keyframe rather than the old one ageing further. A failed frame
+            // gives no link and never becomes a keyframe.
+            let emitted = self.keyframe_result(frame, sequence, outcome, records);
+            if emitted.message.align.status != Status::Failed && emitted.chain.is_some() {
+                let reason = format!("match degraded ({why}): handed over to this frame");
+                let slot = RefSlot::from_frame(frame, emitted.chain);
+                self.install(slot, frame, sequence + 1, reason, records);
+                self.candidate = None;
+                self.frames_on_reference = 0;
+            }
+            return emitted;
         }
 
         let due_count = self.policy.keyframe_every_frames > 0
@@ -1023,7 +1037,10 @@ pub fn failed_outcome(reference: &str, frame: &str, message: &str) -> AlignOutco
             elapsed_ms: 0.0,
         },
         transform: None,
+        coarse: None,
         covariance: None,
+        uabjm_covariance: None,
+        mask: None,
     }
 }
 
@@ -1475,6 +1492,59 @@ mod tests {
         );
         // Frame 3 was logged once (aligned to frame 0), never as `self`.
         assert_eq!(msgs.iter().filter(|m| m.align.frame == keys[3]).count(), 1);
+    }
+
+    #[test]
+    fn a_degraded_match_without_a_good_frame_hands_over_to_that_frame() {
+        // Frame 1 matches keyframe 0 only `degraded` (and there is no good frame yet):
+        // frame 1 becomes the keyframe through its degraded link; frame 2 aligns to it.
+        let frames = series(4);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        struct Degrade<'a>(&'a World, String);
+        impl StepContext for Degrade<'_> {
+            fn align(&self, r: &Image, f: &Image) -> AlignOutcome {
+                let mut o = self.0.align(r, f);
+                if f.meta.file == Path::new(&self.1) {
+                    o.result.status = Status::Degraded;
+                }
+                o
+            }
+            fn load(&self, spec: &FrameSpec) -> crate::Result<Image> {
+                self.0.load(spec)
+            }
+        }
+        let ctx = Degrade(&world, keys[1].clone());
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let mut records = Vec::new();
+        for k in &keys {
+            records.extend(state.process(&world.loaded(k), None, &ctx).records);
+        }
+        let msgs = messages(&records);
+        assert_eq!(msgs[1].align.status, Status::Degraded);
+        assert_eq!(msgs[1].align.reference, keys[0]);
+        assert_eq!(msgs[2].align.reference, keys[1]);
+        assert_eq!(msgs[3].align.reference, keys[1]);
+        for (i, m) in msgs.iter().enumerate() {
+            assert_chained_is_truth(m, &frames[i].1.truth);
+        }
+        let ch = changes(&records);
+        assert_eq!(ch.len(), 2);
+        assert_eq!((ch[1].file.as_str(), ch[1].sequence), (keys[1].as_str(), 2));
+        assert!(
+            ch[1].reason.contains("handed over to this frame"),
+            "{}",
+            ch[1].reason
+        );
+        // A failed frame is never handed over to.
+        let mut bad = series(3);
+        bad[1].1.bad = true;
+        let bad_keys: Vec<String> = bad.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&bad, diag(0.0, 0.0, SX, SX));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let records = run(&mut state, &world, &bad_keys);
+        assert_eq!(messages(&records)[2].align.reference, bad_keys[0]);
+        assert_eq!(changes(&records).len(), 1);
     }
 
     #[test]

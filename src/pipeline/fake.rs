@@ -283,7 +283,10 @@ pub fn outcome(
             elapsed_ms: 0.0,
         },
         transform: Some(t),
+        coarse: None,
         covariance: Some(cov),
+        uabjm_covariance: Some(cov),
+        mask: None,
     }
 }
 
