@@ -6,7 +6,8 @@
 Pair (mirrors make_pair in benches/flow.rs): TRACE 171 resized bilinearly to N^2 (pixel-centre
 aligned, edge clamped), next = the same sampled at (x - 0.37, y + 0.61). Paper parameters:
 pyr_scale 0.5, levels 5, winsize 101, iterations 10, poly_n 5, poly_sigma 1.1, box window.
-Prints median and min-max wall time per size and thread count.
+Prints median and min-max wall time and the median CPU time (all threads) per size and
+thread count; on a shared machine the CPU time is the load-independent figure.
 """
 import argparse
 import pathlib
@@ -57,14 +58,16 @@ def main():
         prev, nxt = make_pair(src, n)
         for t in a.threads:
             cv2.setNumThreads(t)
-            times = []
+            times, cpus = [], []
             for _ in range(a.repeat):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 f = cv2.calcOpticalFlowFarneback(prev, nxt, None, 0.5, 5, 101, 10, 5, 1.1, 0)
                 times.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0)
             c = f[n // 4:3 * n // 4, n // 4:3 * n // 4]
             print(f"{n}^2 threads={t}: median {statistics.median(times):.3f} s "
-                  f"(min {min(times):.3f}, max {max(times):.3f}, n={len(times)}); "
+                  f"(min {min(times):.3f}, max {max(times):.3f}, n={len(times)}), "
+                  f"CPU {statistics.median(cpus):.2f} s; "
                   f"median flow ({np.median(c[..., 0]):+.4f}, {np.median(c[..., 1]):+.4f}) px")
 
 

@@ -2,6 +2,9 @@
 """Make the optical-flow oracle fixtures in tests/data/flow/ from the real TRACE 171 image.
 
     python3 tools/make_flow_fixtures.py        # needs numpy, scipy, astropy, opencv-python-headless
+    python3 tools/make_flow_fixtures.py --eval DIR
+        # also write full-size (1024^2) warps of the TRACE image to DIR (not committed) for the
+        # accuracy table of benches/flow.rs: SUNJITTER_FLOW_EVAL=DIR cargo bench --bench flow
 
 What it writes (raw little-endian float32, row-major 256x256, described by fixtures.json):
   prev.f32        256x256 crop of data/real/trace_171_19980519T222143_1024.fits at
@@ -55,7 +58,41 @@ def warp_from_full(full, a, t):
     return ndimage.map_coordinates(full, coords, order=3, mode="nearest").reshape(N, N)
 
 
+# Full-size warps for the accuracy table: (name, rotation deg, scale, shift xy).
+EVAL_CASES = [
+    ("small", 0.1, 1.002, (0.37, -0.61)),
+    ("large", 0.3, 0.998, (4.3, -3.7)),
+    ("scale", 0.0, 1.01, (0.0, 0.0)),
+    ("rotation", 0.5, 1.0, (0.0, 0.0)),
+]
+
+
+def write_eval(out_dir):
+    """prev.f32 (TRACE scaled to mean 1e4) and <case>_next.f32 + <case>.json per EVAL_CASES."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    full = fits.getdata(SRC).astype(np.float64)
+    full *= MEAN / full.mean()
+    n = full.shape[0]
+    c = (n - 1) / 2.0
+    full.astype("<f4").tofile(out / "prev.f32")
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
+    q = np.stack([xx.ravel(), yy.ravel()])
+    for name, rot, scale, shift in EVAL_CASES:
+        a, t = affine(rot, scale, shift)
+        p = np.linalg.solve(a, q - (np.array([c, c]) + t)[:, None]) + c
+        nxt = ndimage.map_coordinates(full, [p[1], p[0]], order=3, mode="nearest")
+        nxt.reshape(n, n).astype("<f4").tofile(out / f"{name}_next.f32")
+        (out / f"{name}.json").write_text(json.dumps(
+            dict(size=n, matrix_xy=a.tolist(), shift_xy=list(t), center_xy=[c, c])))
+    print(f"wrote {len(EVAL_CASES)} evaluation warps to {out}")
+
+
 def main():
+    import sys
+    if len(sys.argv) == 3 and sys.argv[1] == "--eval":
+        write_eval(sys.argv[2])
+        return
     full = fits.getdata(SRC).astype(np.float64)
     crop = full[Y0:Y0 + N, X0:X0 + N]
     k = MEAN / crop.mean()

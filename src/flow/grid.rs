@@ -106,6 +106,9 @@ pub(crate) struct GridScratch {
     vrow: Vec<f32>,
 }
 
+/// A table of (channel, moment order) pairs.
+type Channels = &'static [(usize, usize)];
+
 /// Vertical moment channels: for G11, G12, G22 the orders η⁰, η¹, η²; for h1, h2 η⁰, η¹.
 /// `(matrix channel, η order)`.
 const VCH_AFFINE: [(usize, usize); 13] = [
@@ -271,7 +274,7 @@ pub(crate) fn flow_row(
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
 #[inline(always)]
 fn grid_strip<const AFF: bool>(
     lv: &Level,
@@ -289,7 +292,7 @@ fn grid_strip<const AFF: bool>(
     let nx = grid.xs.len();
     let rw = 5 * w;
     // Constant tables per model, so the channel loops unroll with fixed indices.
-    let (vch, hch): (&[(usize, usize)], &[(usize, usize)]) = if AFF {
+    let (vch, hch): (Channels, Channels) = if AFF {
         (&VCH_AFFINE, &HCH_AFFINE)
     } else {
         (&VCH_CONST, &HCH_CONST)
@@ -548,6 +551,7 @@ fn solve_affine(
 }
 
 /// In-place Cholesky solve of a 6×6 SPD system; false if not positive definite.
+#[allow(clippy::needless_range_loop)]
 #[inline(always)]
 fn cholesky_solve(a: &mut [[f64; 6]; 6], b: &mut [f64; 6]) -> bool {
     for j in 0..6 {
@@ -555,7 +559,7 @@ fn cholesky_solve(a: &mut [[f64; 6]; 6], b: &mut [f64; 6]) -> bool {
         for k in 0..j {
             d -= a[j][k] * a[j][k];
         }
-        if !(d > 0.0) {
+        if d.is_nan() || d <= 0.0 {
             return false;
         }
         let d = d.sqrt();
@@ -600,6 +604,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::needless_range_loop)]
     fn cholesky_solves_spd() {
         // A = LLᵀ with L lower-triangular ones → A x = b, x known.
         let mut a = [[0f64; 6]; 6];

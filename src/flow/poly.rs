@@ -77,29 +77,22 @@ impl PolyKernel {
     }
 }
 
-/// Expand `img` (h×w, row-major) into `out`: 5 planes of h×w, channel-major
-/// (`out[c·h·w + y·w + x]`), so that later loops read each channel contiguously.
+/// Expand `img` (h×w, row-major) into `out`, row by row with the 5 channels of a row one after
+/// the other (`out[y·5w + c·w + x]`): each channel is contiguous along x, and everything the
+/// flow update reads for a row sits together in memory.
 pub(crate) fn expand(k: &PolyKernel, img: &[f32], h: usize, w: usize, out: &mut Vec<f32>) {
     out.clear();
     out.resize(h * w * 5, 0.0);
-    let plane = h * w;
-    // Rows are independent; hand each worker a set of output rows in all five planes.
-    let (p0, rest) = out.split_at_mut(plane);
-    let (p1, rest) = rest.split_at_mut(plane);
-    let (p2, rest) = rest.split_at_mut(plane);
-    let (p3, p4) = rest.split_at_mut(plane);
-    p0.par_chunks_mut(w)
-        .zip(p1.par_chunks_mut(w))
-        .zip(p2.par_chunks_mut(w))
-        .zip(p3.par_chunks_mut(w))
-        .zip(p4.par_chunks_mut(w))
-        .enumerate()
-        .for_each_init(
-            || vec![0f32; (w + 2 * k.n) * 3 + 6 * w],
-            |buf, (y, ((((d0, d1), d2), d3), d4))| {
-                expand_row_mv(k, img, h, w, y, buf, [d0, d1, d2, d3, d4])
-            },
-        );
+    out.par_chunks_mut(5 * w).enumerate().for_each_init(
+        || vec![0f32; (w + 2 * k.n) * 3 + 6 * w],
+        |buf, (y, row)| {
+            let (d0, rest) = row.split_at_mut(w);
+            let (d1, rest) = rest.split_at_mut(w);
+            let (d2, rest) = rest.split_at_mut(w);
+            let (d3, d4) = rest.split_at_mut(w);
+            expand_row_mv(k, img, h, w, y, buf, [d0, d1, d2, d3, d4])
+        },
+    );
 }
 
 simd::multiversion!(fn expand_row_mv(
@@ -221,7 +214,7 @@ mod tests {
         let mut out = Vec::new();
         expand(&k, &img, h, w, &mut out);
         let (x, y) = (11usize, 10usize);
-        let d: Vec<f32> = (0..5).map(|c| out[c * h * w + y * w + x]).collect();
+        let d: Vec<f32> = (0..5).map(|c| out[y * 5 * w + c * w + x]).collect();
         // Gradient at (x, y): b_y = −0.25 − 0.1y + 0.02x, b_x = 0.5 + 0.2x + 0.02y.
         let by = -0.25 - 0.1 * y as f32 + 0.02 * x as f32;
         let bx = 0.5 + 0.2 * x as f32 + 0.02 * y as f32;
@@ -239,8 +232,8 @@ mod tests {
         let k = PolyKernel::new(5, 1.1);
         let mut out = Vec::new();
         expand(&k, &img, h, w, &mut out);
-        assert!(out[15 * w + 20].is_nan());
-        assert!(out[15 * w + 21].is_finite());
-        assert!(out[9 * w + 15].is_finite());
+        assert!(out[15 * 5 * w + 20].is_nan());
+        assert!(out[15 * 5 * w + 21].is_finite());
+        assert!(out[9 * 5 * w + 15].is_finite());
     }
 }

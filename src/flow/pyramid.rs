@@ -128,7 +128,31 @@ fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
             *acc += kw * v;
         }
     }
-    for (d, &cx) in dst.iter_mut().zip(job.need_cols) {
+    let cols = job.need_cols;
+    let n = cols.len();
+    let contiguous = n > 0 && cols[n - 1] - cols[0] + 1 == n;
+    // Contiguous needed columns (levels 0 and 1): tap-outer loops over the interior span,
+    // which vectorise; reflected edges one by one.
+    let (mut a, mut b) = (0, 0);
+    if contiguous {
+        a = r.saturating_sub(cols[0]).min(n);
+        b = (job.src_w.saturating_sub(r + cols[0])).clamp(a, n);
+        if b > a {
+            let span = &mut dst[a..b];
+            span.iter_mut().for_each(|d| *d = 0.0);
+            let start = cols[a] - r - vlo;
+            for (t, &kw) in kernel.iter().enumerate() {
+                let src = &vrow[start + t..][..b - a];
+                for (d, &v) in span.iter_mut().zip(src) {
+                    *d += kw * v;
+                }
+            }
+        }
+    }
+    for (i, (d, &cx)) in dst.iter_mut().zip(cols).enumerate() {
+        if i >= a && i < b {
+            continue;
+        }
         let mut s = 0f32;
         if cx >= r && cx + r < job.src_w {
             // Interior: contiguous taps, no reflection.
@@ -149,6 +173,7 @@ fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
 /// Fill `out` (domain-sized, row-major) with level pixels of `img` (`src_h × src_w`, already
 /// normalised).
 /// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn build_level(
     img: &[f32],
     src_h: usize,

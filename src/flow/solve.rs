@@ -78,7 +78,6 @@ const LANES: usize = 8;
 #[inline(always)]
 pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut [f32]) {
     let (w, h) = (lv.w, lv.h);
-    let plane = w * h;
     let gy = lv.y0 + y;
     let row_taper = if gy < 5 || gy + 5 >= lv.level_h {
         taper(gy, lv.level_h)
@@ -90,8 +89,10 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
     let (o2, rest) = rest.split_at_mut(w);
     let (o3, o4) = rest.split_at_mut(w);
     let o4 = &mut o4[..w];
-    let q: [&[f32]; 5] = std::array::from_fn(|c| &lv.r0[c * plane + y * w..][..w]);
-    let r1: [&[f32]; 5] = std::array::from_fn(|c| &lv.r1[c * plane..][..plane]);
+    // Expansions are stored row by row, the 5 channels of a row one after the other.
+    let stride = 5 * w;
+    let q: [&[f32]; 5] = std::array::from_fn(|c| &lv.r0[y * stride + c * w..][..w]);
+    let r1 = lv.r1;
     let yf = y as f32;
     let mut x = 0;
     while x < w {
@@ -122,10 +123,10 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
         // Interpolated R1 channels per lane.
         let mut s = [[0f32; LANES]; 5];
         if uniform {
-            let base = row as usize * w + ixs[0] as usize;
             for (c, sc) in s.iter_mut().enumerate() {
-                let top = &r1[c][base..base + LANES + 1];
-                let bot = &r1[c][base + w..base + w + LANES + 1];
+                let base = row as usize * stride + c * w + ixs[0] as usize;
+                let top = &r1[base..base + LANES + 1];
+                let bot = &r1[base + stride..base + stride + LANES + 1];
                 for i in 0..LANES {
                     let t = top[i] + fx[i] * (top[i + 1] - top[i]);
                     let b = bot[i] + fx[i] * (bot[i + 1] - bot[i]);
@@ -138,10 +139,10 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
                 let inside = ix >= 0 && iy >= 0 && ix < w as i32 - 1 && iy < h as i32 - 1;
                 for (c, sc) in s.iter_mut().enumerate() {
                     sc[i] = if inside {
-                        let p = iy as usize * w + ix as usize;
-                        let pl = r1[c];
+                        let p = iy as usize * stride + c * w + ix as usize;
+                        let pl = r1;
                         let t = pl[p] + fx[i] * (pl[p + 1] - pl[p]);
-                        let b = pl[p + w] + fx[i] * (pl[p + w + 1] - pl[p + w]);
+                        let b = pl[p + stride] + fx[i] * (pl[p + stride + 1] - pl[p + stride]);
                         t + fy[i] * (b - t)
                     } else {
                         f32::NAN
@@ -182,7 +183,7 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
             ];
             // NaN anywhere (missing data, outside) means zero weight.
             let sum = m[0] + m[1] + m[2] + m[3] + m[4];
-            let keep = sum == sum;
+            let keep = !sum.is_nan();
             for c in 0..5 {
                 mo[c][i] = if keep { m[c] } else { 0.0 };
             }
@@ -199,20 +200,14 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
 
 /// Mean trace of the normal matrices at zero flow from `R0` alone: the level's typical
 /// "texture energy", the unit in which the regulariser is expressed (scale-free).
-pub(crate) fn typical_trace(r0: &[f32], plane: usize) -> f64 {
-    let (a, b, e) = (
-        &r0[2 * plane..3 * plane],
-        &r0[3 * plane..4 * plane],
-        &r0[4 * plane..5 * plane],
-    );
-    let (sum, count) = a
-        .par_chunks(4096)
-        .zip(b.par_chunks(4096))
-        .zip(e.par_chunks(4096))
-        .map(|((a, b), e)| {
+pub(crate) fn typical_trace(r0: &[f32], w: usize) -> f64 {
+    let (sum, count) = r0
+        .par_chunks(5 * w)
+        .map(|row| {
+            let (a, b, e) = (&row[2 * w..3 * w], &row[3 * w..4 * w], &row[4 * w..5 * w]);
             let mut s = 0f64;
             let mut n = 0usize;
-            for i in 0..a.len() {
+            for i in 0..w {
                 let (a, b, e) = (a[i] as f64, b[i] as f64, e[i] as f64 * 0.5);
                 let t = a * a + b * b + 2.0 * e * e;
                 if t.is_finite() {

@@ -264,3 +264,58 @@ fn affine_grid_preset_handles_nan_and_roi() {
     assert!(part.u[[5, 5]].is_nan());
     assert!(worst < 0.01, "max |roi − full| = {worst} px");
 }
+
+/// Degenerate shapes never panic, in either solver.
+#[test]
+fn tiny_and_thin_images_do_not_panic() {
+    let tex = |h: usize, w: usize, dx: f32| {
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            ((x as f32 + dx) * 0.9).sin() + (y as f32 * 0.7).cos()
+        })
+    };
+    for (h, w) in [(1, 1), (1, 7), (9, 1), (3, 50), (40, 40), (33, 200)] {
+        for opts in [FlowOptions::default(), FlowOptions::affine_grid(101)] {
+            let (a, b) = (tex(h, w, 0.0), tex(h, w, 0.3));
+            let f = Farneback::new(FarnebackParams::default())
+                .and_then(|s| s.with_options(opts.clone()))
+                .and_then(|mut s| s.compute(a.view(), b.view(), None, None))
+                .expect("flow");
+            assert_eq!(f.u.dim(), (h, w));
+        }
+    }
+}
+
+/// An initial flow carries a motion the single level could not find alone: `next` is the
+/// shifted fixture moved 12 more pixels to the right (NaN where it left the frame); with no
+/// pyramid the solver recovers (12.30, −0.45) only when started near it.
+#[test]
+fn initial_flow_is_used() {
+    let prev = load_fixture("prev.f32");
+    let shifted = load_fixture("shift_next.f32");
+    let (h, w) = shifted.dim();
+    let next = Array2::from_shape_fn((h, w), |(y, x)| {
+        if x >= 12 {
+            shifted[[y, x - 12]]
+        } else {
+            f32::NAN
+        }
+    });
+    let init = Flow {
+        u: Array2::from_elem((h, w), 12.0),
+        v: Array2::from_elem((h, w), 0.0),
+    };
+    let p = FarnebackParams {
+        levels: 0,
+        ..small_params()
+    };
+    let f = farneback_with_init(prev.view(), next.view(), &p, None, &init).expect("flow");
+    let mu = median(f.u.iter().copied().collect());
+    let mv = median(f.v.iter().copied().collect());
+    assert!(
+        (mu - 12.30).abs() < 0.01 && (mv + 0.45).abs() < 0.01,
+        "median flow ({mu}, {mv}) vs (12.30, -0.45)"
+    );
+    let cold = farneback(prev.view(), next.view(), &p, None).expect("flow");
+    let cu = median(cold.u.iter().copied().collect());
+    assert!((cu - 12.30).abs() > 1.0, "without the initial flow: {cu}");
+}
