@@ -337,8 +337,17 @@ impl Ingest {
             Signal::Complete(path) => return self.offer(path, Origin::Event),
             Signal::Appeared(path) => return self.offer(path, Origin::Scan),
             Signal::Dir(path) => {
-                if self.d().recursive && wanted_dir(&path, self.d()) {
+                if !wanted_dir(&path, self.d()) {
+                    return None;
+                }
+                if self.d().recursive {
                     self.rescan(Some(path)).await;
+                } else {
+                    return Some(Record::note(
+                        &path.display().to_string(),
+                        "directory not watched (set daemon.recursive or --recursive)",
+                        crate::pipeline::now_ns(),
+                    ));
                 }
             }
             Signal::Rescan(why) => {
@@ -432,6 +441,10 @@ impl Ingest {
                 }
                 self.set(path, FileState::Done(stamp));
                 true
+            }
+            FileOutcome::Vanished(note) => {
+                self.forget(&path);
+                input.send(Input::Record(note)).await.is_ok()
             }
             FileOutcome::Skip(record) => {
                 if let Some(r) = record {
@@ -670,6 +683,7 @@ pub fn name_matches(pattern: &str, name: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::pipeline::LogLevel;
 
     #[test]
     fn wildcards_follow_shell_rules() {
@@ -778,11 +792,18 @@ mod tests {
                 .send(Signal::Complete(root.join(".hidden.fits")))
                 .await
                 .unwrap();
+            // A file gone before it is read, and a directory in a non-recursive watch.
+            sig_tx
+                .send(Signal::Complete(root.join("ghost.fits")))
+                .await
+                .unwrap();
+            std::fs::create_dir(root.join("sub")).unwrap();
+            sig_tx.send(Signal::Dir(root.join("sub"))).await.unwrap();
             sig_tx
         });
         let mut frames = std::collections::BTreeMap::new();
         let mut logs = Vec::new();
-        while frames.len() < 21 || logs.is_empty() {
+        while frames.len() < 21 || logs.len() < 3 {
             let next = tokio::time::timeout(Duration::from_secs(30), in_rx.recv()).await;
             match next.expect("ingest made progress").expect("ingest alive") {
                 Input::Frame(item) => *frames.entry(item.key).or_insert(0) += 1,
@@ -806,9 +827,30 @@ mod tests {
             0,
             "every file finished, none pending"
         );
-        assert_eq!(logs.len(), 1, "{logs:?}");
-        assert!(matches!(&logs[0], Record::Log { file, message, .. }
-            if file.ends_with("junk.fits") && message.contains("not a FITS file")));
+        assert_eq!(logs.len(), 3, "{logs:?}");
+        let find = |name: &str| {
+            logs.iter()
+                .find_map(|r| match r {
+                    Record::Log {
+                        file,
+                        message,
+                        level,
+                        finishes,
+                        ..
+                    } if file.ends_with(name) => Some((message.clone(), *level, *finishes)),
+                    _ => None,
+                })
+                .unwrap_or_else(|| panic!("no /log entry for {name}: {logs:?}"))
+        };
+        let (junk, level, finishes) = find("junk.fits");
+        assert!(
+            junk.contains("not a FITS file") && finishes && level == LogLevel::Error,
+            "{junk}"
+        );
+        let (ghost, _, finishes) = find("ghost.fits");
+        assert!(ghost.contains("vanished") && !finishes, "{ghost}");
+        let (sub, _, finishes) = find("sub");
+        assert!(sub.contains("not watched") && !finishes, "{sub}");
     }
 
     #[test]

@@ -353,6 +353,8 @@ pub enum FileOutcome {
     NotReady(String),
     /// Never to be taken; the record says why (`None`: silently irrelevant, e.g. a directory).
     Skip(Option<Record>),
+    /// Gone before it could be read: a `/log` note, and the name stays open.
+    Vanished(Record),
 }
 
 /// Identity of a file's content for de-duplication: (size, mtime).
@@ -387,12 +389,12 @@ pub fn inspect_file(
     let link_meta = match std::fs::symlink_metadata(path) {
         Ok(m) => m,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return FileOutcome::Skip(Some(Record::log(
-                LogLevel::Error,
+            // Not finished: a file that reappears under this name is still taken.
+            return FileOutcome::Vanished(Record::note(
                 &key,
                 "vanished before it could be read",
                 now_ns(),
-            )))
+            ));
         }
         Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
     };
@@ -1498,7 +1500,9 @@ pub fn replay_inputs(
             FileOutcome::NotReady(reason) => {
                 inputs.push(Input::Record(unreadable_record(path, &reason)));
             }
-            FileOutcome::Skip(Some(record)) => inputs.push(Input::Record(record)),
+            FileOutcome::Skip(Some(record)) | FileOutcome::Vanished(record) => {
+                inputs.push(Input::Record(record))
+            }
             FileOutcome::Skip(None) => {}
         }
     }
