@@ -801,6 +801,19 @@ fn write_with_cfitsio(
                     sys::ffpkyd(fptr, ckey.as_ptr(), *f, -15, empty.as_ptr(), &mut status)
                 }
                 HeaderValue::Float(_) => 0,
+                // Commentary cards: no value indicator (cfitsio splits long text over cards).
+                HeaderValue::Str(s) if key == "HISTORY" || key == "COMMENT" => {
+                    let printable: String = s
+                        .chars()
+                        .map(|c| if (' '..='~').contains(&c) { c } else { '?' })
+                        .collect();
+                    let text = CString::new(printable).unwrap_or_default();
+                    if key == "HISTORY" {
+                        sys::ffphis(fptr, text.as_ptr(), &mut status)
+                    } else {
+                        sys::ffpcom(fptr, text.as_ptr(), &mut status)
+                    }
+                }
                 HeaderValue::Str(s) => {
                     let printable: String = s
                         .chars()

@@ -35,19 +35,20 @@ pub fn run(args: &Args) -> Result<i32> {
     result.reference = args.reference.clone();
     result.frame = args.frame.clone();
 
-    if let Some(path) = &args.aligned {
-        engine::output::write_aligned(path, &reference, &frame, &outcome)?;
-    }
-    if let Some(path) = &args.quicklook {
-        engine::output::write_quicklook(path, &reference, &frame, &outcome)?;
-    }
-
     if args.json {
         let text = serde_json::to_string_pretty(&result)
             .map_err(|e| Error::Usage(format!("cannot encode result: {e}")))?;
         println!("{text}");
     } else {
         print_human(&result);
+    }
+
+    // After the report, so `--json` prints its document even when a file cannot be written.
+    if let Some(path) = &args.aligned {
+        engine::output::write_aligned(path, &reference, &frame, &outcome)?;
+    }
+    if let Some(path) = &args.quicklook {
+        engine::output::write_quicklook(path, &reference, &frame, &outcome)?;
     }
     Ok(if result.status == Status::Failed {
         1
