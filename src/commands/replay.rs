@@ -100,11 +100,10 @@ pub fn run(args: &Args) -> Result<i32> {
     if args.json {
         println!("{}", summary_json(&progress, &args.out));
     }
-    Ok(if progress.failed > 0 || progress.skipped > 0 {
-        1
-    } else {
-        0
-    })
+    // Frames that failed are results (logged as such); the run failed only if it had input
+    // and not one frame gave a measurement.
+    let measured = progress.ok + progress.degraded;
+    Ok(if total > 0 && measured == 0 { 1 } else { 0 })
 }
 
 // ---------------------------------------------------------------------------------------------
