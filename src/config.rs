@@ -1,1 +1,397 @@
-//! (not yet implemented)
+//! The configuration file (`--config FILE.toml`): engine, sink, daemon and reference settings.
+//!
+//! Every field has a default that works for AIA-like full-disk data; `examples/sunjitter.toml`
+//! documents them all. Command-line flags override the file ([`Overrides`]). The effective
+//! configuration serialises to JSON for the MCAP `sunjitter` metadata record.
+
+use crate::engine::EngineConfig;
+use crate::reference::{ChannelPolicy, PolicySpec};
+pub use crate::sink::SinkConfig;
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// The whole configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub engine: EngineConfig,
+    pub sink: SinkConfig,
+    pub daemon: DaemonConfig,
+    /// Reference settings for every channel not listed in `channels`.
+    pub reference: ReferenceConfig,
+    /// Per-channel overrides of `reference`, keyed by channel name (e.g. `SJI_2796`).
+    pub channels: BTreeMap<String, ChannelConfig>,
+    /// Rename channels: header-derived name → name used in topics (e.g. `AIA_304 = "EUV_304"`).
+    pub channel_names: BTreeMap<String, String>,
+}
+
+/// How files are found and taken, and how much runs at once.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DaemonConfig {
+    /// Watch (and replay) subdirectories too.
+    pub recursive: bool,
+    /// Follow symbolic links found in watched directories.
+    pub follow_symlinks: bool,
+    /// File name endings taken as frames (case-insensitive); empty = every file.
+    pub extensions: Vec<String>,
+    /// File name patterns never taken (`*`, `?`, `[...]`): temporary and hidden names.
+    pub ignore: Vec<String>,
+    /// Capacity of the bounded queues between watcher, readers and the scheduler.
+    pub queue_capacity: usize,
+    /// Files opened and checked at once.
+    pub readers: usize,
+    /// Frames aligned at once (at most one per channel; the engine itself is parallel).
+    pub workers: usize,
+    /// Per channel, frames held to restore observation-time order.
+    pub reorder_window_frames: usize,
+    /// Per channel, longest time a frame is held for reordering (seconds, wall clock).
+    pub reorder_window_s: f64,
+    /// A file found by a directory scan is taken only once unmodified for this long.
+    pub settle_s: f64,
+    /// Attempts to open a file as complete FITS before it is reported on `/log`.
+    pub retry_attempts: u32,
+    /// First retry delay; it doubles up to `retry_max_s`.
+    pub retry_initial_s: f64,
+    pub retry_max_s: f64,
+    /// Rescan the watched directories this often as a safety net (0 = only on watcher errors).
+    pub rescan_interval_s: f64,
+    /// When idle, flush the log (and rotate segments by time) at least this often.
+    pub flush_interval_s: f64,
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        DaemonConfig {
+            recursive: false,
+            follow_symlinks: false,
+            extensions: vec![
+                "fits".into(),
+                "fit".into(),
+                "fts".into(),
+                "fits.fz".into(),
+                "fits.gz".into(),
+            ],
+            ignore: vec![".*".into(), "*.tmp".into(), "*.part".into()],
+            queue_capacity: 256,
+            readers: 2,
+            workers: 2,
+            reorder_window_frames: 8,
+            reorder_window_s: 5.0,
+            settle_s: 1.0,
+            retry_attempts: 6,
+            retry_initial_s: 0.25,
+            retry_max_s: 8.0,
+            rescan_interval_s: 300.0,
+            flush_interval_s: 5.0,
+        }
+    }
+}
+
+/// Reference policy settings (the defaults for every channel).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReferenceConfig {
+    /// `keyframe`, `previous`, `fixed:FILE` (or `fixed:FILE[N]`) or `channel:NAME`.
+    pub policy: PolicySpec,
+    pub keyframe_every_frames: u32,
+    pub keyframe_every_s: f64,
+    pub refresh_below_similarity: f64,
+    pub restart_after_failures: u32,
+    pub tolerance_s: f64,
+    pub hold_s: f64,
+}
+
+impl Default for ReferenceConfig {
+    fn default() -> Self {
+        ReferenceConfig {
+            policy: PolicySpec::Keyframe,
+            keyframe_every_frames: 50,
+            keyframe_every_s: 600.0,
+            refresh_below_similarity: 0.0,
+            restart_after_failures: 5,
+            tolerance_s: 30.0,
+            hold_s: 120.0,
+        }
+    }
+}
+
+/// Per-channel overrides; unset fields fall back to `[reference]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct ChannelConfig {
+    pub policy: Option<PolicySpec>,
+    pub keyframe_every_frames: Option<u32>,
+    pub keyframe_every_s: Option<f64>,
+    pub refresh_below_similarity: Option<f64>,
+    pub restart_after_failures: Option<u32>,
+    pub tolerance_s: Option<f64>,
+    pub hold_s: Option<f64>,
+}
+
+/// Command-line settings that override the file.
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    /// `--reference POLICY`: the policy of every channel.
+    pub reference: Option<PolicySpec>,
+    /// `--recursive`.
+    pub recursive: bool,
+}
+
+impl Config {
+    /// Read `path` (or the defaults when `None`), apply `overrides`, check the result.
+    pub fn load(path: Option<&Path>, overrides: &Overrides) -> Result<Config> {
+        let mut config = match path {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+                Config::from_toml(&text).map_err(|e| Error::bad_input(path, e))?
+            }
+            None => Config::default(),
+        };
+        config.apply(overrides);
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Parse TOML text; the error is one line.
+    pub fn from_toml(text: &str) -> std::result::Result<Config, String> {
+        toml::from_str(text).map_err(|e| e.message().replace('\n', " "))
+    }
+
+    pub fn apply(&mut self, overrides: &Overrides) {
+        if let Some(policy) = &overrides.reference {
+            self.reference.policy = policy.clone();
+            for channel in self.channels.values_mut() {
+                channel.policy = None;
+            }
+        }
+        if overrides.recursive {
+            self.daemon.recursive = true;
+        }
+    }
+
+    /// Reject settings that cannot work (exit code 2, one line naming the field).
+    pub fn validate(&self) -> Result<()> {
+        let bad = |what: &str| Err(Error::Usage(format!("configuration: {what}")));
+        let d = &self.daemon;
+        if d.queue_capacity == 0 || d.readers == 0 || d.workers == 0 {
+            return bad("daemon.queue_capacity, daemon.readers and daemon.workers must be ≥ 1");
+        }
+        for (name, v) in [
+            ("daemon.reorder_window_s", d.reorder_window_s),
+            ("daemon.settle_s", d.settle_s),
+            ("daemon.retry_initial_s", d.retry_initial_s),
+            ("daemon.retry_max_s", d.retry_max_s),
+            ("daemon.rescan_interval_s", d.rescan_interval_s),
+            ("sink.segment_minutes", self.sink.segment_minutes),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(&format!("{name} must be a finite number ≥ 0"));
+            }
+        }
+        if !(d.flush_interval_s.is_finite() && d.flush_interval_s > 0.0) {
+            return bad("daemon.flush_interval_s must be > 0");
+        }
+        let names: Vec<&String> = self.channels.keys().collect();
+        for name in std::iter::once(None).chain(names.into_iter().map(Some)) {
+            let p = match name {
+                Some(n) => self.channel_policy(n),
+                None => self.channel_policy(""),
+            };
+            for (field, v) in [
+                ("keyframe_every_s", p.keyframe_every_s),
+                ("tolerance_s", p.tolerance_s),
+                ("hold_s", p.hold_s),
+                ("refresh_below_similarity", p.refresh_below_similarity),
+            ] {
+                if !(v.is_finite() && v >= 0.0) {
+                    let at = name.map_or("reference".to_string(), |n| format!("channels.{n}"));
+                    return bad(&format!("{at}.{field} must be a finite number ≥ 0"));
+                }
+            }
+        }
+        for name in self.channels.keys() {
+            self.partner_chain(name)?;
+        }
+        Ok(())
+    }
+
+    /// The channel name used in topics for a header-derived name.
+    pub fn channel_name(&self, header_channel: &str) -> String {
+        self.channel_names
+            .get(header_channel)
+            .cloned()
+            .unwrap_or_else(|| header_channel.to_string())
+    }
+
+    /// The resolved reference settings of a channel. A channel told to follow itself
+    /// (`--reference channel:X` applies to X too) uses `keyframe`.
+    pub fn channel_policy(&self, channel: &str) -> ChannelPolicy {
+        let r = &self.reference;
+        let c = self.channels.get(channel).cloned().unwrap_or_default();
+        let mut policy = c.policy.unwrap_or_else(|| r.policy.clone());
+        if matches!(&policy, PolicySpec::Channel(p) if p == channel) {
+            policy = PolicySpec::Keyframe;
+        }
+        ChannelPolicy {
+            policy,
+            keyframe_every_frames: c.keyframe_every_frames.unwrap_or(r.keyframe_every_frames),
+            keyframe_every_s: c.keyframe_every_s.unwrap_or(r.keyframe_every_s),
+            refresh_below_similarity: c
+                .refresh_below_similarity
+                .unwrap_or(r.refresh_below_similarity),
+            restart_after_failures: c.restart_after_failures.unwrap_or(r.restart_after_failures),
+            tolerance_s: c.tolerance_s.unwrap_or(r.tolerance_s),
+            hold_s: c.hold_s.unwrap_or(r.hold_s),
+        }
+    }
+
+    /// Follow `channel:NAME` links from `channel`; a cycle would make frames wait forever.
+    pub fn partner_chain(&self, channel: &str) -> Result<Vec<String>> {
+        let mut seen = vec![channel.to_string()];
+        let mut current = channel.to_string();
+        while let PolicySpec::Channel(next) = self.channel_policy(&current).policy {
+            if seen.contains(&next) {
+                seen.push(next);
+                return Err(Error::Usage(format!(
+                    "configuration: channel references form a cycle: {}",
+                    seen.join(" → ")
+                )));
+            }
+            seen.push(next.clone());
+            current = next;
+        }
+        Ok(seen)
+    }
+
+    /// The effective configuration as JSON (for the MCAP metadata record).
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::to_value(self).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// Make `fixed:FILE` paths absolute and canonical, so they match frame keys in logs.
+    pub fn canonicalize_fixed_paths(&mut self) -> Result<()> {
+        let fix = |p: &mut PolicySpec| -> Result<()> {
+            if let PolicySpec::Fixed(file) = p {
+                let spec = crate::reference::parse_frame_key(file);
+                let path = canonical_file_path(&spec.path)?;
+                *file = crate::reference::frame_key(&path, spec.frame);
+            }
+            Ok(())
+        };
+        fix(&mut self.reference.policy)?;
+        for c in self.channels.values_mut() {
+            if let Some(p) = c.policy.as_mut() {
+                fix(p)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `path` with its directory made canonical (the file name itself is kept, so a symbolic
+/// link keeps its own name): the identity of a file in logs.
+pub fn canonical_file_path(path: &Path) -> Result<std::path::PathBuf> {
+    let name = path
+        .file_name()
+        .ok_or_else(|| Error::bad_input(path, "not a file path"))?;
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    let parent = parent.canonicalize().map_err(|e| Error::io(&parent, e))?;
+    Ok(parent.join(name))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn example_file_parses_to_the_defaults() {
+        // The documented example must stay in step with the defaults it describes.
+        let text = include_str!("../examples/sunjitter.toml");
+        let parsed = Config::from_toml(text).expect("example parses");
+        let mut expected = Config::default();
+        expected.channels.insert(
+            "SJI_2796".into(),
+            ChannelConfig {
+                policy: Some(PolicySpec::Channel("SJI_1400".into())),
+                tolerance_s: Some(150.0),
+                ..Default::default()
+            },
+        );
+        assert_eq!(parsed, expected);
+    }
+
+    #[test]
+    fn channel_overrides_fall_back_to_reference_defaults() {
+        let config = Config::from_toml(
+            r#"
+            [reference]
+            policy = "previous"
+            hold_s = 10
+            [channels.B]
+            policy = "channel:A"
+            tolerance_s = 2.5
+            "#,
+        )
+        .unwrap();
+        let b = config.channel_policy("B");
+        assert_eq!(b.policy, PolicySpec::Channel("A".into()));
+        assert_eq!((b.tolerance_s, b.hold_s), (2.5, 10.0));
+        assert_eq!(config.channel_policy("A").policy, PolicySpec::Previous);
+    }
+
+    #[test]
+    fn command_line_policy_overrides_every_channel_and_not_itself() {
+        let mut config = Config::from_toml("[channels.B]\npolicy = \"previous\"").unwrap();
+        config.apply(&Overrides {
+            reference: Some(PolicySpec::Channel("A".into())),
+            recursive: true,
+        });
+        assert_eq!(
+            config.channel_policy("B").policy,
+            PolicySpec::Channel("A".into())
+        );
+        // A cannot follow itself: it keeps a keyframe series the others follow.
+        assert_eq!(config.channel_policy("A").policy, PolicySpec::Keyframe);
+        assert!(config.daemon.recursive);
+        config.validate().unwrap();
+    }
+
+    #[test]
+    fn cycles_unknown_fields_and_bad_policies_are_usage_errors() {
+        let cyclic = Config::from_toml(
+            "[channels.A]\npolicy = \"channel:B\"\n[channels.B]\npolicy = \"channel:A\"",
+        )
+        .unwrap();
+        let err = cyclic.validate().unwrap_err();
+        assert_eq!(err.exit_code(), 2);
+        assert!(err.to_string().contains("cycle"), "{err}");
+
+        let typo = Config::from_toml("[daemon]\nworkerz = 3").unwrap_err();
+        assert!(typo.contains("workerz"), "{typo}");
+        let policy = Config::from_toml("[reference]\npolicy = \"sometimes\"").unwrap_err();
+        assert!(policy.contains("sometimes"), "{policy}");
+    }
+
+    #[test]
+    fn effective_configuration_round_trips_through_json() {
+        let mut config = Config::default();
+        config.channels.insert(
+            "X".into(),
+            ChannelConfig {
+                policy: Some(PolicySpec::Fixed("/data/ref.fits[3]".into())),
+                ..Default::default()
+            },
+        );
+        let json = config.to_json();
+        assert_eq!(json["reference"]["policy"], "keyframe");
+        assert_eq!(json["channels"]["X"]["policy"], "fixed:/data/ref.fits[3]");
+        let back: Config = serde_json::from_value(json).unwrap();
+        assert_eq!(back, config);
+    }
+}

@@ -1,1 +1,1859 @@
-//! (not yet implemented)
+//! The one pipeline both front ends feed: frame → channel → reference policy → engine → sink.
+//!
+//! ```text
+//! front end (watch: watcher + readers; replay: file list)
+//!   └─ bounded queue of Input ──> scheduler task: per-channel reorder buffers, partner choice
+//!        └─ blocking jobs (≤ workers, ≤ 1 per channel): read image, policy step, engine
+//!             └─ bounded queue of records ──> ONE writer thread: RecordSink (MCAP)
+//! ```
+//!
+//! Determinism: per channel, frames are processed one at a time in (observation time, key)
+//! order; a frame's messages depend only on its channel's earlier frames (and for
+//! `channel:NAME` on the partner frame, chosen once the partner has been processed past the
+//! frame's time). So `replay` of a set of frames writes what the daemon wrote for them,
+//! apart from `publish_time` and the engine's own `elapsed_ms`.
+
+use crate::config::Config;
+use crate::engine::{AlignOutcome, EngineConfig, Image};
+use crate::fits::FrameSpec;
+use crate::meta::FrameMeta;
+use crate::record::{FrameAlignment, Status};
+use crate::reference::{
+    frame_key, ChannelState, LoadedFrame, PartnerFrame, PolicySpec, ReferenceChange,
+    RestoredChannel, StepContext,
+};
+use crate::{Error, Result};
+use std::collections::{BTreeMap, HashSet, VecDeque};
+use std::path::Path;
+use std::sync::atomic::AtomicUsize;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinSet;
+
+#[doc(hidden)]
+pub mod fake;
+
+// ---------------------------------------------------------------------------------------------
+// Records
+
+/// `foxglove.Log` levels used on `/log`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum LogLevel {
+    Info,
+    Warning,
+    Error,
+}
+
+impl LogLevel {
+    /// The `foxglove.Log` level number.
+    pub fn foxglove(self) -> u8 {
+        match self {
+            LogLevel::Info => 2,
+            LogLevel::Warning => 3,
+            LogLevel::Error => 4,
+        }
+    }
+
+    pub fn from_foxglove(level: u8) -> LogLevel {
+        match level {
+            0..=2 => LogLevel::Info,
+            3 => LogLevel::Warning,
+            _ => LogLevel::Error,
+        }
+    }
+}
+
+/// One message for the sink. `log_time_ns` is the frame's observation time where there is a
+/// frame, else the file's modification time (so replay and watch agree).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Record {
+    /// `/jitter/<channel>`.
+    Frame {
+        message: Box<FrameAlignment>,
+        log_time_ns: i64,
+    },
+    /// `/reference/<channel>`.
+    Reference {
+        change: Box<ReferenceChange>,
+        log_time_ns: i64,
+    },
+    /// `/log`. `file` is a frame key (`PATH` or `PATH[N]`). In a log read back, an entry at
+    /// `Error` marks that frame (or file) finished for good; warnings are notes about frames
+    /// that have their own message.
+    Log {
+        level: LogLevel,
+        file: String,
+        message: String,
+        log_time_ns: i64,
+        /// This entry stands for the input (no message comes for it); `false` for notes.
+        finishes: bool,
+    },
+}
+
+impl Record {
+    /// A `/log` entry; at `Error` it finishes its input (no message will come for it).
+    pub fn log(
+        level: LogLevel,
+        file: &str,
+        message: impl Into<String>,
+        log_time_ns: i64,
+    ) -> Record {
+        Record::Log {
+            level,
+            file: file.to_string(),
+            message: message.into(),
+            log_time_ns,
+            finishes: level >= LogLevel::Error,
+        }
+    }
+
+    /// A `/log` warning about a frame that has (or had) its own message.
+    pub fn note(file: &str, message: impl Into<String>, log_time_ns: i64) -> Record {
+        Record::Log {
+            level: LogLevel::Warning,
+            file: file.to_string(),
+            message: message.into(),
+            log_time_ns,
+            finishes: false,
+        }
+    }
+
+    pub fn log_time_ns(&self) -> i64 {
+        match self {
+            Record::Frame { log_time_ns, .. }
+            | Record::Reference { log_time_ns, .. }
+            | Record::Log { log_time_ns, .. } => *log_time_ns,
+        }
+    }
+
+    /// The MCAP topic this record goes to.
+    pub fn topic(&self) -> String {
+        match self {
+            Record::Frame { message, .. } => format!("/jitter/{}", message.channel),
+            Record::Reference { change, .. } => format!("/reference/{}", change.channel),
+            Record::Log { .. } => "/log".into(),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The outside world, as small traits (the real ones wrap `fits`, `engine` and `sink`).
+
+/// Reads frames: `fits::read_meta` / `fits::read_frame` in production, fakes in tests.
+pub trait FrameReader: Send + Sync {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>>;
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image>;
+}
+
+/// Aligns one image to another: `engine::align_images` in production.
+pub trait Aligner: Send + Sync {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+}
+
+/// Where records go: the MCAP sink in production. Called from the one writer thread.
+pub trait RecordSink: Send {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()>;
+    fn flush(&mut self) -> Result<()>;
+    /// Close cleanly (MCAP: summary and index).
+    fn finish(self: Box<Self>) -> Result<()>;
+}
+
+/// The FITS reader.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FitsReader;
+
+impl FrameReader for FitsReader {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        crate::fits::read_meta(path)
+    }
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+        crate::fits::read_frame(spec)
+    }
+}
+
+/// The alignment engine.
+#[derive(Debug, Clone, Default)]
+pub struct EngineAligner(pub EngineConfig);
+
+impl Aligner for EngineAligner {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        crate::engine::align_images(reference, frame, &self.0)
+    }
+}
+
+/// A sink that keeps records in memory (tests, dry runs). Clones share the same log.
+#[derive(Debug, Clone, Default)]
+pub struct MemorySink {
+    pub log: Arc<Mutex<MemoryLog>>,
+}
+
+#[derive(Debug, Default)]
+pub struct MemoryLog {
+    /// Records with their publish times, in write order.
+    pub records: Vec<(Record, i64)>,
+    pub flushes: usize,
+    pub finished: bool,
+}
+
+impl RecordSink for MemorySink {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
+        let mut log = self
+            .log
+            .lock()
+            .map_err(|_| Error::output("memory", "poisoned"))?;
+        log.records.push((record.clone(), publish_time_ns));
+        Ok(())
+    }
+    fn flush(&mut self) -> Result<()> {
+        if let Ok(mut log) = self.log.lock() {
+            log.flushes += 1;
+        }
+        Ok(())
+    }
+    fn finish(self: Box<Self>) -> Result<()> {
+        if let Ok(mut log) = self.log.lock() {
+            log.finished = true;
+        }
+        Ok(())
+    }
+}
+
+impl MemorySink {
+    pub fn records(&self) -> Vec<Record> {
+        self.log
+            .lock()
+            .map(|l| l.records.iter().map(|(r, _)| r.clone()).collect())
+            .unwrap_or_default()
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// What an existing log says (restart)
+
+/// What earlier runs logged in the output: which frames are finished, and each channel's
+/// state to continue from. Built from the sink's reader with [`History::add`].
+#[derive(Debug, Clone, Default)]
+pub struct History {
+    /// Frame keys (and file keys) already logged as a measurement or a terminal `/log` entry.
+    pub done: HashSet<String>,
+    pub channels: BTreeMap<String, RestoredChannel>,
+}
+
+/// Frame messages kept per channel for restoring its state.
+const RESTORE_TAIL: usize = 256;
+
+impl History {
+    pub fn add(&mut self, record: &Record) {
+        match record {
+            Record::Frame {
+                message,
+                log_time_ns,
+            } => {
+                self.done.insert(message.align.frame.clone());
+                let ch = self.channels.entry(message.channel.clone()).or_default();
+                ch.next_sequence = ch.next_sequence.max(message.sequence + 1);
+                ch.last_obs_time_ns = ch.last_obs_time_ns.max(Some(*log_time_ns));
+                let at = ch
+                    .recent
+                    .partition_point(|(m, _)| m.sequence < message.sequence);
+                if ch
+                    .recent
+                    .get(at)
+                    .is_none_or(|(m, _)| m.sequence != message.sequence)
+                {
+                    ch.recent.insert(at, ((**message).clone(), *log_time_ns));
+                }
+                if ch.recent.len() > RESTORE_TAIL {
+                    let excess = ch.recent.len() - RESTORE_TAIL;
+                    ch.recent.drain(..excess);
+                }
+            }
+            Record::Reference {
+                change,
+                log_time_ns,
+            } => {
+                let ch = self.channels.entry(change.channel.clone()).or_default();
+                let newer = ch
+                    .last_reference
+                    .as_ref()
+                    .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
+                if newer {
+                    ch.last_reference = Some(((**change).clone(), *log_time_ns));
+                }
+            }
+            Record::Log { level, file, .. } => {
+                if *level >= LogLevel::Error && !file.is_empty() {
+                    self.done.insert(file.clone());
+                }
+            }
+        }
+    }
+
+    pub fn is_done(&self, key: &str) -> bool {
+        self.done.contains(key)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Progress (observable by tests, the progress bar and, later, the health file)
+
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Progress {
+    /// `/jitter` messages written, and how many of them were ok / degraded / failed.
+    pub frames: u64,
+    pub ok: u64,
+    pub degraded: u64,
+    pub failed: u64,
+    /// Frames (or files) finished with a terminal `/log` entry instead of a message.
+    pub skipped: u64,
+    /// `/log` entries about frames that also have a message (degraded, failed, late).
+    pub notes: u64,
+    pub references: u64,
+    pub per_channel: BTreeMap<String, u64>,
+    /// Inputs (frames or files) finished so far: `frames + skipped`.
+    pub finished: u64,
+    /// Daemon: the watcher is installed and the files present at start are queued; files
+    /// written from now on are seen by events.
+    pub watching: bool,
+    pub write_errors: u64,
+    pub last_error: Option<String>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Frames entering the pipeline
+
+/// A frame found by a front end, not yet processed.
+#[derive(Debug, Clone)]
+pub struct FrameItem {
+    pub key: String,
+    pub spec: FrameSpec,
+    pub channel: String,
+    pub obs_time_ns: i64,
+    /// When it entered the pipeline (wall clock; reorder window and partner hold).
+    pub arrived: Instant,
+}
+
+/// What the front ends send to the scheduler.
+#[derive(Debug)]
+pub enum Input {
+    Frame(FrameItem),
+    /// A finished input that produced no frame (unreadable file …): written as is.
+    Record(Record),
+}
+
+/// What looking at one file gave.
+#[derive(Debug)]
+pub enum FileOutcome {
+    /// Frames to process (already-logged ones left out) and terminal records for frames
+    /// that cannot be processed (no observation time).
+    Frames(Vec<FrameItem>, Vec<Record>),
+    /// Not (yet) a complete FITS file; the reason is what `/log` will say if it stays so.
+    NotReady(String),
+    /// Never to be taken; the record says why (`None`: silently irrelevant, e.g. a directory).
+    Skip(Option<Record>),
+    /// Gone before it could be read: a `/log` note, and the name stays open.
+    Vanished(Record),
+}
+
+/// Identity of a file's content for de-duplication: (size, mtime).
+pub type FileStamp = (u64, Option<SystemTime>);
+
+pub fn file_stamp(meta: &std::fs::Metadata) -> FileStamp {
+    (meta.len(), meta.modified().ok())
+}
+
+fn system_time_ns(t: Option<SystemTime>) -> i64 {
+    let t = t.unwrap_or_else(SystemTime::now);
+    match t.duration_since(SystemTime::UNIX_EPOCH) {
+        Ok(d) => i64::try_from(d.as_nanos()).unwrap_or(i64::MAX),
+        Err(e) => -i64::try_from(e.duration().as_nanos()).unwrap_or(i64::MAX),
+    }
+}
+
+pub fn now_ns() -> i64 {
+    system_time_ns(Some(SystemTime::now()))
+}
+
+/// Look at one file: complete FITS? which frames, which channel, which time?
+/// `path` must already be in canonical form ([`crate::config::canonical_file_path`]).
+pub fn inspect_file(
+    path: &Path,
+    reader: &dyn FrameReader,
+    config: &Config,
+    history: &History,
+    follow_symlinks: bool,
+) -> FileOutcome {
+    let key = frame_key(path, None);
+    let link_meta = match std::fs::symlink_metadata(path) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            // Not finished: a file that reappears under this name is still taken.
+            return FileOutcome::Vanished(Record::note(
+                &key,
+                "vanished before it could be read",
+                now_ns(),
+            ));
+        }
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    };
+    if link_meta.file_type().is_symlink() && !follow_symlinks {
+        return FileOutcome::Skip(Some(Record::log(
+            LogLevel::Error,
+            &key,
+            "symbolic link not followed (set daemon.follow_symlinks = true to take it)",
+            system_time_ns(link_meta.modified().ok()),
+        )));
+    }
+    let before = match std::fs::metadata(path) {
+        Ok(m) => m,
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    };
+    if before.is_dir() {
+        return FileOutcome::Skip(None);
+    }
+    let mtime_ns = system_time_ns(before.modified().ok());
+    if !before.is_file() {
+        return FileOutcome::Skip(Some(Record::log(
+            LogLevel::Error,
+            &key,
+            "not a regular file",
+            mtime_ns,
+        )));
+    }
+    if history.is_done(&key) {
+        return FileOutcome::Skip(None);
+    }
+    // The reader refuses incomplete files (truncated headers or data) with the reason.
+    let metas = match reader.read_meta(path) {
+        Ok(m) if m.is_empty() => return FileOutcome::NotReady("no image in file".into()),
+        Ok(m) => m,
+        Err(e) => return FileOutcome::NotReady(error_reason(&e)),
+    };
+    match std::fs::metadata(path) {
+        Ok(after) if file_stamp(&after) == file_stamp(&before) => {}
+        Ok(_) => return FileOutcome::NotReady("changed while being read".into()),
+        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+    }
+    let arrived = Instant::now();
+    let mut items = Vec::new();
+    let mut records = Vec::new();
+    for meta in metas {
+        let key = frame_key(path, meta.frame);
+        if history.is_done(&key) {
+            continue;
+        }
+        let Some(obs_time_ns) = meta.obs_time_ns else {
+            records.push(Record::log(
+                LogLevel::Error,
+                &key,
+                "no observation time in the header (DATE-OBS, DATE_OBS or T_OBS)",
+                mtime_ns,
+            ));
+            continue;
+        };
+        items.push(FrameItem {
+            key,
+            spec: FrameSpec {
+                path: path.to_path_buf(),
+                frame: meta.frame,
+            },
+            channel: config.channel_name(&meta.channel),
+            obs_time_ns,
+            arrived,
+        });
+    }
+    FileOutcome::Frames(items, records)
+}
+
+/// The one-line reason of an error, without the path prefix (the `/log` entry names the file).
+pub fn error_reason(e: &Error) -> String {
+    match e {
+        Error::BadInput { reason, .. } | Error::Output { reason, .. } => reason.clone(),
+        Error::BadHeader { reason, .. } => format!("header: {reason}"),
+        Error::Io { source, .. } => source.to_string(),
+        other => other.to_string(),
+    }
+}
+
+/// The terminal `/log` record for a file that never became readable.
+pub fn unreadable_record(path: &Path, reason: &str) -> Record {
+    let mtime = std::fs::metadata(path).ok().and_then(|m| m.modified().ok());
+    Record::log(
+        LogLevel::Error,
+        &frame_key(path, None),
+        reason,
+        system_time_ns(mtime),
+    )
+}
+
+// ---------------------------------------------------------------------------------------------
+// Jobs
+
+/// The reader and aligner the jobs use.
+#[derive(Clone)]
+pub struct JobContext {
+    pub reader: Arc<dyn FrameReader>,
+    pub aligner: Arc<dyn Aligner>,
+}
+
+impl StepContext for JobContext {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        self.aligner.align(reference, frame)
+    }
+    fn load(&self, spec: &FrameSpec) -> Result<Image> {
+        self.reader.read_frame(spec)
+    }
+}
+
+/// One frame of one channel to process, with the channel's state moved in.
+#[derive(Debug)]
+pub struct Job {
+    pub channel: String,
+    pub state: ChannelState,
+    pub item: FrameItem,
+    pub partner: Option<PartnerFrame>,
+    /// Emitted after a later frame of its channel (it arrived too late to reorder).
+    pub late: bool,
+}
+
+#[derive(Debug)]
+pub struct JobDone {
+    pub channel: String,
+    pub state: ChannelState,
+    pub records: Vec<Record>,
+    pub partner: Option<PartnerFrame>,
+}
+
+/// Run one job (blocking: reads the image, runs the engine).
+pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
+    let Job {
+        channel,
+        mut state,
+        item,
+        partner,
+        late,
+    } = job;
+    let mut records = Vec::new();
+    let mut partner_out = None;
+    match ctx.reader.read_frame(&item.spec) {
+        Err(e) => records.push(Record::log(
+            LogLevel::Error,
+            &item.key,
+            error_reason(&e),
+            item.obs_time_ns,
+        )),
+        Ok(image) => {
+            let frame = LoadedFrame {
+                key: item.key.clone(),
+                spec: item.spec.clone(),
+                obs_time_ns: item.obs_time_ns,
+                image: Arc::new(image),
+            };
+            let step = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                state.process(&frame, partner.as_ref(), ctx)
+            }));
+            match step {
+                Ok(out) => {
+                    partner_out = out.partner;
+                    let notes: Vec<Record> = out
+                        .records
+                        .iter()
+                        .filter_map(|r| match r {
+                            Record::Frame {
+                                message,
+                                log_time_ns,
+                            } => frame_note(message, *log_time_ns),
+                            _ => None,
+                        })
+                        .collect();
+                    records.extend(out.records);
+                    records.extend(notes);
+                }
+                Err(panic) => {
+                    let what = panic
+                        .downcast_ref::<&str>()
+                        .map(|s| s.to_string())
+                        .or_else(|| panic.downcast_ref::<String>().cloned())
+                        .unwrap_or_else(|| "unknown".into());
+                    tracing::error!(frame = %item.key, "internal error while aligning: {what}");
+                    records.push(Record::log(
+                        LogLevel::Error,
+                        &item.key,
+                        format!("internal error while aligning: {what}"),
+                        item.obs_time_ns,
+                    ));
+                }
+            }
+        }
+    }
+    if late {
+        records.push(Record::note(
+            &item.key,
+            "arrived after later frames of its channel: processed out of time order",
+            item.obs_time_ns,
+        ));
+    }
+    JobDone {
+        channel,
+        state,
+        records,
+        partner: partner_out,
+    }
+}
+
+/// The `/log` note for a degraded or failed frame (after its message, never instead of it).
+fn frame_note(message: &FrameAlignment, log_time_ns: i64) -> Option<Record> {
+    let what = match message.align.status {
+        Status::Ok => return None,
+        Status::Degraded => "degraded",
+        Status::Failed => "failed",
+    };
+    Some(Record::note(
+        &message.align.frame,
+        format!("{what}: {}", message.align.message),
+        log_time_ns,
+    ))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Scheduler: per-channel order, reorder window, partner choice
+
+/// What the scheduler wants done.
+#[derive(Debug)]
+pub enum Action {
+    Run(Box<Job>),
+    Emit(Record),
+}
+
+#[derive(Debug, Default)]
+struct Lane {
+    state: Option<ChannelState>,
+    buffer: BTreeMap<(i64, String), FrameItem>,
+    in_flight: bool,
+    /// Observation time of the frame being processed.
+    in_flight_ns: Option<i64>,
+    last_dispatched_ns: Option<i64>,
+    /// Processed, usable frames of this channel (candidates for `channel:` followers).
+    history: VecDeque<PartnerFrame>,
+    /// Last time a frame of this channel arrived or finished (wall clock).
+    last_activity: Option<Instant>,
+}
+
+enum PartnerChoice {
+    Wait,
+    Unmatched(String),
+    Use(Box<PartnerFrame>),
+}
+
+/// Scheduling settings.
+#[derive(Debug, Clone)]
+pub struct SchedulerSettings {
+    /// Daemon (wall-clock reorder window and partner hold) or replay (all input known at EOF).
+    pub live: bool,
+    pub workers: usize,
+    pub reorder_window_frames: usize,
+    pub reorder_window: Duration,
+    /// Longest a frame is held while files are still in the pipe (window + settle time).
+    pub reorder_cap: Duration,
+}
+
+impl SchedulerSettings {
+    pub fn from_config(config: &Config, live: bool) -> SchedulerSettings {
+        SchedulerSettings {
+            live,
+            workers: config.daemon.workers.max(1),
+            reorder_window_frames: config.daemon.reorder_window_frames,
+            reorder_window: Duration::from_secs_f64(config.daemon.reorder_window_s),
+            reorder_cap: Duration::from_secs_f64(
+                config.daemon.reorder_window_s + config.daemon.settle_s,
+            ),
+        }
+    }
+}
+
+/// Decides which frame of which channel runs next. Pure state, no I/O, no clock of its own.
+pub struct Scheduler {
+    config: Arc<Config>,
+    settings: SchedulerSettings,
+    restored: BTreeMap<String, RestoredChannel>,
+    lanes: BTreeMap<String, Lane>,
+    running: usize,
+    eof: bool,
+    /// The front end has no file in hand that could still yield frames.
+    pipe_empty: bool,
+}
+
+/// Partner history kept per channel beyond what waiting followers need.
+const PARTNER_HISTORY_MIN: usize = 4;
+
+impl Scheduler {
+    pub fn new(config: Arc<Config>, settings: SchedulerSettings, history: &History) -> Scheduler {
+        Scheduler {
+            config,
+            settings,
+            restored: history.channels.clone(),
+            lanes: BTreeMap::new(),
+            running: 0,
+            eof: false,
+            pipe_empty: true,
+        }
+    }
+
+    /// Whether the front end still has files in hand (see [`run_pipeline`]).
+    pub fn set_pipe_empty(&mut self, empty: bool) {
+        self.pipe_empty = empty;
+    }
+
+    pub fn offer(&mut self, item: FrameItem) {
+        let lane = self.lanes.entry(item.channel.clone()).or_default();
+        lane.buffer
+            .insert((item.obs_time_ns, item.key.clone()), item);
+    }
+
+    /// No more input will come (replay: everything is known; frames are released).
+    pub fn set_eof(&mut self) {
+        self.eof = true;
+    }
+
+    pub fn is_eof(&self) -> bool {
+        self.eof
+    }
+
+    /// Nothing buffered and nothing running.
+    pub fn idle(&self) -> bool {
+        self.running == 0 && self.lanes.values().all(|l| l.buffer.is_empty())
+    }
+
+    pub fn running(&self) -> usize {
+        self.running
+    }
+
+    pub fn buffered(&self) -> usize {
+        self.lanes.values().map(|l| l.buffer.len()).sum()
+    }
+
+    /// Everything that can start now.
+    pub fn poll(&mut self, now: Instant) -> Vec<Action> {
+        let mut actions = Vec::new();
+        loop {
+            let mut progressed = false;
+            let names: Vec<String> = self.lanes.keys().cloned().collect();
+            for name in names {
+                if self.running >= self.settings.workers {
+                    return actions;
+                }
+                if let Some(action) = self.poll_lane(&name, now) {
+                    progressed = true;
+                    actions.push(action);
+                }
+            }
+            if !progressed {
+                return actions;
+            }
+        }
+    }
+
+    fn released(&self, lane: &Lane, now: Instant) -> bool {
+        let Some(((t, _), _)) = lane.buffer.first_key_value() else {
+            return false;
+        };
+        if self.eof {
+            return true;
+        }
+        if !self.settings.live {
+            return false;
+        }
+        if lane.last_dispatched_ns.is_some_and(|last| *t < last)
+            || lane.buffer.len() > self.settings.reorder_window_frames
+        {
+            return true;
+        }
+        let oldest = lane.buffer.values().map(|i| i.arrived).min();
+        let age = oldest.map_or(Duration::ZERO, |a| now.saturating_duration_since(a));
+        // Files still in the pipe may hold earlier frames: wait for them, within the cap.
+        (age >= self.settings.reorder_window && self.pipe_empty) || age >= self.settings.reorder_cap
+    }
+
+    fn poll_lane(&mut self, name: &str, now: Instant) -> Option<Action> {
+        let lane = self.lanes.get(name)?;
+        if lane.in_flight || !self.released(lane, now) {
+            return None;
+        }
+        let (_, head) = lane.buffer.first_key_value()?;
+        let policy = self.config.channel_policy(name);
+        let partner = match &policy.policy {
+            PolicySpec::Channel(partner_name) => {
+                match self.choose_partner(
+                    partner_name,
+                    head,
+                    policy.tolerance_s,
+                    policy.hold_s,
+                    now,
+                ) {
+                    PartnerChoice::Wait => return None,
+                    PartnerChoice::Unmatched(why) => {
+                        let lane = self.lanes.get_mut(name)?;
+                        let (_, item) = lane.buffer.pop_first()?;
+                        return Some(Action::Emit(Record::log(
+                            LogLevel::Error,
+                            &item.key,
+                            why,
+                            item.obs_time_ns,
+                        )));
+                    }
+                    PartnerChoice::Use(p) => Some(*p),
+                }
+            }
+            _ => None,
+        };
+        let restored = self.restored.remove(name);
+        let lane = self.lanes.get_mut(name)?;
+        let (_, item) = lane.buffer.pop_first()?;
+        let late = lane
+            .last_dispatched_ns
+            .is_some_and(|t| item.obs_time_ns < t);
+        lane.last_dispatched_ns = lane.last_dispatched_ns.max(Some(item.obs_time_ns));
+        let state = lane.state.take().unwrap_or_else(|| match restored {
+            Some(r) => ChannelState::restore(name, policy, &r),
+            None => ChannelState::new(name, policy),
+        });
+        lane.in_flight = true;
+        self.running += 1;
+        Some(Action::Run(Box::new(Job {
+            channel: name.to_string(),
+            state,
+            item,
+            partner,
+            late,
+        })))
+    }
+
+    fn choose_partner(
+        &self,
+        partner: &str,
+        item: &FrameItem,
+        tolerance_s: f64,
+        hold_s: f64,
+        now: Instant,
+    ) -> PartnerChoice {
+        let lane = self.lanes.get(partner);
+        let history = lane.map(|l| &l.history);
+        let t = item.obs_time_ns;
+        let tolerance_ns = (tolerance_s * 1e9) as i64;
+        // A partner frame still to be processed may be nearer than any processed one.
+        let nearer_pending = lane.is_some_and(|l| {
+            l.buffer
+                .keys()
+                .next()
+                .is_some_and(|(pt, _)| *pt <= t + tolerance_ns)
+                || (l.in_flight && l.in_flight_ns.is_some_and(|pt| pt <= t + tolerance_ns))
+        });
+        if nearer_pending {
+            return PartnerChoice::Wait;
+        }
+        let before = history.and_then(|h| h.iter().rev().find(|p| p.obs_time_ns <= t));
+        let after = history.and_then(|h| h.iter().find(|p| p.obs_time_ns >= t));
+        let idle = lane.is_none_or(|l| l.buffer.is_empty() && !l.in_flight);
+        let exhausted = self.eof && idle;
+        // Live: give up only once the partner has nothing pending, no file is in the pipe,
+        // and the partner has been quiet for `hold_s` (a busy partner is waited for).
+        let expired = self.settings.live
+            && idle
+            && self.pipe_empty
+            && now.saturating_duration_since(self.hold_start(partner, item))
+                >= Duration::from_secs_f64(hold_s);
+        if after.is_none() && !exhausted && !expired {
+            return PartnerChoice::Wait;
+        }
+        let mut best: Option<&PartnerFrame> = None;
+        for p in [before, after].into_iter().flatten() {
+            let dt = (p.obs_time_ns - t).abs();
+            if dt <= tolerance_ns && best.is_none_or(|b| dt < (b.obs_time_ns - t).abs()) {
+                best = Some(p);
+            }
+        }
+        match best {
+            Some(p) => PartnerChoice::Use(Box::new(p.clone())),
+            None => PartnerChoice::Unmatched(format!(
+                "unmatched: no {partner} frame within ±{tolerance_s} s"
+            )),
+        }
+    }
+
+    /// When a frame's wait for a partner began counting: its arrival or the partner's last
+    /// activity, whichever is later.
+    fn hold_start(&self, partner: &str, item: &FrameItem) -> Instant {
+        let activity = self.lanes.get(partner).and_then(|l| l.last_activity);
+        activity.map_or(item.arrived, |a| a.max(item.arrived))
+    }
+
+    /// A job finished: take its state back and record the frame for followers.
+    pub fn complete(&mut self, done: JobDone) {
+        self.running = self.running.saturating_sub(1);
+        let lane = self.lanes.entry(done.channel.clone()).or_default();
+        lane.in_flight = false;
+        lane.in_flight_ns = None;
+        lane.last_activity = Some(Instant::now());
+        lane.state = Some(done.state);
+        if let Some(p) = done.partner {
+            let at = lane
+                .history
+                .partition_point(|q| q.obs_time_ns <= p.obs_time_ns);
+            lane.history.insert(at, p);
+        }
+        self.prune_history(&done.channel);
+    }
+
+    /// Drop partner frames no waiting follower can still choose.
+    fn prune_history(&mut self, channel: &str) {
+        let mut oldest_needed: Option<i64> = None;
+        let mut has_followers = false;
+        for (name, lane) in &self.lanes {
+            let p = self.config.channel_policy(name);
+            if p.policy != PolicySpec::Channel(channel.to_string()) {
+                continue;
+            }
+            has_followers = true;
+            let tol = (p.tolerance_s * 1e9) as i64;
+            let pending = lane
+                .buffer
+                .keys()
+                .next()
+                .map(|(t, _)| *t)
+                .or(lane.last_dispatched_ns);
+            if let Some(t) = pending {
+                let need = t.saturating_sub(tol);
+                oldest_needed = Some(oldest_needed.map_or(need, |o| o.min(need)));
+            }
+        }
+        let Some(lane) = self.lanes.get_mut(channel) else {
+            return;
+        };
+        if !has_followers {
+            while lane.history.len() > PARTNER_HISTORY_MIN {
+                lane.history.pop_front();
+            }
+            return;
+        }
+        if let Some(oldest) = oldest_needed {
+            // Keep one frame before `oldest` (it may still be the nearest).
+            while lane.history.len() > PARTNER_HISTORY_MIN
+                && lane.history.get(1).is_some_and(|p| p.obs_time_ns < oldest)
+            {
+                lane.history.pop_front();
+            }
+        }
+    }
+
+    /// When the scheduler next needs a look without new input (daemon only).
+    pub fn next_deadline(&self) -> Option<Instant> {
+        if !self.settings.live || self.eof {
+            return None;
+        }
+        let mut next: Option<Instant> = None;
+        let mut consider = |t: Instant| next = Some(next.map_or(t, |n: Instant| n.min(t)));
+        for (name, lane) in &self.lanes {
+            if lane.in_flight {
+                continue;
+            }
+            if let Some(first) = lane.buffer.values().map(|i| i.arrived).min() {
+                consider(first + self.settings.reorder_window);
+                consider(first + self.settings.reorder_cap);
+            }
+            let policy = self.config.channel_policy(name);
+            if let PolicySpec::Channel(partner) = &policy.policy {
+                if let Some((_, head)) = lane.buffer.first_key_value() {
+                    let start = self.hold_start(partner, head);
+                    consider(start + Duration::from_secs_f64(policy.hold_s));
+                }
+            }
+        }
+        next
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The writer thread
+
+#[derive(Debug)]
+pub enum WriterMsg {
+    Record(Record),
+    Flush,
+}
+
+/// Start the one thread that owns the sink. It writes records in the order received,
+/// flushes on request, retries failed writes (the pipeline waits meanwhile: nothing is lost)
+/// and finishes the sink when the channel closes.
+pub fn spawn_writer(
+    mut sink: Box<dyn RecordSink>,
+    mut rx: mpsc::Receiver<WriterMsg>,
+    progress: watch::Sender<Progress>,
+    stopping: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<Result<()>> {
+    std::thread::Builder::new()
+        .name("sunjitter-writer".into())
+        .spawn(move || {
+            while let Some(msg) = rx.blocking_recv() {
+                match msg {
+                    WriterMsg::Flush => {
+                        if let Err(e) = sink.flush() {
+                            tracing::error!("flushing the log failed: {e}");
+                            progress.send_modify(|p| {
+                                p.write_errors += 1;
+                                p.last_error = Some(e.to_string());
+                            });
+                        }
+                    }
+                    WriterMsg::Record(record) => {
+                        write_with_retry(sink.as_mut(), &record, &progress, &stopping)?;
+                        progress.send_modify(|p| count(p, &record));
+                    }
+                }
+            }
+            sink.flush()?;
+            sink.finish()
+        })
+        .unwrap_or_else(|e| {
+            // Thread creation failure: report it through the join handle.
+            let reason = e.to_string();
+            std::thread::spawn(move || Err(Error::output("writer thread", reason)))
+        })
+}
+
+fn write_with_retry(
+    sink: &mut dyn RecordSink,
+    record: &Record,
+    progress: &watch::Sender<Progress>,
+    stopping: &AtomicBool,
+) -> Result<()> {
+    let mut delay = Duration::from_millis(100);
+    let mut attempts_while_stopping = 0;
+    loop {
+        match sink.write(record, now_ns()) {
+            Ok(()) => return Ok(()),
+            Err(e) => {
+                tracing::error!("writing the log failed (will retry; input waits): {e}");
+                progress.send_modify(|p| {
+                    p.write_errors += 1;
+                    p.last_error = Some(e.to_string());
+                });
+                if stopping.load(Ordering::SeqCst) {
+                    attempts_while_stopping += 1;
+                    if attempts_while_stopping >= 3 {
+                        return Err(e);
+                    }
+                }
+                std::thread::sleep(delay);
+                delay = (delay * 2).min(Duration::from_secs(5));
+            }
+        }
+    }
+}
+
+fn count(p: &mut Progress, record: &Record) {
+    match record {
+        Record::Frame { message, .. } => {
+            p.frames += 1;
+            p.finished += 1;
+            match message.align.status {
+                Status::Ok => p.ok += 1,
+                Status::Degraded => p.degraded += 1,
+                Status::Failed => p.failed += 1,
+            }
+            *p.per_channel.entry(message.channel.clone()).or_default() += 1;
+        }
+        Record::Reference { .. } => p.references += 1,
+        Record::Log { finishes: true, .. } => {
+            p.skipped += 1;
+            p.finished += 1;
+        }
+        Record::Log { .. } => p.notes += 1,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Driving it all
+
+/// Everything a run needs besides its input.
+pub struct RunParts {
+    pub config: Arc<Config>,
+    pub reader: Arc<dyn FrameReader>,
+    pub aligner: Arc<dyn Aligner>,
+    pub sink: Box<dyn RecordSink>,
+    pub history: History,
+    pub progress: watch::Sender<Progress>,
+    pub live: bool,
+}
+
+/// Run the pipeline until the input ends (replay) or `stop` turns true (daemon: frames in
+/// hand are finished, buffered ones are left for the next start), then close the sink.
+/// `pending_files` (daemon) counts files the front end holds that may still yield frames;
+/// it decrements a file only after sending its frames.
+pub async fn run_pipeline(
+    parts: RunParts,
+    input: mpsc::Receiver<Input>,
+    stop: watch::Receiver<bool>,
+    pending_files: Option<Arc<AtomicUsize>>,
+) -> Result<Progress> {
+    let RunParts {
+        config,
+        reader,
+        aligner,
+        sink,
+        history,
+        progress,
+        live,
+    } = parts;
+    let stopping = Arc::new(AtomicBool::new(false));
+    let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
+    let progress_rx = progress.subscribe();
+    let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
+    let settings = SchedulerSettings::from_config(&config, live);
+    let scheduler = Scheduler::new(config.clone(), settings, &history);
+    let ctx = JobContext { reader, aligner };
+    let flush_every = Duration::from_secs_f64(config.daemon.flush_interval_s.max(0.01));
+    let driven = drive(
+        input,
+        scheduler,
+        ctx,
+        writer_tx,
+        stop,
+        stopping,
+        flush_every,
+        pending_files,
+    )
+    .await;
+    let written = tokio::task::spawn_blocking(move || writer.join())
+        .await
+        .map_err(|e| Error::output("writer thread", e.to_string()))?
+        .map_err(|_| Error::output("writer thread", "panicked"))?;
+    driven?;
+    written?;
+    let last = progress_rx.borrow().clone();
+    Ok(last)
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn drive(
+    mut input: mpsc::Receiver<Input>,
+    mut scheduler: Scheduler,
+    ctx: JobContext,
+    writer: mpsc::Sender<WriterMsg>,
+    mut stop: watch::Receiver<bool>,
+    stopping: Arc<AtomicBool>,
+    flush_every: Duration,
+    pending_files: Option<Arc<AtomicUsize>>,
+) -> Result<()> {
+    let gone = || Error::output("log writer", "stopped unexpectedly");
+    let mut jobs: JoinSet<JobDone> = JoinSet::new();
+    let mut accepting = true;
+    let mut stopped = *stop.borrow();
+    let mut stop_alive = true;
+    let mut flush_tick = tokio::time::interval(flush_every);
+    flush_tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        if stopped {
+            if accepting {
+                accepting = false;
+                stopping.store(true, Ordering::SeqCst);
+                input.close();
+            }
+        } else {
+            // Read the front end's count first, then take what it already sent: a file it
+            // finished before the count was read has its frames in the queue by now.
+            let pipe_empty = pending_files
+                .as_ref()
+                .is_none_or(|p| p.load(Ordering::SeqCst) == 0);
+            while accepting {
+                match input.try_recv() {
+                    Ok(Input::Frame(item)) => scheduler.offer(item),
+                    Ok(Input::Record(record)) => {
+                        writer
+                            .send(WriterMsg::Record(record))
+                            .await
+                            .map_err(|_| gone())?;
+                    }
+                    Err(mpsc::error::TryRecvError::Empty) => break,
+                    Err(mpsc::error::TryRecvError::Disconnected) => {
+                        accepting = false;
+                        scheduler.set_eof();
+                    }
+                }
+            }
+            scheduler.set_pipe_empty(pipe_empty);
+            for action in scheduler.poll(Instant::now()) {
+                match action {
+                    Action::Run(job) => {
+                        let ctx = ctx.clone();
+                        jobs.spawn_blocking(move || run_job(*job, &ctx));
+                    }
+                    Action::Emit(record) => {
+                        writer
+                            .send(WriterMsg::Record(record))
+                            .await
+                            .map_err(|_| gone())?;
+                    }
+                }
+            }
+        }
+        if jobs.is_empty() && (stopped || (scheduler.is_eof() && scheduler.idle())) {
+            break;
+        }
+        let deadline = scheduler.next_deadline();
+        tokio::select! {
+            biased;
+            changed = stop.changed(), if stop_alive && !stopped => {
+                match changed {
+                    Ok(()) => stopped = *stop.borrow(),
+                    Err(_) => stop_alive = false, // nobody can ask any more
+                }
+            }
+            joined = jobs.join_next(), if !jobs.is_empty() => {
+                match joined {
+                    Some(Ok(done)) => {
+                        for record in &done.records {
+                            writer.send(WriterMsg::Record(record.clone())).await.map_err(|_| gone())?;
+                        }
+                        scheduler.complete(done);
+                    }
+                    Some(Err(e)) => {
+                        return Err(Error::output("pipeline", format!("a worker died: {e}")));
+                    }
+                    None => {}
+                }
+            }
+            received = input.recv(), if accepting => {
+                match received {
+                    Some(Input::Frame(item)) => scheduler.offer(item),
+                    Some(Input::Record(record)) => {
+                        writer.send(WriterMsg::Record(record)).await.map_err(|_| gone())?;
+                    }
+                    None => {
+                        accepting = false;
+                        scheduler.set_eof();
+                    }
+                }
+            }
+            _ = sleep_until_opt(deadline), if deadline.is_some() => {}
+            _ = flush_tick.tick() => {
+                writer.send(WriterMsg::Flush).await.map_err(|_| gone())?;
+            }
+        }
+    }
+    drop(writer);
+    Ok(())
+}
+
+async fn sleep_until_opt(deadline: Option<Instant>) {
+    if let Some(d) = deadline {
+        tokio::time::sleep_until(tokio::time::Instant::from_std(d)).await;
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The output directory
+
+/// Open the MCAP output in `out` for a new run, with what earlier runs already logged there.
+/// Unfinished segments (a crash) are first rewritten as finished files so every MCAP reader
+/// opens them; what they held counts as logged.
+pub fn open_output(out: &Path, config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
+    let history = if out.is_dir() {
+        read_history(out)?
+    } else {
+        History::default()
+    };
+    let sink = crate::sink::McapSink::new(out, config.sink.clone(), config.to_json().to_string())?;
+    Ok((Box::new(McapRecordSink(sink)), history))
+}
+
+/// Read the segments in `out` (recovering unfinished ones) as a [`History`].
+pub fn read_history(out: &Path) -> Result<History> {
+    let dirs = [out.to_path_buf()];
+    let contents = crate::sink::read_logs(&dirs)?;
+    for segment in contents.segments.iter().filter(|s| !s.complete) {
+        match crate::sink::recover_segment(&segment.path) {
+            Ok(outcome) => {
+                tracing::warn!(segment = %segment.path.display(), "unfinished segment recovered: {outcome:?}")
+            }
+            Err(e) => tracing::error!("{e} (its flushed part is still counted as logged)"),
+        }
+    }
+    let mut history = History::default();
+    for m in &contents.jitter {
+        history.add(&Record::Frame {
+            message: Box::new(m.record.clone()),
+            log_time_ns: clamp_ns(m.log_time_ns),
+        });
+    }
+    for m in &contents.references {
+        let c = &m.change;
+        let change = ReferenceChange {
+            channel: c.channel.clone(),
+            file: c.file.clone(),
+            frame: c.frame,
+            obs_time: c.obs_time.clone(),
+            reason: c.reason.clone(),
+            reference_kind: c.reference_kind.clone(),
+            sequence: c.sequence,
+            replaces: c.replaces.clone(),
+            chained_scale: None,
+            chained_rotation_arcsec: None,
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_covariance: None,
+            chain_center_px: None,
+        };
+        history.add(&Record::Reference {
+            change: Box::new(change),
+            log_time_ns: clamp_ns(m.log_time_ns),
+        });
+    }
+    for m in &contents.logs {
+        let level = LogLevel::from_foxglove(m.entry.level as u8);
+        history.add(&Record::Log {
+            level,
+            file: m.entry.file.clone(),
+            message: m.entry.message.clone(),
+            log_time_ns: clamp_ns(m.log_time_ns),
+            finishes: level >= LogLevel::Error,
+        });
+    }
+    Ok(history)
+}
+
+fn clamp_ns(ns: u64) -> i64 {
+    i64::try_from(ns).unwrap_or(i64::MAX)
+}
+
+/// MCAP timestamps are unsigned: times before 1970 are written as 0.
+fn mcap_ns(ns: i64) -> u64 {
+    u64::try_from(ns).unwrap_or(0)
+}
+
+/// The MCAP sink behind the [`RecordSink`] interface.
+pub struct McapRecordSink(pub crate::sink::McapSink);
+
+impl RecordSink for McapRecordSink {
+    fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
+        McapRecordSink::write_to(&mut self.0, record, publish_time_ns)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        // Idle flush, and rotation by time.
+        self.0.tick(mcap_ns(now_ns()))
+    }
+
+    fn finish(mut self: Box<Self>) -> Result<()> {
+        self.0.finish()
+    }
+}
+
+impl McapRecordSink {
+    /// Write one record to an MCAP sink.
+    pub fn write_to(
+        sink: &mut crate::sink::McapSink,
+        record: &Record,
+        publish_time_ns: i64,
+    ) -> Result<()> {
+        let publish = mcap_ns(publish_time_ns);
+        match record {
+            Record::Frame {
+                message,
+                log_time_ns,
+            } => sink.write_frame(message, mcap_ns(*log_time_ns), publish),
+            Record::Reference {
+                change,
+                log_time_ns,
+            } => {
+                let c = crate::sink::ReferenceChange {
+                    channel: change.channel.clone(),
+                    file: change.file.clone(),
+                    frame: change.frame,
+                    obs_time: change.obs_time.clone(),
+                    reason: change.reason.clone(),
+                    reference_kind: change.reference_kind.clone(),
+                    sequence: change.sequence,
+                    replaces: change.replaces.clone(),
+                };
+                sink.write_reference_change(&c, mcap_ns(*log_time_ns), publish)
+            }
+            Record::Log {
+                level,
+                file,
+                message,
+                log_time_ns,
+                ..
+            } => {
+                let level = match level {
+                    LogLevel::Info => crate::sink::LogLevel::Info,
+                    LogLevel::Warning => crate::sink::LogLevel::Warning,
+                    LogLevel::Error => crate::sink::LogLevel::Error,
+                };
+                sink.write_log(level, file, message, mcap_ns(*log_time_ns), publish)
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Replay: the same pipeline over archived files
+
+/// Expand `replay` arguments (files, directories, shell globs) to canonical file paths,
+/// each with whether it was named explicitly (explicit symbolic links are followed).
+/// An argument that matches nothing is a usage error (exit code 2).
+pub fn expand_inputs(args: &[String], config: &Config) -> Result<Vec<(std::path::PathBuf, bool)>> {
+    let d = &config.daemon;
+    let mut out: Vec<(std::path::PathBuf, bool)> = Vec::new();
+    let mut seen = HashSet::new();
+    let mut push = |path: std::path::PathBuf, explicit: bool, out: &mut Vec<_>| -> Result<()> {
+        let canon = crate::config::canonical_file_path(&path)?;
+        if seen.insert(canon.clone()) {
+            out.push((canon, explicit));
+        }
+        Ok(())
+    };
+    for arg in args {
+        let path = Path::new(arg);
+        let matches: Vec<std::path::PathBuf> = if path.exists() || !has_wildcards(arg) {
+            vec![path.to_path_buf()]
+        } else {
+            glob(arg)?
+        };
+        if matches.is_empty() || (matches.len() == 1 && !matches[0].exists()) {
+            return Err(Error::bad_input(path, "no such file or directory"));
+        }
+        for m in matches {
+            if m.is_dir() {
+                for f in crate::daemon::scan_tree(&m, d.recursive, d.follow_symlinks, d)? {
+                    push(f, false, &mut out)?;
+                }
+            } else {
+                push(m, true, &mut out)?;
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn has_wildcards(s: &str) -> bool {
+    s.contains(['*', '?', '['])
+}
+
+/// Shell-style glob over path components (for quoted patterns the shell did not expand).
+fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
+    use std::path::{Component, PathBuf};
+    let mut current: Vec<PathBuf> = vec![PathBuf::new()];
+    for component in Path::new(pattern).components() {
+        let mut next = Vec::new();
+        match component {
+            Component::Normal(part) => {
+                let part = part.to_string_lossy();
+                if !has_wildcards(&part) {
+                    next = current.iter().map(|c| c.join(&*part)).collect();
+                } else {
+                    for base in &current {
+                        let dir = if base.as_os_str().is_empty() {
+                            Path::new(".")
+                        } else {
+                            base
+                        };
+                        let Ok(entries) = std::fs::read_dir(dir) else {
+                            continue;
+                        };
+                        let mut names: Vec<String> = entries
+                            .flatten()
+                            .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                            .filter(|n| !n.starts_with('.') || part.starts_with('.'))
+                            .filter(|n| crate::daemon::name_matches(&part, n))
+                            .collect();
+                        names.sort();
+                        next.extend(names.into_iter().map(|n| base.join(n)));
+                    }
+                }
+            }
+            other => next = current.iter().map(|c| c.join(other.as_os_str())).collect(),
+        }
+        current = next;
+    }
+    Ok(current.into_iter().filter(|p| p.exists()).collect())
+}
+
+/// Check every file of a replay and list what goes into the pipeline: the frames (not yet
+/// in the log) and a terminal `/log` record for each file that cannot be taken. Files are
+/// checked once (no retries: an archive is complete), with the same reasons the daemon gives.
+pub fn replay_inputs(
+    files: &[(std::path::PathBuf, bool)],
+    config: &Config,
+    reader: &dyn FrameReader,
+    history: &History,
+) -> Vec<Input> {
+    let mut inputs = Vec::new();
+    for (path, explicit) in files {
+        let follow = *explicit || config.daemon.follow_symlinks;
+        match inspect_file(path, reader, config, history, follow) {
+            FileOutcome::Frames(items, records) => {
+                inputs.extend(records.into_iter().map(Input::Record));
+                inputs.extend(items.into_iter().map(Input::Frame));
+            }
+            FileOutcome::NotReady(reason) => {
+                inputs.push(Input::Record(unreadable_record(path, &reason)));
+            }
+            FileOutcome::Skip(Some(record)) | FileOutcome::Vanished(record) => {
+                inputs.push(Input::Record(record))
+            }
+            FileOutcome::Skip(None) => {}
+        }
+    }
+    inputs
+}
+
+/// Run the pipeline over `inputs` (from [`replay_inputs`]) in observation-time order per
+/// channel. `shutdown` stops early (what is not logged is taken by the next run).
+pub async fn run_replay(
+    inputs: Vec<Input>,
+    parts: RunParts,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<Progress> {
+    let capacity = parts.config.daemon.queue_capacity.max(1);
+    let (tx, rx) = mpsc::channel(capacity);
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let producer = tokio::spawn(async move {
+        for input in inputs {
+            if tx.send(input).await.is_err() {
+                break;
+            }
+        }
+    });
+    let stopper = tokio::spawn(async move {
+        shutdown.await;
+        let _ = stop_tx.send(true);
+        // Keep the sender alive: a closed channel must not read as a stop.
+        std::future::pending::<()>().await;
+    });
+    let result = run_pipeline(
+        RunParts {
+            live: false,
+            ..parts
+        },
+        rx,
+        stop_rx,
+        None,
+    )
+    .await;
+    producer.abort();
+    stopper.abort();
+    result
+}
+
+// ---------------------------------------------------------------------------------------------
+// Paths and time
+
+/// ISO 8601 UTC with milliseconds, e.g. `2014-03-29T14:09:38.680Z` (the contract's `obs_time`).
+pub fn iso8601_utc(ns: i64) -> String {
+    crate::time::format_iso_utc(ns)
+}
+
+/// Parse an ISO 8601 UTC time back to ns since the epoch.
+pub fn parse_iso8601_utc(s: &str) -> Option<i64> {
+    crate::time::parse_fits_time(s, crate::time::TimeScale::Utc).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fake::{FakeFrame, FakeReader, TruthAligner};
+    use super::*;
+    use crate::config::ChannelConfig;
+    use std::collections::HashMap;
+
+    const S: i64 = 1_000_000_000;
+
+    fn cov() -> crate::reference::Cov4 {
+        let mut c = [[0.0; 4]; 4];
+        c[2][2] = 0.01;
+        c[3][3] = 0.01;
+        c
+    }
+
+    fn write(dir: &Path, name: &str, frame: &FakeFrame) -> std::path::PathBuf {
+        let path = dir.join(name);
+        std::fs::write(&path, frame.to_fits()).unwrap();
+        crate::config::canonical_file_path(&path).unwrap()
+    }
+
+    fn replay(dir: &Path, config: Config, history: History) -> (Progress, Vec<Record>) {
+        let config = Arc::new(config);
+        let reader = FakeReader::default();
+        let files = expand_inputs(&[dir.display().to_string()], &config).unwrap();
+        let inputs = replay_inputs(&files, &config, &reader, &history);
+        let sink = MemorySink::default();
+        let parts = RunParts {
+            config: config.clone(),
+            reader: Arc::new(reader),
+            aligner: Arc::new(TruthAligner::from_files(cov())),
+            sink: Box::new(sink.clone()),
+            history,
+            progress: watch::channel(Progress::default()).0,
+            live: false,
+        };
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        let progress = rt
+            .block_on(run_replay(inputs, parts, std::future::pending()))
+            .unwrap();
+        assert!(sink.log.lock().unwrap().finished, "sink finished");
+        (progress, sink.records())
+    }
+
+    fn frames_of<'a>(records: &'a [Record], channel: &str) -> Vec<&'a FrameAlignment> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Frame { message, .. } if message.channel == channel => {
+                    Some(message.as_ref())
+                }
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn logs(records: &[Record]) -> Vec<(String, String)> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Log { file, message, .. } => Some((file.clone(), message.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn replay_emits_each_frame_once_in_time_order_per_channel() {
+        let dir = tempfile::tempdir().unwrap();
+        // Names deliberately not in time order; two channels interleaved.
+        let times_a = [50, 10, 40, 20, 30];
+        for (i, t) in times_a.iter().enumerate() {
+            let f = FakeFrame::new("A", t * S, 1.0, 0.0, 0.1 * *t as f64, 0.0);
+            write(dir.path(), &format!("z{i}_a.fits"), &f);
+        }
+        for (i, t) in [15, 5, 25].iter().enumerate() {
+            let f = FakeFrame::new("B", t * S, 1.0, 0.0, 0.0, 0.2 * *t as f64);
+            write(dir.path(), &format!("b{i}.fits"), &f);
+        }
+        std::fs::write(dir.path().join("garbage.fits"), b"not a fits file at all").unwrap();
+        let mut no_time = FakeFrame::new("A", 0, 1.0, 0.0, 0.0, 0.0);
+        no_time.obs_time_ns = None;
+        let no_time_path = write(dir.path(), "notime.fits", &no_time);
+
+        let (progress, records) = replay(dir.path(), Config::default(), History::default());
+        let a = frames_of(&records, "A");
+        let times: Vec<i64> = a
+            .iter()
+            .map(|m| parse_iso8601_utc(&m.obs_time).unwrap() / S)
+            .collect();
+        assert_eq!(times, [10, 20, 30, 40, 50]);
+        assert_eq!(
+            a.iter().map(|m| m.sequence).collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4]
+        );
+        assert_eq!(frames_of(&records, "B").len(), 3);
+        // Chained dx is the true 0.1·t relative to the first frame (t = 10).
+        for (m, t) in a.iter().zip(times) {
+            assert!((m.chained_dx_px.unwrap() - 0.1 * (t - 10) as f64).abs() < 1e-9);
+        }
+        let logs = logs(&records);
+        assert_eq!(logs.len(), 2, "{logs:?}");
+        assert!(logs
+            .iter()
+            .any(|(f, m)| f.ends_with("garbage.fits") && m.contains("not a FITS file")));
+        assert!(logs
+            .iter()
+            .any(|(f, m)| *f == no_time_path.display().to_string()
+                && m.contains("no observation time")));
+        assert_eq!(
+            (progress.frames, progress.skipped, progress.finished),
+            (8, 2, 10)
+        );
+    }
+
+    #[test]
+    fn channel_policy_picks_the_nearest_partner_within_tolerance() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut keys = HashMap::new();
+        for t in [0, 10, 20, 30] {
+            let f = FakeFrame::new("P", t * S, 1.0, 0.0, t as f64, 0.0);
+            keys.insert(
+                t,
+                write(dir.path(), &format!("p{t}.fits"), &f)
+                    .display()
+                    .to_string(),
+            );
+        }
+        // 12 → P10, 16 → P20, 25 → tie → earlier (P20), 39 → P30 (9 s), 45 → unmatched (> 10 s).
+        for t in [12, 16, 25, 39, 45] {
+            let f = FakeFrame::new("F", t * S, 1.0, 0.0, t as f64, 1.0);
+            write(dir.path(), &format!("f{t}.fits"), &f);
+        }
+        let mut config = Config::default();
+        config.channels.insert(
+            "F".into(),
+            ChannelConfig {
+                policy: Some(PolicySpec::Channel("P".into())),
+                tolerance_s: Some(10.0),
+                ..Default::default()
+            },
+        );
+        let (_, records) = replay(dir.path(), config, History::default());
+        let f = frames_of(&records, "F");
+        let refs: Vec<&str> = f.iter().map(|m| m.align.reference.as_str()).collect();
+        assert_eq!(refs, [&keys[&10], &keys[&20], &keys[&20], &keys[&30]]);
+        for m in &f {
+            assert_eq!(m.reference_kind, "channel");
+            // Partner chain (dx = t_p) then partner → frame (dx = t_f − t_p): dx = t_f; dy = 1.
+            let t = parse_iso8601_utc(&m.obs_time).unwrap() / S;
+            assert!((m.chained_dx_px.unwrap() - t as f64).abs() < 1e-9);
+            assert!((m.chained_dy_px.unwrap() - 1.0).abs() < 1e-9);
+        }
+        let logs = logs(&records);
+        assert_eq!(logs.len(), 1);
+        assert!(
+            logs[0].0.ends_with("f45.fits") && logs[0].1.contains("unmatched"),
+            "{logs:?}"
+        );
+        // The partner changed three times (P10, P20, P30).
+        let changes = records
+            .iter()
+            .filter(|r| matches!(r, Record::Reference { change, .. } if change.channel == "F"))
+            .count();
+        assert_eq!(changes, 3);
+    }
+
+    #[test]
+    fn replay_output_does_not_depend_on_worker_count() {
+        let dir = tempfile::tempdir().unwrap();
+        for t in 0..12 {
+            for ch in ["A", "B", "C"] {
+                let offset = (ch.as_bytes()[0] - b'A') as i64 + 1;
+                let f = FakeFrame::new(
+                    ch,
+                    (t * 10 + offset) * S,
+                    1.0 + 1e-4 * t as f64,
+                    1e-4 * t as f64,
+                    t as f64,
+                    -(t as f64),
+                );
+                write(dir.path(), &format!("{ch}{t:02}.fits"), &f);
+            }
+        }
+        let run = |workers| {
+            let mut config = Config::default();
+            config.daemon.workers = workers;
+            config.reference.keyframe_every_frames = 5;
+            config.channels.insert(
+                "C".into(),
+                ChannelConfig {
+                    policy: Some(PolicySpec::Channel("A".into())),
+                    ..Default::default()
+                },
+            );
+            let (_, mut records) = replay(dir.path(), config, History::default());
+            records.sort_by_key(|r| (r.topic(), r.log_time_ns(), format!("{r:?}")));
+            records
+        };
+        let one = run(1);
+        // 36 frames; keyframes at 0, 5, 10 in A and B; C follows A, a new partner each frame.
+        assert_eq!(one.len(), 36 + 3 + 3 + 12);
+        assert_eq!(one, run(3));
+    }
+
+    #[test]
+    fn frames_already_in_the_log_are_not_processed_again() {
+        let dir = tempfile::tempdir().unwrap();
+        for t in 0..6 {
+            write(
+                dir.path(),
+                &format!("f{t}.fits"),
+                &FakeFrame::new("A", t * S, 1.0, 0.0, t as f64, 0.0),
+            );
+        }
+        let mut config = Config::default();
+        config.reference.keyframe_every_frames = 4;
+        let (_, full) = replay(dir.path(), config.clone(), History::default());
+        // Pretend the first run logged frames 0..3 (and their reference changes).
+        let mut history = History::default();
+        let cut = full
+            .iter()
+            .position(|r| matches!(r, Record::Frame { message, .. } if message.sequence == 3))
+            .unwrap();
+        for r in &full[..=cut] {
+            history.add(r);
+        }
+        let (progress, rest) = replay(dir.path(), config, history);
+        assert_eq!(progress.frames, 2);
+        assert_eq!(
+            &full[cut + 1..],
+            &rest[..],
+            "the resumed run continues the same series"
+        );
+    }
+
+    #[test]
+    fn iso_times_match_python_datetime() {
+        // python: datetime.fromisoformat(s).replace(tzinfo=timezone.utc).timestamp()
+        for (s, ns) in [
+            ("2014-03-29T14:09:38.680Z", 1_396_102_178_680_000_000i64),
+            ("1998-05-19T22:21:43.000Z", 895_616_503_000_000_000),
+            ("2000-02-29T00:00:00.000Z", 951_782_400_000_000_000),
+            ("1969-12-31T23:59:59.500Z", -500_000_000),
+        ] {
+            assert_eq!(iso8601_utc(ns), s);
+            assert_eq!(parse_iso8601_utc(s), Some(ns));
+        }
+    }
+
+    #[test]
+    fn writer_retries_until_the_sink_accepts() {
+        // A sink that fails its first three writes: nothing may be lost or doubled.
+        struct Flaky(MemorySink, usize);
+        impl RecordSink for Flaky {
+            fn write(&mut self, r: &Record, t: i64) -> Result<()> {
+                if self.1 > 0 {
+                    self.1 -= 1;
+                    return Err(Error::output("disk", "full"));
+                }
+                self.0.write(r, t)
+            }
+            fn flush(&mut self) -> Result<()> {
+                Ok(())
+            }
+            fn finish(self: Box<Self>) -> Result<()> {
+                Box::new(self.0).finish()
+            }
+        }
+        let memory = MemorySink::default();
+        let (tx, rx) = mpsc::channel(4);
+        let (ptx, prx) = watch::channel(Progress::default());
+        let handle = spawn_writer(
+            Box::new(Flaky(memory.clone(), 3)),
+            rx,
+            ptx,
+            Arc::new(AtomicBool::new(false)),
+        );
+        for i in 0..3 {
+            let r = Record::log(LogLevel::Error, &format!("f{i}"), "x", i);
+            tx.blocking_send(WriterMsg::Record(r)).unwrap();
+        }
+        drop(tx);
+        handle.join().unwrap().unwrap();
+        let files: Vec<String> = logs(&memory.records())
+            .into_iter()
+            .map(|(f, _)| f)
+            .collect();
+        assert_eq!(files, ["f0", "f1", "f2"]);
+        assert_eq!((prx.borrow().write_errors, prx.borrow().finished), (3, 3));
+    }
+}
