@@ -34,7 +34,7 @@ enum Command {
 
 fn main() {
     tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        .with_writer(sunjitter::commands::replay::BarAwareStderr)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
