@@ -18,7 +18,7 @@ use crate::geometry::{compose_with_covariance, sigmas, Covariance4, Similarity};
 use crate::meta::FrameMeta;
 use crate::preprocess;
 use crate::record::{AlignResult, Status, TransformFields};
-use crate::resample::{similarity_map, warp_sampler, SplineImage};
+use crate::resample::SplineImage;
 use crate::sampling::grid_median_sample;
 use ndarray::{s, Array2, ArrayView2, Zip};
 use serde::{Deserialize, Serialize};
@@ -372,19 +372,14 @@ fn fine_alignment(
     let mut pass = 0;
     loop {
         pass += 1;
-        let first = pass == 1;
-        let pass_levels = if first { levels } else { 0 };
-        let mut warped = if pass_levels == 0 {
-            warp_around(&spline, &estimate, roi, winsize, frame_smoothing_px, cfg, w, h)
-        } else {
-            spline.warp_similarity(&estimate, w, h)
-        };
+        let mut warped = spline.warp_similarity(&estimate, w, h);
         if frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
         }
+        let first = pass == 1;
         let params = FarnebackParams {
             pyr_scale: 0.5,
-            levels: pass_levels,
+            levels: if first { levels } else { 0 },
             winsize,
             iterations: if first {
                 cfg.iterations
@@ -456,41 +451,6 @@ fn fine_alignment(
             });
         }
     }
-}
-
-/// The frame warped onto the reference grid only where a pass without a pyramid reads it: the
-/// mask's box `roi` plus the flow's domain margin, the quality check's high-pass reach
-/// (σ = window/4, see `align_inner`) and the frame smoothing's reach; NaN elsewhere. The
-/// values inside are those of the whole-frame warp (same coordinate map, shifted by the
-/// crop's integer origin), at about half its cost on a full-disk frame.
-#[allow(clippy::too_many_arguments)]
-fn warp_around(
-    spline: &SplineImage,
-    estimate: &Similarity,
-    roi: Roi,
-    winsize: usize,
-    frame_smoothing_px: f64,
-    cfg: &EngineConfig,
-    w: usize,
-    h: usize,
-) -> Array2<f32> {
-    let smoothing_reach = if frame_smoothing_px > 0.0 {
-        (4.0 * frame_smoothing_px + 0.5) as usize + 1
-    } else {
-        0
-    };
-    let reach = winsize + 2 + cfg.poly_n + 3 + smoothing_reach + 8;
-    let rows = roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h);
-    let cols = roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w);
-    if rows.len() * cols.len() >= w * h * 9 / 10 {
-        return spline.warp_similarity(estimate, w, h);
-    }
-    let map = similarity_map(estimate);
-    let (x0, y0) = (cols.start as f64, rows.start as f64);
-    let part = warp_sampler(spline, cols.len(), rows.len(), move |x, y| map(x + x0, y + y0));
-    let mut full = Array2::from_elem((h, w), f32::NAN);
-    full.slice_mut(s![rows, cols]).assign(&part);
-    full
 }
 
 /// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
