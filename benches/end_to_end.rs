@@ -59,9 +59,25 @@ fn one_frame(reference: &Image, path: &Path, sink: &mut McapSink, cfg: &EngineCo
     black_box(record);
 }
 
+/// Criterion filters benchmarks by name after setup; skip writing 4096² frames (seconds and
+/// 64 MiB each) when the command line's filter cannot select that size.
+fn selected(size: usize) -> bool {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    filters.is_empty()
+        || filters
+            .iter()
+            .any(|f| format!("end_to_end_{size}").contains(f.as_str()))
+}
+
 fn bench(c: &mut Criterion) {
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
+        if !selected(size) {
+            continue;
+        }
         let frames = tempfile::tempdir().expect("temp dir");
         let logs = tempfile::tempdir().expect("temp dir");
         let (reference_path, frame_path) = synth_pair(frames.path(), size);
