@@ -20,8 +20,9 @@ use crate::preprocess;
 use crate::record::{AlignResult, Status, TransformFields};
 use crate::resample::SplineImage;
 use crate::sampling::grid_median_sample;
-use ndarray::{Array2, ArrayView2, Zip};
+use ndarray::{s, Array2, ArrayView2, Zip};
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 use std::time::Instant;
 
 pub use geometry_check::{effective_geometry, EffectiveGeometry};
@@ -187,11 +188,17 @@ fn align_inner(
             "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
         ));
     }
-    let mask_extent = mask_extent_px(&mask);
+    // Filters and statistics below only matter inside the mask: run them on its bounding box
+    // plus the filter's reach (the disk covers under half of a full-disk frame).
+    let mask_box = mask_roi(&mask);
 
     // Window sized for the plate scale, bounded by what the image's structure supports.
     let plate = geo.reference.plate_scale_arcsec[0].abs();
-    let structure = structure_length_px(ref_data.view(), mask.view());
+    let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
+    let structure = structure_length_px(
+        ref_data.slice(s![rows.clone(), cols.clone()]),
+        mask.slice(s![rows, cols]),
+    );
     let winsize = choose_window(
         cfg,
         plate,
@@ -230,13 +237,19 @@ fn align_inner(
     }
 
     // Quality of the final match.
-    let similarity = quality::bhattacharyya(ref_data.view(), fine.warped.view(), mask.view());
+    let (rows, cols) = grown(mask_box, 0.0, w, h);
+    let similarity = quality::bhattacharyya(
+        ref_data.slice(s![rows.clone(), cols.clone()]),
+        fine.warped.slice(s![rows.clone(), cols.clone()]),
+        mask.slice(s![rows, cols]),
+    );
     // Structure only: the large-scale disk brightness correlates even for unrelated images.
     let trend_px = winsize as f64 / 4.0;
+    let (rows, cols) = grown(mask_box, trend_px, w, h);
     let correlation = quality::normalised_cross_correlation(
-        quality::high_pass(ref_matched.view(), trend_px).view(),
-        quality::high_pass(fine.warped.view(), trend_px).view(),
-        mask.view(),
+        quality::high_pass(ref_matched.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
+        quality::high_pass(fine.warped.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
+        mask.slice(s![rows, cols]),
     );
 
     let t = fine.transform;
@@ -271,7 +284,6 @@ fn align_inner(
             fine.fit.n_inliers, fine.points
         ));
     }
-    let _ = mask_extent;
     reasons.extend(notes);
     reasons.push(format!("window {winsize} px, {} passes", fine.passes));
 
@@ -482,6 +494,25 @@ fn mask_extent_px(mask: &Array2<bool>) -> f64 {
     r2.sqrt()
 }
 
+/// Gaussian σ of the trend removed in `structure_length_px`, px.
+const STRUCTURE_TREND_SIGMA_PX: f64 = 8.0;
+
+/// Rows and columns of `roi` grown by the reach of a Gaussian of `sigma_px` as
+/// `preprocess::gaussian_smooth` truncates it, plus one pixel for a central difference,
+/// clamped to the `w × h` image: inside `roi` such filters give the same values on this crop
+/// as on the whole image.
+fn grown(roi: Roi, sigma_px: f64, w: usize, h: usize) -> (Range<usize>, Range<usize>) {
+    let reach = if sigma_px > 0.0 {
+        (4.0 * sigma_px + 0.5) as usize + 1
+    } else {
+        0
+    };
+    (
+        roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h),
+        roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w),
+    )
+}
+
 fn mask_roi(mask: &Array2<bool>) -> Roi {
     let (h, w) = mask.dim();
     match crate::sampling::mask_bounding_box(mask.view()) {
@@ -555,7 +586,7 @@ fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f
     if h < 8 || w < 8 {
         return None;
     }
-    let trend = preprocess::gaussian_smooth(img, 8.0);
+    let trend = preprocess::gaussian_smooth(img, STRUCTURE_TREND_SIGMA_PX);
     let (mut n, mut s, mut s2, mut g2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     for y in 1..h - 1 {
         for x in 1..w - 1 {

@@ -1,0 +1,114 @@
+//! Our side of tools/bench_side_by_side.py: times on one FITS pair
+//! - `flow_opencv_semantics`: Farneback with OpenCV's algorithm and the paper's parameters
+//!   (levels 5, winsize 101, 10 iterations, poly_n 5, poly_sigma 1.1, box window), whole frame —
+//!   the same computation as `cv2.calcOpticalFlowFarneback`;
+//! - `flow_engine`: the same parameters with `FlowOptions::affine_grid` inside the bounding box
+//!   of the engine's disk mask (0.9 R☉ from the header), as the engine's first pass runs it;
+//! - `align`: the whole engine (`align_images`, default configuration).
+//!
+//!     cargo run --release --example bench_pair -- PREV.fits NEXT.fits [REPEATS] [CASES]
+//!
+//! CASES is a comma list of the names above (default: all). Prints one JSON line per case with
+//! the wall and CPU seconds (all threads, /proc/self/stat) of every repeat.
+
+use std::time::Instant;
+use sunjitter::engine::{align_images, EngineConfig};
+use sunjitter::fits::{read_frame, FrameSpec};
+use sunjitter::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let rest = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let tick = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|f| f.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (tick(11) + tick(12)) / 100.0
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if args.len() < 2 {
+        anyhow::bail!("usage: bench_pair PREV.fits NEXT.fits [REPEATS] [CASES]");
+    }
+    let prev = read_frame(&FrameSpec::parse(&args[0]))?;
+    let next = read_frame(&FrameSpec::parse(&args[1]))?;
+    let repeats: usize = args.get(2).map_or(Ok(3), |s| s.parse())?;
+    let cases = args
+        .get(3)
+        .cloned()
+        .unwrap_or_else(|| "flow_opencv_semantics,flow_engine,align".into());
+    let (h, w) = prev.data.dim();
+    let meta = &prev.meta;
+    let plate = meta.plate_scale_arcsec[0].abs();
+    let rsun_px = meta.rsun_arcsec.unwrap_or(0.0) / plate;
+    let r = (0.9 * rsun_px).ceil() as usize;
+    let (cx, cy) = (
+        meta.sun_center_px[0].round() as usize,
+        meta.sun_center_px[1].round() as usize,
+    );
+    let roi = if r > 0 && cx >= r && cy >= r && cx + r <= w && cy + r <= h {
+        Roi {
+            x: cx - r,
+            y: cy - r,
+            width: 2 * r,
+            height: 2 * r,
+        }
+    } else {
+        Roi {
+            x: 0,
+            y: 0,
+            width: w,
+            height: h,
+        }
+    };
+    let threads = rayon::current_num_threads();
+    for case in cases.split(',') {
+        let mut walls = Vec::new();
+        let mut cpus = Vec::new();
+        for _ in 0..repeats {
+            let c0 = cpu_seconds();
+            let t0 = Instant::now();
+            match case {
+                "flow_opencv_semantics" => {
+                    let mut s = Farneback::new(FarnebackParams::default())?;
+                    std::hint::black_box(s.compute(
+                        prev.data.view(),
+                        next.data.view(),
+                        None,
+                        None,
+                    )?);
+                }
+                "flow_engine" => {
+                    let p = FarnebackParams::default();
+                    let mut s = Farneback::new(p.clone())?
+                        .with_options(FlowOptions::affine_grid(p.winsize))?;
+                    std::hint::black_box(s.compute(
+                        prev.data.view(),
+                        next.data.view(),
+                        Some(roi),
+                        None,
+                    )?);
+                }
+                "align" => {
+                    std::hint::black_box(align_images(&prev, &next, &EngineConfig::default()));
+                }
+                other => anyhow::bail!("unknown case {other}"),
+            }
+            walls.push(t0.elapsed().as_secs_f64());
+            cpus.push(cpu_seconds() - c0);
+        }
+        println!(
+            "{}",
+            serde_json::json!({
+                "case": case, "size": [w, h], "threads": threads,
+                "roi": [roi.x, roi.y, roi.width, roi.height],
+                "wall_s": walls, "cpu_s": cpus,
+            })
+        );
+    }
+    Ok(())
+}
