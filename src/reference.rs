@@ -1009,39 +1009,7 @@ fn image_center(image: &Image) -> [f64; 2] {
 
 /// A `failed` outcome with a reason (no engine call was possible).
 pub fn failed_outcome(reference: &str, frame: &str, message: &str) -> AlignOutcome {
-    AlignOutcome {
-        result: AlignResult {
-            reference: reference.into(),
-            frame: frame.into(),
-            scale: None,
-            rotation_arcsec: None,
-            dx_px: None,
-            dy_px: None,
-            dx_arcsec: None,
-            dy_arcsec: None,
-            sigma_scale: None,
-            sigma_rotation_arcsec: None,
-            sigma_dx_px: None,
-            sigma_dy_px: None,
-            uabjm_sigma_scale: None,
-            uabjm_sigma_rotation_arcsec: None,
-            uabjm_sigma_dx_px: None,
-            uabjm_sigma_dy_px: None,
-            header_residual: None,
-            points: 0,
-            inliers: 0,
-            residual_rms_px: None,
-            similarity: None,
-            status: Status::Failed,
-            message: message.into(),
-            elapsed_ms: 0.0,
-        },
-        transform: None,
-        coarse: None,
-        covariance: None,
-        uabjm_covariance: None,
-        mask: None,
-    }
+    AlignOutcome::failed(reference, frame, message)
 }
 
 /// The identity of a frame in logs: `PATH` for a 2-D image, `PATH[N]` for frame N of a cube.

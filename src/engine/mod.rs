@@ -149,7 +149,11 @@ pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> Ali
     let started = Instant::now();
     let mut outcome = match align_inner(reference, frame, cfg) {
         Ok(o) => o,
-        Err(reason) => failed(reference, frame, reason),
+        Err(reason) => AlignOutcome::failed(
+            &reference.meta.file.display().to_string(),
+            &frame.meta.file.display().to_string(),
+            &reason,
+        ),
     };
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
@@ -648,39 +652,42 @@ fn cleaned(data: &Array2<f32>, hot_pixel_fraction: f32) -> Array2<f32> {
     out
 }
 
-fn failed(reference: &Image, frame: &Image, reason: String) -> AlignOutcome {
-    AlignOutcome {
-        result: AlignResult {
-            reference: reference.meta.file.display().to_string(),
-            frame: frame.meta.file.display().to_string(),
-            scale: None,
-            rotation_arcsec: None,
-            dx_px: None,
-            dy_px: None,
-            dx_arcsec: None,
-            dy_arcsec: None,
-            sigma_scale: None,
-            sigma_rotation_arcsec: None,
-            sigma_dx_px: None,
-            sigma_dy_px: None,
-            uabjm_sigma_scale: None,
-            uabjm_sigma_rotation_arcsec: None,
-            uabjm_sigma_dx_px: None,
-            uabjm_sigma_dy_px: None,
-            header_residual: None,
-            points: 0,
-            inliers: 0,
-            residual_rms_px: None,
-            similarity: None,
-            status: Status::Failed,
-            message: reason,
-            elapsed_ms: 0.0,
-        },
-        transform: None,
-        coarse: None,
-        covariance: None,
-        uabjm_covariance: None,
-        mask: None,
+impl AlignOutcome {
+    /// A `failed` outcome: no numbers, the reason in `message`.
+    pub fn failed(reference: &str, frame: &str, reason: &str) -> AlignOutcome {
+        AlignOutcome {
+            result: AlignResult {
+                reference: reference.into(),
+                frame: frame.into(),
+                scale: None,
+                rotation_arcsec: None,
+                dx_px: None,
+                dy_px: None,
+                dx_arcsec: None,
+                dy_arcsec: None,
+                sigma_scale: None,
+                sigma_rotation_arcsec: None,
+                sigma_dx_px: None,
+                sigma_dy_px: None,
+                uabjm_sigma_scale: None,
+                uabjm_sigma_rotation_arcsec: None,
+                uabjm_sigma_dx_px: None,
+                uabjm_sigma_dy_px: None,
+                header_residual: None,
+                points: 0,
+                inliers: 0,
+                residual_rms_px: None,
+                similarity: None,
+                status: Status::Failed,
+                message: reason.into(),
+                elapsed_ms: 0.0,
+            },
+            transform: None,
+            coarse: None,
+            covariance: None,
+            uabjm_covariance: None,
+            mask: None,
+        }
     }
 }
 
