@@ -4,6 +4,8 @@
 //! contract (field set, exit codes, null numbers on failure), the FITS standard (a PNG's and a
 //! FITS header's structure) and astropy's reading of the WCS.
 
+mod common;
+
 use ndarray::{s, Array2};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
@@ -17,33 +19,7 @@ const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const TRACE: &str = "trace_171_19980519T222143_1024.fits";
 const IRIS: &str = "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 
-/// The contract's `align --json` fields plus the plain-UABJM σ.
-const FIELDS: [&str; 24] = [
-    "reference",
-    "frame",
-    "scale",
-    "rotation_arcsec",
-    "dx_px",
-    "dy_px",
-    "dx_arcsec",
-    "dy_arcsec",
-    "sigma_scale",
-    "sigma_rotation_arcsec",
-    "sigma_dx_px",
-    "sigma_dy_px",
-    "uabjm_sigma_scale",
-    "uabjm_sigma_rotation_arcsec",
-    "uabjm_sigma_dx_px",
-    "uabjm_sigma_dy_px",
-    "header_residual",
-    "points",
-    "inliers",
-    "residual_rms_px",
-    "similarity",
-    "status",
-    "message",
-    "elapsed_ms",
-];
+use common::ALIGN_FIELDS as FIELDS;
 const TRANSFORM_FIELDS: [&str; 4] = ["scale", "rotation_arcsec", "dx_px", "dy_px"];
 
 struct Run {

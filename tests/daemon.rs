@@ -6,6 +6,8 @@
 //! is on observable progress (the pipeline's progress channel) with generous time bounds;
 //! the pauses inside writers only imitate slow instruments.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
@@ -434,47 +436,6 @@ mod real {
     pub const SJI_2796: &str =
         "data/real/iris_l2_20140329_140938_3860258481_SJI_2796_t000_deconvolved.fits";
 
-    /// Every field of a `/jitter/<channel>` message (CONTRACT.md: the `align --json` fields
-    /// plus the stream context).
-    pub const CONTRACT_FIELDS: &[&str] = &[
-        "reference",
-        "frame",
-        "scale",
-        "rotation_arcsec",
-        "dx_px",
-        "dy_px",
-        "dx_arcsec",
-        "dy_arcsec",
-        "sigma_scale",
-        "sigma_rotation_arcsec",
-        "sigma_dx_px",
-        "sigma_dy_px",
-        "uabjm_sigma_scale",
-        "uabjm_sigma_rotation_arcsec",
-        "uabjm_sigma_dx_px",
-        "uabjm_sigma_dy_px",
-        "header_residual",
-        "points",
-        "inliers",
-        "residual_rms_px",
-        "similarity",
-        "status",
-        "message",
-        "elapsed_ms",
-        "channel",
-        "obs_time",
-        "sequence",
-        "reference_kind",
-        "chained_dx_px",
-        "chained_dy_px",
-        "chained_rotation_arcsec",
-        "chained_scale",
-        "sigma_chained_dx_px",
-        "sigma_chained_dy_px",
-        "sigma_chained_rotation_arcsec",
-        "sigma_chained_scale",
-    ];
-
     pub fn real_config() -> Config {
         let mut c = quick_config();
         c.reference.keyframe_every_frames = 10;
@@ -668,7 +629,7 @@ async fn real_frames_are_logged_once_each_in_time_order_to_mcap() {
         );
         assert_eq!(m.message_encoding, "json");
         let object = m.json.as_object().unwrap();
-        for field in CONTRACT_FIELDS {
+        for field in &common::jitter_fields() {
             assert!(object.contains_key(*field), "message {i} lacks `{field}`");
         }
         assert_eq!(m.json["channel"], "SJI_1400");

@@ -5,6 +5,8 @@
 //! The layout is checked with the `mcap` crate's own summary/metadata readers, independently
 //! of `sunjitter::sink::read_logs`; `tools/check_mcap.py` checks it with the Python reader.
 
+mod common;
+
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use sunjitter::fits::FrameSpec;
@@ -18,46 +20,6 @@ use sunjitter::sink::{
 const T0: u64 = 1_396_102_178_000_000_000;
 const CADENCE_NS: u64 = 12_000_000_000;
 const CONFIG_JSON: &str = r#"{"reference":"keyframe","sink":{"segment_frames":10}}"#;
-
-/// The contract's `/jitter` fields: `align --json` plus the stream context (CONTRACT.md).
-const CONTRACT_FIELDS: &[&str] = &[
-    "reference",
-    "frame",
-    "scale",
-    "rotation_arcsec",
-    "dx_px",
-    "dy_px",
-    "dx_arcsec",
-    "dy_arcsec",
-    "sigma_scale",
-    "sigma_rotation_arcsec",
-    "sigma_dx_px",
-    "sigma_dy_px",
-    "uabjm_sigma_scale",
-    "uabjm_sigma_rotation_arcsec",
-    "uabjm_sigma_dx_px",
-    "uabjm_sigma_dy_px",
-    "header_residual",
-    "points",
-    "inliers",
-    "residual_rms_px",
-    "similarity",
-    "status",
-    "message",
-    "elapsed_ms",
-    "channel",
-    "obs_time",
-    "sequence",
-    "reference_kind",
-    "chained_dx_px",
-    "chained_dy_px",
-    "chained_rotation_arcsec",
-    "chained_scale",
-    "sigma_chained_dx_px",
-    "sigma_chained_dy_px",
-    "sigma_chained_rotation_arcsec",
-    "sigma_chained_scale",
-];
 
 /// splitmix64: full-mantissa values that a lossy float encoding would not round-trip.
 struct Rng(u64);
@@ -374,7 +336,7 @@ fn layout_follows_the_contract() {
         .iter()
         .map(|v| v.as_str().unwrap())
         .collect();
-    let mut contract = CONTRACT_FIELDS.to_vec();
+    let mut contract = common::jitter_fields();
     props.sort();
     required.sort();
     contract.sort();
