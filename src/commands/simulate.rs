@@ -62,7 +62,12 @@ pub fn run(args: &Args) -> Result<i32> {
     if args.window_px.is_some() {
         cfg.window_px = args.window_px;
     }
-    let reference = fits::read_frame(&FrameSpec::parse(&args.image))?;
+    let mut reference = fits::read_frame(&FrameSpec::parse(&args.image))?;
+    // Clean cosmic-ray hits and hot pixels before making frames: a spike smeared by the warp
+    // is no longer recognisable as one, and would be a difference no real pair has.
+    if cfg.hot_pixel_fraction > 0.0 {
+        crate::preprocess::remove_hot_pixels(&mut reference.data, cfg.hot_pixel_fraction);
+    }
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
     let spline = SplineImage::new(reference.data.view());

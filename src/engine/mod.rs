@@ -10,6 +10,7 @@ pub mod output;
 pub mod quality;
 
 mod geometry_check;
+pub mod refine;
 mod sigma;
 
 use crate::fit::{fit_similarity, FitFailure, RansacParams, SimilarityFit};
@@ -26,6 +27,7 @@ use std::ops::Range;
 use std::time::Instant;
 
 pub use geometry_check::{effective_geometry, EffectiveGeometry};
+pub use refine::RefineMode;
 pub use sigma::SigmaMethod;
 
 /// An image and what its header says about it.
@@ -86,6 +88,14 @@ pub struct EngineConfig {
     pub min_correlation: f64,
     /// Below this fraction of RANSAC inliers the result is `degraded`.
     pub min_inlier_fraction: f64,
+    /// Final direct intensity refinement (Gauss–Newton on the RANSAC-inlier cells).
+    pub refine: RefineMode,
+    /// Gaussian σ applied to both images before the refinement, px: it takes the
+    /// interpolation error of sharp structure out of the match (measured on the TRACE Monte
+    /// Carlo: 0.7 px is best under noise and 5× better than none without noise).
+    pub refine_smoothing_px: f64,
+    /// Further Gaussian σ of the reference whose gradient weighs the refinement's residuals, px.
+    pub refine_gradient_smoothing_px: f64,
 }
 
 impl Default for EngineConfig {
@@ -112,6 +122,9 @@ impl Default for EngineConfig {
             min_similarity: 0.3,
             min_correlation: 0.3,
             min_inlier_fraction: 0.5,
+            refine: RefineMode::default(),
+            refine_smoothing_px: 0.7,
+            refine_gradient_smoothing_px: 0.0,
         }
     }
 }
@@ -142,6 +155,10 @@ struct FineResult {
     warped: Array2<f32>,
     passes: usize,
     converged: bool,
+    /// What the refinement needs: the frame's spline, the sampling mask, the inliers.
+    spline: SplineImage,
+    sample_mask: Array2<bool>,
+    inliers: Vec<crate::sampling::Correspondence>,
 }
 
 /// Align `frame` to `reference`: where reference content appears in the frame.
@@ -223,7 +240,7 @@ fn align_inner(
     );
     let ref_matched = preprocess::gaussian_smooth(ref_data.view(), sig_ref);
 
-    let fine = fine_alignment(
+    let mut fine = fine_alignment(
         &ref_matched,
         &frame_data,
         &mask,
@@ -237,6 +254,19 @@ fn align_inner(
         notes.push(format!(
             "fine alignment did not converge to {} px in {} passes",
             cfg.convergence_px, fine.passes
+        ));
+    }
+
+    if refine::wanted(cfg.refine, &reference.meta, &frame.meta) {
+        notes.push(refine::apply(
+            &mut fine.transform,
+            &mut fine.covariance,
+            &ref_matched,
+            &fine.spline,
+            &fine.sample_mask,
+            &fine.inliers,
+            sig_frame,
+            cfg,
         ));
     }
 
@@ -452,6 +482,9 @@ fn fine_alignment(
                 warped,
                 passes: pass,
                 converged,
+                spline,
+                sample_mask,
+                inliers,
             });
         }
     }

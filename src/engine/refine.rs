@@ -1,0 +1,611 @@
+//! Final direct intensity refinement of the similarity (Lucas–Kanade, Gauss–Newton).
+//!
+//! The flow stage measures motion through polynomial expansions averaged over windows and
+//! then keeps one median vector per grid cell: robust, but far from the Cramér–Rao bound when
+//! the images are noisy. This stage starts from the flow's answer and minimises the intensity
+//! difference itself over every usable pixel of the RANSAC-inlier cells:
+//!
+//! `ref(p) ≈ α · frame(T(U(p))) + β`, `U(p) = p + D(p)·δ`,
+//! `D(p) = [[qx, −qy, 1, 0], [qy, qx, 0, 1]]`, `q = p − c`,
+//!
+//! with the current estimate `T`, a small similarity update `U` (δ = (a − 1, b, dx, dy) about
+//! the reference centre `c`), and a gain `α` and offset `β` so that exposure and calibration
+//! differences do not bias the geometry. The Jacobian uses the reference's gradient (fixed,
+//! and free of the frame's interpolated noise: the interpolation smooths the frame's noise by
+//! an amount that depends on the sub-pixel position, and a gradient taken from the warped frame
+//! correlates with that noise and biases the shift towards half pixels). Residuals are
+//! weighted with Tukey's biweight (scale from their MAD) so that features that changed between
+//! the exposures do not pull the fit.
+//!
+//! Covariance: the pixels' residuals are correlated (interpolation and smoothing over a few
+//! pixels, real structure differences over whole features), so `σ²(JᵀWJ)⁻¹` is too small.
+//! The reported covariance is the cluster-robust sandwich `H⁻¹(Σ_b s_b s_bᵀ)H⁻¹·G/(G−1)` with
+//! the score `s_b = Σ_{i∈b} w_i J_i r_i` of each block `b` (grid cells, and 2 × 2 groups of
+//! them — the larger is kept): it measures the residuals' correlation instead of modelling it,
+//! as long as it is shorter than a block. The plain `σ²H⁻¹` is kept as well.
+
+use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
+use crate::resample::{warp_sampler, SplineImage};
+use crate::sampling::Correspondence;
+use nalgebra::{Matrix6, Vector6};
+use ndarray::{s, Array2, ArrayView2};
+use serde::{Deserialize, Serialize};
+
+/// When the intensity refinement runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RefineMode {
+    /// When both images are of the same channel (default): there the intensities are the
+    /// same physical quantity up to gain and offset. Between channels the flow's answer stays.
+    #[default]
+    SameChannel,
+    /// Always (also between channels).
+    Always,
+    /// Never: the flow's answer is final.
+    Off,
+}
+
+/// Settings of one refinement.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RefineSettings {
+    /// Gaussian σ applied to both images before matching, px (0: none).
+    pub smoothing_px: f64,
+    /// Extra Gaussian σ applied to the warped frame only (resolution matching), px.
+    pub frame_smoothing_px: f64,
+    /// Further Gaussian σ of the reference whose gradient weighs the residuals, px.
+    pub gradient_smoothing_px: f64,
+    pub max_iterations: usize,
+    /// Stop when an update moves no pixel of the region by more than this, px.
+    pub tolerance_px: f64,
+}
+
+impl Default for RefineSettings {
+    fn default() -> Self {
+        RefineSettings {
+            smoothing_px: 0.0,
+            frame_smoothing_px: 0.0,
+            gradient_smoothing_px: 0.0,
+            max_iterations: 8,
+            tolerance_px: 1e-5,
+        }
+    }
+}
+
+/// What the refinement found.
+#[derive(Debug, Clone)]
+pub struct Refined {
+    /// Whole grid-to-grid transform.
+    pub transform: Similarity,
+    /// Cluster-robust covariance of (scale, rotation_rad, dx, dy).
+    pub covariance: Covariance4,
+    /// Plain `σ²(JᵀWJ)⁻¹`, independent pixels.
+    pub plain_covariance: Covariance4,
+    pub gain: f64,
+    pub offset: f64,
+    /// Pixels used (non-zero weight) at the end.
+    pub pixels: usize,
+    /// Blocks (grid cells) that held them.
+    pub blocks: usize,
+    pub iterations: usize,
+    pub converged: bool,
+    /// Robust (MAD) σ of the intensity residuals.
+    pub residual_sigma: f64,
+}
+
+/// The grid of cells the flow sampling used, over the bounding box of its mask
+/// (`crate::sampling::grid_median_sample_cells`): cell column of each x, cell row of each y.
+pub struct CellGrid {
+    x0: usize,
+    y0: usize,
+    col_of: Vec<usize>,
+    row_of: Vec<usize>,
+    sample: usize,
+}
+
+impl CellGrid {
+    /// The grid over the bounding box of `mask`, `sample × sample` cells.
+    pub fn new(mask: ArrayView2<bool>, sample: usize) -> Option<CellGrid> {
+        let (x0, y0, x1, y1) = crate::sampling::mask_bounding_box(mask)?;
+        let sample = sample.max(1);
+        let split = |lo: usize, hi: usize| -> Vec<usize> {
+            let n = hi - lo + 1;
+            let mut of = vec![0; n];
+            for i in 0..sample {
+                for o in &mut of[i * n / sample..(i + 1) * n / sample] {
+                    *o = i;
+                }
+            }
+            of
+        };
+        Some(CellGrid {
+            x0,
+            y0,
+            col_of: split(x0, x1),
+            row_of: split(y0, y1),
+            sample,
+        })
+    }
+
+    /// Cell index (row-major) of a pixel; pixels outside the grid belong to the nearest cell.
+    pub fn cell_of(&self, x: usize, y: usize) -> Option<usize> {
+        let clamp = |v: usize, lo: usize, of: &[usize]| {
+            of.get(v.saturating_sub(lo).min(of.len().saturating_sub(1)))
+                .copied()
+        };
+        let c = clamp(x, self.x0, &self.col_of)?;
+        let r = clamp(y, self.y0, &self.row_of)?;
+        Some(r * self.sample + c)
+    }
+
+    /// The cell holding a (real-valued) sample point.
+    pub fn cell_of_point(&self, p: &Correspondence) -> Option<usize> {
+        if !(p.x >= 0.0 && p.y >= 0.0) {
+            return None;
+        }
+        self.cell_of(p.x.round() as usize, p.y.round() as usize)
+    }
+
+    /// The 2 × 2 group of cells a cell belongs to.
+    fn group_of(&self, cell: usize) -> usize {
+        let (r, c) = (cell / self.sample, cell % self.sample);
+        (r / 2) * self.sample.div_ceil(2) + c / 2
+    }
+}
+
+/// Pixels of `region` inside the cells that hold at least one of `inliers`, with their cell.
+pub fn inlier_cell_pixels(
+    region: &Array2<bool>,
+    grid: &CellGrid,
+    inliers: &[Correspondence],
+) -> Vec<(usize, usize, usize)> {
+    let mut keep = vec![false; grid.sample * grid.sample];
+    for p in inliers {
+        if let Some(c) = grid.cell_of_point(p) {
+            keep[c] = true;
+        }
+    }
+    region
+        .indexed_iter()
+        .filter(|(_, &m)| m)
+        .filter_map(|((y, x), _)| {
+            let c = grid.cell_of(x, y)?;
+            keep[c].then_some((x, y, c))
+        })
+        .collect()
+}
+
+/// One pixel of the fit: position, cell, reference value, and the reference's weighting
+/// gradient and neighbour mean (the instruments of the geometric and gain equations).
+struct Pixel {
+    x: usize,
+    y: usize,
+    cell: usize,
+    value: f64,
+    gx: f64,
+    gy: f64,
+    neighbours: f64,
+}
+
+/// Tukey biweight tuning constant (95 % efficiency for Gaussian residuals).
+const TUKEY_C: f64 = 4.685;
+
+/// Central-difference gradient of `img` at `(x, y)` (interior points only).
+fn gradient(img: &Array2<f32>, x: usize, y: usize) -> (f64, f64) {
+    (
+        (img[[y, x + 1]] as f64 - img[[y, x - 1]] as f64) / 2.0,
+        (img[[y + 1, x]] as f64 - img[[y - 1, x]] as f64) / 2.0,
+    )
+}
+
+/// Refine `start` (the whole grid-to-grid transform) on `pixels` (x, y, cell) of the reference
+/// grid. `reference` is the reference as the flow stage saw it; `frame` the frame's spline.
+///
+/// The estimating equation is `Σ w·J_ref·r = 0` with `J_ref` built from the reference's
+/// gradient (smoothed by `gradient_smoothing_px`: it only weighs the residuals, and a noisy
+/// weight costs precision) and, for the gain, the mean of the reference's four neighbours.
+/// Neither involves the pixel's own noise, nor the frame's: weighing the gain equation with the
+/// noisy warped value itself biases the gain low (errors in variables, −2e-3 at 3× TRACE's
+/// background noise), and through the gain's coupling with the geometry, the scale. Its slope, which both the Newton step and the covariance need, is
+/// `A = Σ w·J_ref·J_frameᵀ` with the warped frame's own gradient: with noisy images
+/// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (measured: by 2×
+/// at 3× TRACE's background noise), which would halve the σ and slow convergence.
+pub fn refine(
+    reference: &Array2<f32>,
+    frame: &SplineImage,
+    pixels: &[(usize, usize, usize)],
+    grid: &CellGrid,
+    start: Similarity,
+    settings: &RefineSettings,
+) -> Result<Refined, String> {
+    if pixels.len() < 64 {
+        return Err(format!(
+            "{} usable pixels in the inlier cells; too few to refine",
+            pixels.len()
+        ));
+    }
+    let (h, w) = reference.dim();
+    let center = start.center;
+    // Working box: the pixels plus the smoothing's reach and a pixel for the gradient.
+    let reach = |sigma: f64| {
+        if sigma > 0.0 {
+            (4.0 * sigma + 0.5) as usize + 1
+        } else {
+            0
+        }
+    };
+    let margin = reach(settings.smoothing_px) * 2
+        + reach(settings.frame_smoothing_px)
+        + reach(settings.gradient_smoothing_px)
+        + 2;
+    let (mut bx0, mut by0, mut bx1, mut by1) = (usize::MAX, usize::MAX, 0, 0);
+    for &(x, y, _) in pixels {
+        bx0 = bx0.min(x);
+        by0 = by0.min(y);
+        bx1 = bx1.max(x);
+        by1 = by1.max(y);
+    }
+    let bx0 = bx0.saturating_sub(margin);
+    let by0 = by0.saturating_sub(margin);
+    let bx1 = (bx1 + margin).min(w - 1);
+    let by1 = (by1 + margin).min(h - 1);
+    let (bw, bh) = (bx1 - bx0 + 1, by1 - by0 + 1);
+    let ref_box = crate::preprocess::gaussian_smooth(
+        reference.slice(s![by0..=by1, bx0..=bx1]),
+        settings.smoothing_px,
+    );
+    let ref_weighting =
+        crate::preprocess::gaussian_smooth(ref_box.view(), settings.gradient_smoothing_px);
+    // The gain's instrument: the reference at four points far enough for the smoothed noise
+    // to be uncorrelated with this pixel's (ρ = e^{−d²/4σ²} < 2 % at d = 4σ).
+    let reach_gain = ((4.0 * settings.smoothing_px).ceil() as usize).max(1);
+    let ref_pixels: Vec<Pixel> = pixels
+        .iter()
+        .filter_map(|&(x, y, cell)| {
+            let (lx, ly) = (x - bx0, y - by0);
+            if lx == 0 || ly == 0 || lx + 1 >= bw || ly + 1 >= bh {
+                return None;
+            }
+            let value = ref_box[[ly, lx]] as f64;
+            let (gx, gy) = gradient(&ref_weighting, lx, ly);
+            if lx < reach_gain || ly < reach_gain || lx + reach_gain >= bw || ly + reach_gain >= bh
+            {
+                return None;
+            }
+            let d = reach_gain;
+            let neighbours = (ref_box[[ly, lx - d]] as f64
+                + ref_box[[ly, lx + d]] as f64
+                + ref_box[[ly - d, lx]] as f64
+                + ref_box[[ly + d, lx]] as f64)
+                / 4.0;
+            let finite = [value, gx, gy, neighbours].iter().all(|v| v.is_finite());
+            finite.then_some(Pixel {
+                x,
+                y,
+                cell,
+                value,
+                gx,
+                gy,
+                neighbours,
+            })
+        })
+        .collect();
+    if ref_pixels.len() < 64 {
+        return Err("too few finite reference pixels to refine".into());
+    }
+    // Lever arm for conditioning: the scale/rotation columns are q/R.
+    let lever = (ref_pixels
+        .iter()
+        .map(|p| (p.x as f64 - center[0]).powi(2) + (p.y as f64 - center[1]).powi(2))
+        .sum::<f64>()
+        / ref_pixels.len() as f64)
+        .sqrt()
+        .max(1.0);
+    let frame_sigma = settings.smoothing_px.hypot(settings.frame_smoothing_px);
+    let warp_box = |t: &Similarity| -> Array2<f32> {
+        let map = crate::resample::similarity_map(t);
+        let raw = warp_sampler(frame, bw, bh, |x, y| map(x + bx0 as f64, y + by0 as f64));
+        crate::preprocess::gaussian_smooth(raw.view(), frame_sigma)
+    };
+    let rows = |gx: f64, gy: f64, qx: f64, qy: f64, v: f64| -> Vector6<f64> {
+        Vector6::new(gx * qx + gy * qy, -gx * qy + gy * qx, gx, gy, v, 1.0)
+    };
+
+    let mut estimate = start;
+    let (mut gain, mut offset) = initial_photometry(&ref_pixels, &warp_box(&estimate), bx0, by0);
+    let mut iterations = 0;
+    let mut residuals: Vec<f64> = vec![0.0; ref_pixels.len()];
+    let mut jac: Vec<[f64; 6]> = vec![[0.0; 6]; ref_pixels.len()];
+    loop {
+        iterations += 1;
+        let warped = warp_box(&estimate);
+        let mut slope = Matrix6::<f64>::zeros();
+        let mut frame_rows: Vec<Vector6<f64>> = Vec::with_capacity(ref_pixels.len());
+        for (k, p) in ref_pixels.iter().enumerate() {
+            let (lx, ly) = (p.x - bx0, p.y - by0);
+            let v = warped[[ly, lx]] as f64;
+            let (fx, fy) = gradient(&warped, lx, ly);
+            let (qx, qy) = (
+                (p.x as f64 - center[0]) / lever,
+                (p.y as f64 - center[1]) / lever,
+            );
+            residuals[k] = p.value - gain * v - offset;
+            let j = rows(p.gx, p.gy, qx, qy, p.neighbours);
+            jac[k] = [j[0], j[1], j[2], j[3], j[4], j[5]];
+            frame_rows.push(rows(gain * fx, gain * fy, qx, qy, v));
+        }
+        let scale = robust_sigma(&residuals).ok_or("no finite residuals in the refinement")?;
+        if !(scale > 0.0) {
+            return Err("the refinement's residuals vanish exactly; nothing to weigh".into());
+        }
+        let weights: Vec<f64> = residuals
+            .iter()
+            .zip(&frame_rows)
+            .map(|(r, f)| {
+                if f.iter().all(|v| v.is_finite()) {
+                    tukey_weight(*r, TUKEY_C * scale)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut score = Vector6::<f64>::zeros();
+        for (((j, r), wt), f) in jac.iter().zip(&residuals).zip(&weights).zip(&frame_rows) {
+            if *wt <= 0.0 {
+                continue;
+            }
+            let jv = Vector6::from_column_slice(j);
+            slope += jv * f.transpose() * *wt;
+            score += jv * (*wt * *r);
+        }
+        let lu = slope.lu();
+        let step = lu
+            .solve(&score)
+            .ok_or("the refinement's equations are singular (no structure)")?;
+        let delta = [step[0] / lever, step[1] / lever, step[2], step[3]];
+        let update = Similarity {
+            scale: (1.0 + delta[0]).hypot(delta[1]),
+            rotation_rad: delta[1].atan2(1.0 + delta[0]),
+            dx: delta[2],
+            dy: delta[3],
+            center,
+        };
+        let moved = (delta[2].hypot(delta[3])) + delta[0].hypot(delta[1]) * lever * 2.0;
+        if !moved.is_finite() {
+            return Err("the refinement diverged".into());
+        }
+        let converged = moved < settings.tolerance_px;
+        tracing::trace!(iterations, moved, scale, "refinement step");
+        if converged || iterations >= settings.max_iterations.max(1) {
+            // Covariance at this linearisation point (the last step is below tolerance).
+            let ainv = lu
+                .try_inverse()
+                .ok_or("the refinement's equations are singular (no structure)")?;
+            let used = weights.iter().filter(|w| **w > 0.0).count();
+            let sum_w: f64 = weights.iter().sum();
+            let mut white = Matrix6::<f64>::zeros();
+            let mut s2 = 0.0;
+            for ((j, r), wt) in jac.iter().zip(&residuals).zip(&weights) {
+                if *wt > 0.0 {
+                    let jv = Vector6::from_column_slice(j);
+                    white += jv * jv.transpose() * (wt * wt);
+                    s2 += wt * r * r;
+                }
+            }
+            let s2 = s2 / (sum_w - 6.0).max(1.0);
+            let plain = ainv * white * ainv.transpose() * s2;
+            let by_cell =
+                cluster_covariance(&jac, &residuals, &weights, &ainv, |k| ref_pixels[k].cell);
+            let by_group = cluster_covariance(&jac, &residuals, &weights, &ainv, |k| {
+                grid.group_of(ref_pixels[k].cell)
+            });
+            let (robust, blocks) = match (by_cell, by_group) {
+                (Some(a), Some(b)) => {
+                    if geometric_trace_ratio(&b.0, &a.0) > 1.0 {
+                        b
+                    } else {
+                        a
+                    }
+                }
+                (Some(a), None) | (None, Some(a)) => a,
+                (None, None) => (plain, 1),
+            };
+            let final_t = estimate.after(&update);
+            let to4 = |m: &Matrix6<f64>| -> Covariance4 {
+                let unlever = [1.0 / lever, 1.0 / lever, 1.0, 1.0];
+                std::array::from_fn(|i| {
+                    std::array::from_fn(|j| m[(i, j)] * unlever[i] * unlever[j])
+                })
+            };
+            let identity = Similarity::identity(center);
+            let zero = [[0.0; 4]; 4];
+            let (_, covariance) =
+                compose_with_covariance(&final_t, &zero, &identity, &to4(&robust));
+            let (_, plain_covariance) =
+                compose_with_covariance(&final_t, &zero, &identity, &to4(&plain));
+            return Ok(Refined {
+                transform: final_t,
+                covariance,
+                plain_covariance,
+                gain: gain + step[4],
+                offset: offset + step[5],
+                pixels: used,
+                blocks,
+                iterations,
+                converged,
+                residual_sigma: scale,
+            });
+        }
+        estimate = estimate.after(&update);
+        gain += step[4];
+        offset += step[5];
+    }
+}
+
+/// Gain and offset of the warped frame against the reference (least squares over the pixels).
+fn initial_photometry(
+    pixels: &[Pixel],
+    warped: &Array2<f32>,
+    bx0: usize,
+    by0: usize,
+) -> (f64, f64) {
+    let (mut n, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for p in pixels {
+        let v = warped[[p.y - by0, p.x - bx0]] as f64;
+        if v.is_finite() {
+            n += 1.0;
+            sx += v;
+            sy += p.value;
+            sxx += v * v;
+            sxy += v * p.value;
+        }
+    }
+    let var = sxx / n - (sx / n).powi(2);
+    if !(n > 2.0 && var > 0.0) {
+        return (1.0, 0.0);
+    }
+    let gain = (sxy / n - sx / n * sy / n) / var;
+    (gain, sy / n - gain * sx / n)
+}
+
+/// Cluster-robust sandwich `A⁻¹ M A⁻ᵀ · G/(G − 1)`, `M = Σ_b s_b s_bᵀ`; `None` with < 8 blocks.
+fn cluster_covariance(
+    jac: &[[f64; 6]],
+    residuals: &[f64],
+    weights: &[f64],
+    ainv: &Matrix6<f64>,
+    block_of: impl Fn(usize) -> usize,
+) -> Option<(Matrix6<f64>, usize)> {
+    let mut scores: std::collections::HashMap<usize, Vector6<f64>> = Default::default();
+    for (k, ((j, r), w)) in jac.iter().zip(residuals).zip(weights).enumerate() {
+        if *w > 0.0 && r.is_finite() {
+            *scores.entry(block_of(k)).or_insert_with(Vector6::zeros) +=
+                Vector6::from_column_slice(j) * (w * r);
+        }
+    }
+    let g = scores.len();
+    if g < 8 {
+        return None;
+    }
+    let mut meat = Matrix6::<f64>::zeros();
+    for s in scores.values() {
+        meat += s * s.transpose();
+    }
+    let factor = g as f64 / (g as f64 - 1.0);
+    Some((ainv * meat * ainv.transpose() * factor, g))
+}
+
+/// Geometric mean of the ratios of the four geometric variances, `b` over `a`.
+fn geometric_trace_ratio(b: &Matrix6<f64>, a: &Matrix6<f64>) -> f64 {
+    ((0..4)
+        .map(|k| (b[(k, k)].max(f64::MIN_POSITIVE) / a[(k, k)].max(f64::MIN_POSITIVE)).ln())
+        .sum::<f64>()
+        / 4.0)
+        .exp()
+}
+
+fn tukey_weight(r: f64, c: f64) -> f64 {
+    if !r.is_finite() {
+        return 0.0;
+    }
+    let u = r / c;
+    if u.abs() >= 1.0 {
+        0.0
+    } else {
+        (1.0 - u * u).powi(2)
+    }
+}
+
+/// 1.4826 × median absolute deviation about the median, over the finite values.
+fn robust_sigma(values: &[f64]) -> Option<f64> {
+    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    let mid = v.len() / 2;
+    let median = *v.select_nth_unstable_by(mid, f64::total_cmp).1;
+    v.iter_mut().for_each(|x| *x = (*x - median).abs());
+    let mad = *v.select_nth_unstable_by(mid, f64::total_cmp).1;
+    Some(1.482_602_218_505_602 * mad)
+}
+
+/// Whether the refinement runs for this pair.
+pub fn wanted(
+    mode: RefineMode,
+    reference: &crate::meta::FrameMeta,
+    frame: &crate::meta::FrameMeta,
+) -> bool {
+    match mode {
+        RefineMode::Off => false,
+        RefineMode::Always => true,
+        RefineMode::SameChannel => reference.channel == frame.channel,
+    }
+}
+
+/// Refine the flow stage's `transform` in place (and its `covariance`), or leave both as they
+/// are when the refinement is not possible or disagrees with the flow. Returns a note for the
+/// result's message.
+#[allow(clippy::too_many_arguments)]
+pub fn apply(
+    transform: &mut Similarity,
+    covariance: &mut Covariance4,
+    reference: &Array2<f32>,
+    frame: &SplineImage,
+    sample_mask: &Array2<bool>,
+    inliers: &[Correspondence],
+    frame_smoothing_px: f64,
+    cfg: &super::EngineConfig,
+) -> String {
+    let Some(grid) = CellGrid::new(sample_mask.view(), cfg.sample) else {
+        return "intensity refinement skipped: empty sampling mask".into();
+    };
+    let pixels = inlier_cell_pixels(sample_mask, &grid, inliers);
+    let settings = RefineSettings {
+        smoothing_px: cfg.refine_smoothing_px,
+        gradient_smoothing_px: cfg.refine_gradient_smoothing_px,
+        frame_smoothing_px,
+        ..RefineSettings::default()
+    };
+    let refined = match refine(reference, frame, &pixels, &grid, *transform, &settings) {
+        Ok(r) => r,
+        Err(e) => return format!("intensity refinement skipped: {e}"),
+    };
+    tracing::debug!(
+        flow = ?transform.params(),
+        refined = ?refined.transform.params(),
+        flow_sigma = ?crate::geometry::sigmas(covariance),
+        robust_sigma = ?crate::geometry::sigmas(&refined.covariance),
+        plain_sigma = ?crate::geometry::sigmas(&refined.plain_covariance),
+        refined.blocks, refined.pixels, refined.iterations, refined.converged, refined.gain,
+        refined.residual_sigma,
+        "intensity refinement"
+    );
+    let mut cov = match cfg.sigma {
+        super::SigmaMethod::Calibrated => refined.covariance,
+        super::SigmaMethod::Uabjm => refined.plain_covariance,
+    };
+    if cfg.sigma == super::SigmaMethod::Calibrated {
+        super::sigma::add_floor(&mut cov, inliers, transform.center, cfg.systematic_floor_px);
+    }
+    // Both answers measure the same motion; a large disagreement means the intensities do not
+    // follow one similarity (changed scene, different channels): keep the flow's.
+    let (a, b) = (transform.params(), refined.transform.params());
+    let (sa, sb) = (
+        crate::geometry::sigmas(covariance),
+        crate::geometry::sigmas(&cov),
+    );
+    let worst = (0..4)
+        .map(|k| (a[k] - b[k]).abs() / sa[k].hypot(sb[k]).max(f64::MIN_POSITIVE))
+        .fold(0.0, f64::max);
+    if !(worst <= MAX_DISAGREEMENT_SIGMA) {
+        return format!("intensity refinement rejected: {worst:.1}σ from the flow's answer");
+    }
+    *transform = refined.transform;
+    *covariance = cov;
+    format!(
+        "intensity refinement on {} px in {} blocks, {} iterations",
+        refined.pixels, refined.blocks, refined.iterations
+    )
+}
+
+/// Largest disagreement (in combined σ) between flow and refinement that keeps the refinement.
+const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
