@@ -334,7 +334,7 @@ pub fn refine(
             frame_rows.push(rows(gain * fx, gain * fy, qx, qy, v));
         }
         let scale = robust_sigma(&residuals).ok_or("no finite residuals in the refinement")?;
-        if !(scale > 0.0) {
+        if scale.is_nan() || scale <= 0.0 {
             return Err("the refinement's residuals vanish exactly; nothing to weigh".into());
         }
         let weights: Vec<f64> = residuals
@@ -583,8 +583,24 @@ pub fn apply(
         super::SigmaMethod::Calibrated => refined.covariance,
         super::SigmaMethod::Uabjm => refined.plain_covariance,
     };
+    let mut note = String::new();
     if cfg.sigma == super::SigmaMethod::Calibrated {
         super::sigma::add_floor(&mut cov, inliers, transform.center, cfg.systematic_floor_px);
+        match self_test_bias(reference, &pixels, &grid, &refined.transform, &settings) {
+            Some(bias) => {
+                for (k, b) in bias.iter().enumerate() {
+                    cov[k][k] += b * b;
+                }
+                note = format!(
+                    ", self-test bias {:.1e} / {:.2}″ / {:.1e} / {:.1e}",
+                    bias[0],
+                    bias[1] * crate::geometry::ARCSEC_PER_RAD,
+                    bias[2],
+                    bias[3]
+                );
+            }
+            None => note = ", self-test failed".into(),
+        }
     }
     // Both answers measure the same motion; a large disagreement means the intensities do not
     // follow one similarity (changed scene, different channels): keep the flow's.
@@ -596,15 +612,45 @@ pub fn apply(
     let worst = (0..4)
         .map(|k| (a[k] - b[k]).abs() / sa[k].hypot(sb[k]).max(f64::MIN_POSITIVE))
         .fold(0.0, f64::max);
-    if !(worst <= MAX_DISAGREEMENT_SIGMA) {
+    if worst.is_nan() || worst > MAX_DISAGREEMENT_SIGMA {
         return format!("intensity refinement rejected: {worst:.1}σ from the flow's answer");
     }
     *transform = refined.transform;
     *covariance = cov;
     format!(
-        "intensity refinement on {} px in {} blocks, {} iterations",
+        "intensity refinement on {} px in {} blocks, {} iterations{note}",
         refined.pixels, refined.blocks, refined.iterations
     )
+}
+
+/// The method's systematic error for this image and transform, measured: a frame made from
+/// the reference itself through `transform` (cubic spline, as a real frame would be resampled)
+/// is refined from the exact answer, and what the refinement reports instead is its bias
+/// (interpolation of sharp or undersampled structure, mostly). Added in quadrature to the σ.
+fn self_test_bias(
+    reference: &Array2<f32>,
+    pixels: &[(usize, usize, usize)],
+    grid: &CellGrid,
+    transform: &Similarity,
+    settings: &RefineSettings,
+) -> Option<[f64; 4]> {
+    let (h, w) = reference.dim();
+    let synthetic = SplineImage::new(reference.view()).warp_similarity(&transform.inverse(), w, h);
+    let test = refine(
+        reference,
+        &SplineImage::new(synthetic.view()),
+        pixels,
+        grid,
+        *transform,
+        &RefineSettings {
+            frame_smoothing_px: 0.0,
+            ..*settings
+        },
+    )
+    .ok()?;
+    let (a, b) = (transform.params(), test.transform.params());
+    let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
+    bias.iter().all(|v| v.is_finite()).then_some(bias)
 }
 
 /// Largest disagreement (in combined σ) between flow and refinement that keeps the refinement.
