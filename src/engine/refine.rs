@@ -475,7 +475,7 @@ fn cluster_covariance(
     ainv: &Matrix6<f64>,
     block_of: impl Fn(usize) -> usize,
 ) -> Option<(Matrix6<f64>, usize)> {
-    let mut scores: std::collections::HashMap<usize, Vector6<f64>> = Default::default();
+    let mut scores: std::collections::BTreeMap<usize, Vector6<f64>> = Default::default();
     for (k, ((j, r), w)) in jac.iter().zip(residuals).zip(weights).enumerate() {
         if *w > 0.0 && r.is_finite() {
             *scores.entry(block_of(k)).or_insert_with(Vector6::zeros) +=
