@@ -710,7 +710,7 @@ mod tests {
             (c.outliers[0].sequence, c.outliers[0].parameter.as_str()),
             (60, "dx_px")
         );
-        let text = render_text(&report(&["a.mcap".into()], &a));
+        let text = render_text(&report(&["a.mcap".into()], &a, LogSummary::default()));
         assert!(
             text.contains("SYNTH_171: 85 frames (83 ok, 1 degraded, 1 failed)"),
             "{text}"
