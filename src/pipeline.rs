@@ -1001,7 +1001,10 @@ pub enum WriterMsg {
     Record(Record),
     Flush,
     /// The ingest lag of a frame whose records follow (see [`RecordSink::note_lag`]).
-    Lag { frame: String, lag_s: f64 },
+    Lag {
+        frame: String,
+        lag_s: f64,
+    },
 }
 
 /// Start the one thread that owns the sink. It writes records in the order received,

@@ -164,13 +164,12 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
     stop_reading.store(true, Ordering::SeqCst);
-    status_reader.join().expect("status reads were all whole JSON");
+    status_reader
+        .join()
+        .expect("status reads were all whole JSON");
     assert!(reads.load(Ordering::SeqCst) > 0);
     // Nothing more came after the last frame.
-    assert!(reader
-        .lines
-        .try_iter()
-        .all(|l| l["event"] != "message"));
+    assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
 
     // The log is the truth: one message per frame, and the live ones are the same messages.
     let contents = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
@@ -235,7 +234,10 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
         .output()
         .unwrap();
     let human = String::from_utf8(human.stdout).unwrap();
-    assert!(human.contains("stopped") && human.contains("SJI_1400"), "{human}");
+    assert!(
+        human.contains("stopped") && human.contains("SJI_1400"),
+        "{human}"
+    );
 }
 
 #[test]

@@ -18,7 +18,8 @@ pub fn run(args: &Args) -> Result<i32> {
     let path = status::resolve_path(&args.path);
     let s = status::read(&path)?;
     if args.json {
-        let text = serde_json::to_string(&s).map_err(|e| crate::Error::output(&path, e.to_string()))?;
+        let text =
+            serde_json::to_string(&s).map_err(|e| crate::Error::output(&path, e.to_string()))?;
         println!("{text}");
     } else {
         print!("{}", status::render(&s, crate::pipeline::now_ns()));

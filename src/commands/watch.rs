@@ -68,11 +68,8 @@ pub fn run(args: &Args) -> Result<i32> {
     } else {
         History::default()
     };
-    let mcap = crate::sink::McapSink::new(
-        &args.out,
-        config.sink.clone(),
-        config.to_json().to_string(),
-    )?;
+    let mcap =
+        crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?;
     let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
     let runtime = runtime()?;
     let setup = MonitorSetup {

@@ -13,7 +13,8 @@
 //! - `rms_*`: RMS distance of the last `rms_window_frames` positions from their mean (the
 //!   jitter about the mean pointing; evaluated once the window is full);
 //! - `sigma_px`: the larger of `sigma_dx_px`, `sigma_dy_px`;
-//! - `consecutive_bad`: failed or degraded frames in a row (raised at N, resolved by a good one);
+//! - `consecutive_bad`: failed or degraded frames in a row (raised at N, resolved by an ok one);
+//! - `consecutive_failed`: failed frames in a row (raised at N, resolved by one with a result);
 //! - `lag_s`: file taken by the daemon → alignment finished;
 //! - `silence_s`: no frame of a channel for this long (armed by the channel's first frame).
 //!
@@ -66,6 +67,8 @@ pub struct Thresholds {
     pub sigma_px: Option<f64>,
     /// Raised when this many frames in a row are failed or degraded.
     pub consecutive_bad: Option<u32>,
+    /// Raised when this many frames in a row are failed (no result at all).
+    pub consecutive_failed: Option<u32>,
     pub lag_s: Option<f64>,
     pub silence_s: Option<f64>,
 }
@@ -85,6 +88,7 @@ impl Thresholds {
             jump_arcsec: self.jump_arcsec.or(fallback.jump_arcsec),
             sigma_px: self.sigma_px.or(fallback.sigma_px),
             consecutive_bad: self.consecutive_bad.or(fallback.consecutive_bad),
+            consecutive_failed: self.consecutive_failed.or(fallback.consecutive_failed),
             lag_s: self.lag_s.or(fallback.lag_s),
             silence_s: self.silence_s.or(fallback.silence_s),
         }
@@ -112,8 +116,8 @@ impl Thresholds {
         if self.rms_window_frames.is_some_and(|w| w < 2) {
             return bad("rms_window_frames must be ≥ 2".into());
         }
-        if self.consecutive_bad == Some(0) {
-            return bad("consecutive_bad must be ≥ 1".into());
+        if self.consecutive_bad == Some(0) || self.consecutive_failed == Some(0) {
+            return bad("consecutive_bad and consecutive_failed must be ≥ 1".into());
         }
         Ok(())
     }
@@ -162,6 +166,7 @@ struct ChannelWatch {
     last_position: Option<(f64, f64)>,
     window: VecDeque<(f64, f64)>,
     bad_run: u32,
+    failed_run: u32,
     /// arcsec per px along x and y, learned from the records.
     plate_scale: (Option<f64>, Option<f64>),
     last_frame_wall_ns: Option<i64>,
@@ -234,9 +239,14 @@ impl AlertEngine {
         // Silence ends with any frame.
         if let Some(last) = w.last_frame_wall_ns {
             let gap = (wall_ns - last) as f64 / 1e9;
-            w.judge(&mut events, &at, "silence_s", t.silence_s, Some(gap), |_, _| {
-                false
-            });
+            w.judge(
+                &mut events,
+                &at,
+                "silence_s",
+                t.silence_s,
+                Some(gap),
+                |_, _| false,
+            );
         }
         w.last_frame_wall_ns = Some(wall_ns);
 
@@ -250,14 +260,31 @@ impl AlertEngine {
 
         let bad = matches!(a.status, Status::Failed | Status::Degraded);
         w.bad_run = if bad { w.bad_run + 1 } else { 0 };
-        let run = w.bad_run as f64;
+        w.failed_run = if a.status == Status::Failed {
+            w.failed_run + 1
+        } else {
+            0
+        };
+        let (bad_run, failed_run) = (w.bad_run as f64, w.failed_run as f64);
+        let reached = |v: f64, thr: f64| v >= thr;
+        let bad_limit = t.consecutive_bad.map(f64::from);
         w.judge(
             &mut events,
             &at,
             "consecutive_bad",
-            t.consecutive_bad.map(f64::from),
-            Some(run),
-            |v, thr| v >= thr,
+            bad_limit,
+            Some(bad_run),
+            reached,
+        );
+        let failed_limit = t.consecutive_failed.map(f64::from);
+        let kind = "consecutive_failed";
+        w.judge(
+            &mut events,
+            &at,
+            kind,
+            failed_limit,
+            Some(failed_run),
+            reached,
         );
 
         w.judge(&mut events, &at, "lag_s", t.lag_s, lag_s, above);
@@ -317,7 +344,14 @@ impl AlertEngine {
                 Some(d.0.hypot(d.1)),
                 above,
             );
-            w.judge(&mut events, &at, "jump_arcsec", t.jump_arcsec, jump_arcsec, above);
+            w.judge(
+                &mut events,
+                &at,
+                "jump_arcsec",
+                t.jump_arcsec,
+                jump_arcsec,
+                above,
+            );
         }
         w.last_position = Some(position);
 
@@ -335,7 +369,14 @@ impl AlertEngine {
                 .collect::<Option<Vec<_>>>()
                 .map(|ps| rms_about_mean(ps.into_iter()));
             w.judge(&mut events, &at, "rms_px", t.rms_px, Some(rms_px), above);
-            w.judge(&mut events, &at, "rms_arcsec", t.rms_arcsec, rms_arcsec, above);
+            w.judge(
+                &mut events,
+                &at,
+                "rms_arcsec",
+                t.rms_arcsec,
+                rms_arcsec,
+                above,
+            );
         }
         events
     }
@@ -376,7 +417,9 @@ fn rms_about_mean(points: impl Iterator<Item = (f64, f64)> + Clone) -> f64 {
         .clone()
         .fold((0.0, 0.0), |(a, b), (x, y)| (a + x, b + y));
     let (mx, my) = (sx / n, sy / n);
-    let ss: f64 = points.map(|(x, y)| (x - mx).powi(2) + (y - my).powi(2)).sum();
+    let ss: f64 = points
+        .map(|(x, y)| (x - mx).powi(2) + (y - my).powi(2))
+        .sum();
     (ss / n).sqrt()
 }
 
@@ -394,7 +437,7 @@ fn unit_of(kind: &str) -> &'static str {
 
 fn severity_of(kind: &str) -> &'static str {
     match kind {
-        "consecutive_bad" | "silence_s" => "error",
+        "consecutive_bad" | "consecutive_failed" | "silence_s" => "error",
         _ => "warning",
     }
 }
@@ -406,6 +449,7 @@ fn describe(kind: &str) -> &'static str {
         "jump_px" | "jump_arcsec" => "jump between frames",
         "sigma_px" => "1-σ error",
         "consecutive_bad" => "failed or degraded frames in a row",
+        "consecutive_failed" => "failed frames in a row",
         "lag_s" => "ingest lag",
         "silence_s" => "time without a frame",
         _ => "value",
@@ -627,13 +671,17 @@ mod tests {
         assert_eq!(values.len(), 2, "{values:?}");
         assert_eq!((values[0].0, values[0].1.as_str()), (3, "raised"));
         assert!((values[0].2 - (6.75f64 / 4.0).sqrt()).abs() < 1e-12);
-        assert_eq!((values[1].0, values[1].1.as_str(), values[1].2), (7, "resolved", 0.0));
+        assert_eq!(
+            (values[1].0, values[1].1.as_str(), values[1].2),
+            (7, "resolved", 0.0)
+        );
     }
 
     #[test]
     fn consecutive_bad_frames_raise_at_n_and_a_good_frame_resolves() {
         let mut e = engine(Thresholds {
             consecutive_bad: Some(2),
+            consecutive_failed: Some(2),
             ..Default::default()
         });
         let statuses = [
@@ -654,7 +702,10 @@ mod tests {
             feed(&mut e, &frames),
             vec![
                 ev(4, "consecutive_bad", "raised"),
-                ev(6, "consecutive_bad", "resolved")
+                // Failed frames 4 and 5 are in a row; 1 and 4 are not.
+                ev(5, "consecutive_failed", "raised"),
+                ev(6, "consecutive_bad", "resolved"),
+                ev(6, "consecutive_failed", "resolved"),
             ]
         );
     }

@@ -167,10 +167,7 @@ mod tests {
             hook.offer(format!("{line}\n"));
         }
         let failures = hook.finish();
-        assert_eq!(
-            std::fs::read_to_string(&out).unwrap(),
-            "one\nbad\ntwo\n"
-        );
+        assert_eq!(std::fs::read_to_string(&out).unwrap(), "one\nbad\ntwo\n");
         assert_eq!(failures.len(), 1, "{failures:?}");
         assert!(failures[0].contains("exit status: 1"), "{failures:?}");
     }

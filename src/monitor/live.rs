@@ -34,6 +34,16 @@ pub struct LiveTap {
 }
 
 impl LiveTap {
+    /// A tap on a queue of `capacity` messages, and the queue's receiving end.
+    pub fn new(capacity: usize) -> (LiveTap, Receiver<LiveMessage>) {
+        let (tx, rx) = sync_channel(capacity.max(1));
+        let tap = LiveTap {
+            tx,
+            dropped: Arc::new(AtomicU64::new(0)),
+        };
+        (tap, rx)
+    }
+
     /// Queue a message for the live view; drops it when the queue is full.
     pub fn offer(&self, message: LiveMessage) {
         match self.tx.try_send(message) {
@@ -63,10 +73,18 @@ struct Listener;
 
 impl ServerListener for Listener {
     fn on_subscribe(&self, client: Client, channel: ChannelView) {
-        tracing::info!(client = client.id().to_string(), topic = channel.topic(), "live: subscribed");
+        tracing::info!(
+            client = client.id().to_string(),
+            topic = channel.topic(),
+            "live: subscribed"
+        );
     }
     fn on_unsubscribe(&self, client: Client, channel: ChannelView) {
-        tracing::info!(client = client.id().to_string(), topic = channel.topic(), "live: unsubscribed");
+        tracing::info!(
+            client = client.id().to_string(),
+            topic = channel.topic(),
+            "live: unsubscribed"
+        );
     }
     fn on_client_connect(&self) {
         tracing::info!("live: client connected");
@@ -105,17 +123,14 @@ impl LiveServer {
         for topic in topics {
             publisher.channel(topic);
         }
-        let (tx, rx) = sync_channel(queue.max(1));
+        let (tap, rx) = LiveTap::new(queue);
         let thread = std::thread::Builder::new()
             .name("sunjitter-live".into())
             .spawn(move || publisher.run(rx))
             .map_err(|e| Error::output("live view", e.to_string()))?;
         tracing::info!(%addr, "live view: Foxglove WebSocket server listening (ws://{addr})");
         Ok(LiveServer {
-            tap: LiveTap {
-                tx,
-                dropped: Arc::new(AtomicU64::new(0)),
-            },
+            tap,
             handle: Some(handle),
             thread: Some(thread),
             addr,
@@ -231,5 +246,50 @@ pub fn encode(message: &LiveMessage) -> Option<(String, Vec<u8>, u64)> {
             tracing::error!(topic, "live view: cannot encode: {e}");
             None
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::LogLevel;
+
+    #[test]
+    fn a_full_live_queue_drops_for_the_live_view_and_never_waits() {
+        // Nobody reads the queue (a stalled live thread): offers return at once, extras drop.
+        let (tap, rx) = LiveTap::new(2);
+        for i in 0..5 {
+            let r = Record::log(LogLevel::Warning, &format!("f{i}.fits"), "note", i);
+            tap.offer(LiveMessage::Record(r));
+        }
+        assert_eq!(tap.dropped(), 3);
+        let kept: Vec<i64> = rx
+            .try_iter()
+            .map(|m| match m {
+                LiveMessage::Record(r) => r.log_time_ns(),
+                LiveMessage::Alert(_, t) => t,
+            })
+            .collect();
+        assert_eq!(kept, vec![0, 1], "the oldest queued messages are kept");
+    }
+
+    #[test]
+    fn log_entries_are_encoded_as_foxglove_log_at_their_log_time() {
+        let r = Record::log(
+            LogLevel::Error,
+            "/data/a.fits",
+            "not a FITS file",
+            1_500_000_000,
+        );
+        let (topic, data, t) = encode(&LiveMessage::Record(r)).unwrap();
+        assert_eq!((topic.as_str(), t), ("/log", 1_500_000_000));
+        let v: serde_json::Value = serde_json::from_slice(&data).unwrap();
+        // foxglove.Log: ERROR is level 4; timestamp split into sec / nsec.
+        assert_eq!(v["level"], 4);
+        assert_eq!(
+            v["timestamp"],
+            serde_json::json!({"sec": 1, "nsec": 500_000_000})
+        );
+        assert_eq!(v["file"], "/data/a.fits");
     }
 }

@@ -151,7 +151,12 @@ impl MonitoredSink {
             if a.state == "raised" {
                 tracing::warn!(channel = a.channel, kind = a.kind, "ALERT {}", a.message);
             } else {
-                tracing::warn!(channel = a.channel, kind = a.kind, "alert resolved: {}", a.message);
+                tracing::warn!(
+                    channel = a.channel,
+                    kind = a.kind,
+                    "alert resolved: {}",
+                    a.message
+                );
             }
             if let Some(live) = &self.live {
                 live.offer(live::LiveMessage::Alert(
@@ -312,7 +317,10 @@ pub struct MonitorSetup<'a> {
 
 impl Monitor {
     /// Start the live server (inside a tokio runtime), the status thread and the alert command.
-    pub async fn start(setup: MonitorSetup<'_>, mcap: McapSink) -> Result<(Monitor, MonitoredSink)> {
+    pub async fn start(
+        setup: MonitorSetup<'_>,
+        mcap: McapSink,
+    ) -> Result<(Monitor, MonitoredSink)> {
         let config = setup.config;
         let live = match setup.live {
             Some(addr) => {

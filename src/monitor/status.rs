@@ -105,7 +105,8 @@ pub fn write_atomic(path: &Path, status: &Status) -> Result<()> {
 /// Read a status file.
 pub fn read(path: &Path) -> Result<Status> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| Error::bad_input(path, format!("not a status file: {e}")))
+    serde_json::from_str(&text)
+        .map_err(|e| Error::bad_input(path, format!("not a status file: {e}")))
 }
 
 /// The status for people.
@@ -131,7 +132,11 @@ pub fn render(s: &Status, now_ns: i64) -> String {
     );
     let _ = writeln!(out, "  watching {} → {}", s.watching, s.out);
     if let Some(live) = &s.live {
-        let _ = writeln!(out, "  live view {live} ({} messages dropped)", s.live_dropped);
+        let _ = writeln!(
+            out,
+            "  live view {live} ({} messages dropped)",
+            s.live_dropped
+        );
     }
     let _ = writeln!(
         out,
@@ -142,7 +147,11 @@ pub fn render(s: &Status, now_ns: i64) -> String {
         let _ = writeln!(out, "  last error: {e}");
     }
     if s.active_alerts.is_empty() {
-        let _ = writeln!(out, "  alerts: none active ({} raised so far)", s.alerts_raised);
+        let _ = writeln!(
+            out,
+            "  alerts: none active ({} raised so far)",
+            s.alerts_raised
+        );
     } else {
         let list: Vec<String> = s
             .active_alerts
@@ -152,7 +161,11 @@ pub fn render(s: &Status, now_ns: i64) -> String {
         let _ = writeln!(out, "  ALERTS ACTIVE: {}", list.join(", "));
     }
     if s.alert_command_failures > 0 {
-        let _ = writeln!(out, "  alert command failures: {}", s.alert_command_failures);
+        let _ = writeln!(
+            out,
+            "  alert command failures: {}",
+            s.alert_command_failures
+        );
     }
     if !s.channels.is_empty() {
         let _ = writeln!(

@@ -44,8 +44,8 @@ mod schemas;
 mod segment;
 
 pub use reader::{
-    logged_frames, read_logs, recover_segment, AlertMessage, JitterMessage, LogContents, LogMessage,
-    MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
+    logged_frames, read_logs, recover_segment, AlertMessage, JitterMessage, LogContents,
+    LogMessage, MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
 };
 pub use schemas::{
     alert_schema, frame_alignment_schema, jitter_topic, log_schema, reference_change_schema,

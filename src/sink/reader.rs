@@ -2,8 +2,8 @@
 //! maybe a truncated record at the end), read linearly up to the last complete record.
 
 use super::schemas::{
-    Alert, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, MESSAGE_ENCODING,
-    REFERENCE_CHANGE_SCHEMA,
+    Alert, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA,
+    MESSAGE_ENCODING, REFERENCE_CHANGE_SCHEMA,
 };
 use crate::fits::FrameSpec;
 use crate::record::FrameAlignment;

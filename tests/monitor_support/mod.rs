@@ -177,5 +177,7 @@ pub fn read_status(out: &Path) -> Option<serde_json::Value> {
 
 /// Frames logged so far according to the status file.
 pub fn status_frames(out: &Path) -> u64 {
-    read_status(out).and_then(|s| s["frames"].as_u64()).unwrap_or(0)
+    read_status(out)
+        .and_then(|s| s["frames"].as_u64())
+        .unwrap_or(0)
 }
