@@ -412,6 +412,7 @@ mod tests {
             (FRAME_ALIGNMENT_SCHEMA, frame_alignment_schema()),
             (REFERENCE_CHANGE_SCHEMA, reference_change_schema()),
             (LOG_SCHEMA, log_schema()),
+            (ALERT_SCHEMA, alert_schema()),
         ] {
             foxglove_parsable(&schema, name).unwrap();
         }
