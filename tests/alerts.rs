@@ -114,7 +114,7 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
 
-    let contents = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), PHASE_1.len() + 1);
     let logged: Vec<Alert> = contents.alerts.iter().map(|m| m.alert.clone()).collect();
     // The command got every alert, in the same order, with the same content.

@@ -172,7 +172,7 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
 
     // The log is the truth: one message per frame, and the live ones are the same messages.
-    let contents = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), indices.len());
     let frames: Vec<String> = contents
         .jitter
