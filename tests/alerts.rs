@@ -181,6 +181,18 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     assert_eq!(status["alerts_raised"], 5);
     assert_eq!(status["active_alerts"], serde_json::json!([]));
     assert_eq!(status["alert_command_failures"], 0);
+
+    // Kept for CI's independent reader (tools/check_mcap.py, the official Python `mcap`).
+    let fixture = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("alerts_fixture");
+    let _ = std::fs::remove_dir_all(&fixture);
+    std::fs::create_dir_all(&fixture).unwrap();
+    for segment in &contents.segments {
+        std::fs::copy(
+            &segment.path,
+            fixture.join(segment.path.file_name().unwrap()),
+        )
+        .unwrap();
+    }
 }
 
 #[test]

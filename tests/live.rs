@@ -26,13 +26,19 @@ struct NodeClient {
 }
 
 impl NodeClient {
-    fn start(url: &str, args: &[&str]) -> NodeClient {
+    /// Fails (never skips) when the client is not installed.
+    fn require_installed() {
         let dir = client_dir();
         assert!(
             dir.join("node_modules/@foxglove/ws-protocol").is_dir()
                 && dir.join("node_modules/ws").is_dir(),
             "the live-view test client is not installed: run `npm ci --prefix tools/live_client`"
         );
+    }
+
+    fn start(url: &str, args: &[&str]) -> NodeClient {
+        NodeClient::require_installed();
+        let dir = client_dir();
         let mut child = Command::new("node")
             .arg(dir.join("client.js"))
             .arg(url)
@@ -93,6 +99,7 @@ interval_s = 0.05
 
 #[test]
 fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_costs_nothing() {
+    NodeClient::require_installed();
     let tmp = tempfile::tempdir().unwrap();
     let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
     std::fs::create_dir_all(&watched).unwrap();
