@@ -259,3 +259,21 @@ fn a_missing_status_file_is_bad_input() {
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains("status.json"), "{err}");
 }
+
+#[test]
+fn a_live_port_in_use_is_a_usage_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("watch")
+        .arg(tmp.path())
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .args(["--live", &addr])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains(&format!("--live {addr}")), "{err}");
+}

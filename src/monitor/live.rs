@@ -114,7 +114,7 @@ impl LiveServer {
             .listener(Arc::new(Listener))
             .start()
             .await
-            .map_err(|e| Error::output(addr.to_string(), format!("live view: {e}")))?;
+            .map_err(|e| Error::Usage(format!("--live {addr}: cannot serve the live view: {e}")))?;
         let addr = SocketAddr::new(addr.ip(), handle.port());
         let mut publisher = Publisher {
             context,
