@@ -34,7 +34,8 @@ fn config(reference: &Path, hook_file: &Path) -> String {
         r#"
 [daemon]
 settle_s = 0.1
-reorder_window_s = 0.3
+# All frames of a phase arrive at once; hold them long enough to be sorted by time.
+reorder_window_s = 1.0
 reorder_window_frames = 64
 flush_interval_s = 0.1
 
