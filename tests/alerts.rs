@@ -1,7 +1,8 @@
 //! Alerts end to end: `sunjitter watch` fed real IRIS frames with injected faults — one frame
 //! displaced by a known 3 px, two blanked frames (valid FITS, nothing to align), and a pause
 //! in the feed — must raise each configured alert once and resolve it once, on `/alert` in
-//! the MCAP log and through the alert command (a shell command appending its stdin to a file).
+//! the MCAP log, in the live view (the independent `@foxglove/ws-protocol` client) and through
+//! the alert command (a shell command appending its stdin to a file).
 
 mod monitor_support;
 
@@ -92,8 +93,12 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     let phase_1 = stage_frames(&tmp.path().join("stage1"), &PHASE_1);
     let phase_2 = stage_frames(&tmp.path().join("stage2"), &[PHASE_2]);
 
-    let mut daemon = Daemon::start(&watched, &out, &config_path, &[]);
+    NodeClient::require_installed();
+    let mut daemon = Daemon::start(&watched, &out, &config_path, &["--live", "127.0.0.1:0"]);
+    let url = live_url(&daemon.expect_stderr(&["live view", "ws://"]));
     daemon.expect_stderr(&["watching"]);
+    let client = NodeClient::start(&url, &["read", "/alert"]);
+    daemon.expect_stderr(&["live: subscribed", "/alert"]);
     move_in(&phase_1, &watched);
     wait_for("phase 1 logged", || {
         (status_frames(&out) == PHASE_1.len() as u64).then_some(())
@@ -120,6 +125,30 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     let logged: Vec<Alert> = contents.alerts.iter().map(|m| m.alert.clone()).collect();
     // The command got every alert, in the same order, with the same content.
     assert_eq!(hook_alerts(&hook_file), logged);
+    // So did the live view, at the same log times (the client ends when the server closes).
+    let mut lines = Vec::new();
+    loop {
+        match client.lines.recv_timeout(PATIENCE) {
+            Ok(line) => lines.push(line),
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+            Err(e) => panic!("the live client did not end with the server: {e}"),
+        }
+    }
+    let live: Vec<(Alert, String)> = lines
+        .iter()
+        .filter(|l| l["event"] == "message")
+        .map(|l| {
+            assert_eq!(l["topic"], "/alert");
+            let alert = serde_json::from_value(l["payload"].clone()).unwrap();
+            (alert, l["logTime"].as_str().unwrap().to_string())
+        })
+        .collect();
+    let logged_times: Vec<(Alert, String)> = contents
+        .alerts
+        .iter()
+        .map(|m| (m.alert.clone(), m.log_time_ns.to_string()))
+        .collect();
+    assert_eq!(live, logged_times);
 
     // Per kind: exactly one raised then one resolved, at the frames the injected faults imply.
     let mut by_kind: BTreeMap<String, Vec<&Alert>> = BTreeMap::new();

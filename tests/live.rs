@@ -8,80 +8,9 @@ mod common;
 mod monitor_support;
 
 use monitor_support::*;
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{channel, Receiver};
 use std::sync::Arc;
-
-fn client_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/live_client")
-}
-
-/// The node client, its stdout lines parsed as JSON.
-struct NodeClient {
-    child: Child,
-    lines: Receiver<serde_json::Value>,
-}
-
-impl NodeClient {
-    /// Fails (never skips) when the client is not installed.
-    fn require_installed() {
-        let dir = client_dir();
-        assert!(
-            dir.join("node_modules/@foxglove/ws-protocol").is_dir()
-                && dir.join("node_modules/ws").is_dir(),
-            "the live-view test client is not installed: run `npm ci --prefix tools/live_client`"
-        );
-    }
-
-    fn start(url: &str, args: &[&str]) -> NodeClient {
-        NodeClient::require_installed();
-        let dir = client_dir();
-        let mut child = Command::new("node")
-            .arg(dir.join("client.js"))
-            .arg(url)
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("node (Node.js ≥ 18) must be installed to run the live-view test");
-        let stdout = child.stdout.take().unwrap();
-        let (tx, rx) = channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(|l| l.ok()) {
-                let value: serde_json::Value =
-                    serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"));
-                if tx.send(value).is_err() {
-                    break;
-                }
-            }
-        });
-        NodeClient { child, lines: rx }
-    }
-
-    /// Next line whose `event` is `event`; panics if the client ends or `PATIENCE` passes.
-    fn expect(&self, event: &str) -> serde_json::Value {
-        loop {
-            let line = self
-                .lines
-                .recv_timeout(PATIENCE)
-                .unwrap_or_else(|_| panic!("live client: no {event:?} event"));
-            if line["event"] == event {
-                return line;
-            }
-        }
-    }
-}
-
-impl Drop for NodeClient {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 const CONFIG: &str = r#"
 [daemon]
@@ -117,10 +46,7 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
 
     let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
     let line = daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]);
-    let url: String = line[line.find("ws://").unwrap()..]
-        .chars()
-        .take_while(|c| c.is_ascii_alphanumeric() || ":/.".contains(*c))
-        .collect();
+    let url = live_url(&line);
     // Meanwhile, a reader of the status file: it must find a whole document every time.
     let reads = Arc::new(AtomicU64::new(0));
     let stop_reading = Arc::new(AtomicBool::new(false));

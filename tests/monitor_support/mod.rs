@@ -1,7 +1,7 @@
 //! Shared by the monitoring tests (live view, alerts, status): real IRIS frames written as the
 //! daemon's input (optionally shifted by a known whole number of pixels, or blanked), and the
 //! `sunjitter watch` binary run as a child process, observed through its stderr and its
-//! status file.
+//! status file; and the independent live-view client (tools/live_client, Node.js).
 #![allow(dead_code)]
 
 use std::io::{BufRead, BufReader};
@@ -180,4 +180,84 @@ pub fn status_frames(out: &Path) -> u64 {
     read_status(out)
         .and_then(|s| s["frames"].as_u64())
         .unwrap_or(0)
+}
+
+// ---------------------------------------------------------------------------------------------
+// The live-view client: `@foxglove/ws-protocol` in Node.js (needs `npm ci --prefix
+// tools/live_client`).
+
+fn client_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/live_client")
+}
+
+/// The node client, its stdout lines parsed as JSON.
+pub struct NodeClient {
+    child: Child,
+    pub lines: Receiver<serde_json::Value>,
+}
+
+impl NodeClient {
+    /// Fails (never skips) when the client is not installed.
+    pub fn require_installed() {
+        let dir = client_dir();
+        assert!(
+            dir.join("node_modules/@foxglove/ws-protocol").is_dir()
+                && dir.join("node_modules/ws").is_dir(),
+            "the live-view test client is not installed: run `npm ci --prefix tools/live_client`"
+        );
+    }
+
+    pub fn start(url: &str, args: &[&str]) -> NodeClient {
+        NodeClient::require_installed();
+        let dir = client_dir();
+        let mut child = Command::new("node")
+            .arg(dir.join("client.js"))
+            .arg(url)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("node (Node.js ≥ 18) must be installed to run the live-view test");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(|l| l.ok()) {
+                let value: serde_json::Value =
+                    serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"));
+                if tx.send(value).is_err() {
+                    break;
+                }
+            }
+        });
+        NodeClient { child, lines: rx }
+    }
+
+    /// Next line whose `event` is `event`; panics if the client ends or `PATIENCE` passes.
+    pub fn expect(&self, event: &str) -> serde_json::Value {
+        loop {
+            let line = self
+                .lines
+                .recv_timeout(PATIENCE)
+                .unwrap_or_else(|_| panic!("live client: no {event:?} event"));
+            if line["event"] == event {
+                return line;
+            }
+        }
+    }
+}
+
+impl Drop for NodeClient {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The `ws://…` address in the daemon's "live view … listening" log line.
+pub fn live_url(line: &str) -> String {
+    line[line.find("ws://").expect("a ws:// address")..]
+        .chars()
+        .take_while(|c| c.is_ascii_alphanumeric() || ":/.".contains(*c))
+        .collect()
 }
