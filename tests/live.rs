@@ -151,6 +151,9 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     assert_eq!(status["queue_depth"], 0);
     let last = contents.jitter.last().unwrap();
     assert_eq!(ch["last_frame"], last.record.align.frame.as_str());
+    assert!(ch["lag_s"].as_f64().is_some_and(|l| l >= 0.0), "{ch}");
+    assert_eq!(status["live"], url.as_str());
+    assert_eq!(status["live_dropped"], 0);
 
     // `sunjitter status` prints it, for tools and for people.
     let printed = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
