@@ -158,6 +158,9 @@ pub trait RecordSink: Send {
     fn flush(&mut self) -> Result<()>;
     /// Close cleanly (MCAP: summary and index).
     fn finish(self: Box<Self>) -> Result<()>;
+    /// Seconds from the frame `frame` (a frame key) entering the pipeline until its alignment
+    /// finished; sent just before the frame's records. Monitoring sinks use it; default: ignored.
+    fn note_lag(&mut self, _frame: &str, _lag_s: f64) {}
 }
 
 /// The FITS reader.
@@ -319,6 +322,11 @@ pub struct Progress {
     pub watching: bool,
     pub write_errors: u64,
     pub last_error: Option<String>,
+    /// Frames in the pipeline not yet finished (buffered or being aligned), plus files the
+    /// daemon's front end holds that may still yield frames.
+    pub queued: u64,
+    /// Frames buffered or being aligned, per channel.
+    pub queued_per_channel: BTreeMap<String, u64>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -524,6 +532,8 @@ pub struct JobDone {
     pub state: ChannelState,
     pub records: Vec<Record>,
     pub partner: Option<PartnerFrame>,
+    /// When the frame entered the pipeline (for the ingest lag).
+    pub arrived: Instant,
 }
 
 /// Run one job (blocking: reads the image, runs the engine).
@@ -600,6 +610,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
         state,
         records,
         partner: partner_out,
+        arrived: item.arrived,
     }
 }
 
@@ -732,6 +743,14 @@ impl Scheduler {
 
     pub fn buffered(&self) -> usize {
         self.lanes.values().map(|l| l.buffer.len()).sum()
+    }
+
+    /// Frames buffered or being aligned, per channel.
+    pub fn queued_by_channel(&self) -> BTreeMap<String, u64> {
+        self.lanes
+            .iter()
+            .map(|(name, l)| (name.clone(), l.buffer.len() as u64 + u64::from(l.in_flight)))
+            .collect()
     }
 
     /// Everything that can start now.
@@ -981,6 +1000,11 @@ impl Scheduler {
 pub enum WriterMsg {
     Record(Record),
     Flush,
+    /// The ingest lag of a frame whose records follow (see [`RecordSink::note_lag`]).
+    Lag {
+        frame: String,
+        lag_s: f64,
+    },
 }
 
 /// Start the one thread that owns the sink. It writes records in the order received,
@@ -1006,6 +1030,7 @@ pub fn spawn_writer(
                             });
                         }
                     }
+                    WriterMsg::Lag { frame, lag_s } => sink.note_lag(&frame, lag_s),
                     WriterMsg::Record(record) => {
                         write_with_retry(sink.as_mut(), &record, &progress, &stopping)?;
                         progress.send_modify(|p| count(p, &record));
@@ -1109,6 +1134,7 @@ pub async fn run_pipeline(
     let stopping = Arc::new(AtomicBool::new(false));
     let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
     let progress_rx = progress.subscribe();
+    let queue_progress = progress.clone();
     let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
     let settings = SchedulerSettings::from_config(&config, live);
     let scheduler = Scheduler::new(config.clone(), settings, &history);
@@ -1123,6 +1149,7 @@ pub async fn run_pipeline(
         stopping,
         flush_every,
         pending_files,
+        queue_progress,
     )
     .await;
     let written = tokio::task::spawn_blocking(move || writer.join())
@@ -1145,6 +1172,7 @@ async fn drive(
     stopping: Arc<AtomicBool>,
     flush_every: Duration,
     pending_files: Option<Arc<AtomicUsize>>,
+    progress: watch::Sender<Progress>,
 ) -> Result<()> {
     let gone = || Error::output("log writer", "stopped unexpectedly");
     let mut jobs: JoinSet<JobDone> = JoinSet::new();
@@ -1198,6 +1226,7 @@ async fn drive(
                 }
             }
         }
+        publish_queue(&progress, &scheduler, pending_files.as_deref());
         if jobs.is_empty() && (stopped || (scheduler.is_eof() && scheduler.idle())) {
             break;
         }
@@ -1213,6 +1242,13 @@ async fn drive(
             joined = jobs.join_next(), if !jobs.is_empty() => {
                 match joined {
                     Some(Ok(done)) => {
+                        if let Some(frame) = done.records.iter().find_map(|r| match r {
+                            Record::Frame { message, .. } => Some(message.align.frame.clone()),
+                            _ => None,
+                        }) {
+                            let lag_s = done.arrived.elapsed().as_secs_f64();
+                            writer.send(WriterMsg::Lag { frame, lag_s }).await.map_err(|_| gone())?;
+                        }
                         for record in &done.records {
                             writer.send(WriterMsg::Record(record.clone())).await.map_err(|_| gone())?;
                         }
@@ -1244,6 +1280,25 @@ async fn drive(
     }
     drop(writer);
     Ok(())
+}
+
+/// Queue depth for the health status (only sent when it changed).
+fn publish_queue(
+    progress: &watch::Sender<Progress>,
+    scheduler: &Scheduler,
+    pending_files: Option<&AtomicUsize>,
+) {
+    let per_channel = scheduler.queued_by_channel();
+    let files = pending_files.map_or(0, |p| p.load(Ordering::SeqCst) as u64);
+    let queued = per_channel.values().sum::<u64>() + files;
+    progress.send_if_modified(|p| {
+        if p.queued == queued && p.queued_per_channel == per_channel {
+            return false;
+        }
+        p.queued = queued;
+        p.queued_per_channel = per_channel;
+        true
+    });
 }
 
 async fn sleep_until_opt(deadline: Option<Instant>) {
@@ -1328,7 +1383,7 @@ fn clamp_ns(ns: u64) -> i64 {
 }
 
 /// MCAP timestamps are unsigned: times before 1970 are written as 0.
-fn mcap_ns(ns: i64) -> u64 {
+pub fn mcap_ns(ns: i64) -> u64 {
     u64::try_from(ns).unwrap_or(0)
 }
 
@@ -1367,16 +1422,7 @@ impl McapRecordSink {
                 change,
                 log_time_ns,
             } => {
-                let c = crate::sink::ReferenceChange {
-                    channel: change.channel.clone(),
-                    file: change.file.clone(),
-                    frame: change.frame,
-                    obs_time: change.obs_time.clone(),
-                    reason: change.reason.clone(),
-                    reference_kind: change.reference_kind.clone(),
-                    sequence: change.sequence,
-                    replaces: change.replaces.clone(),
-                };
+                let c = Self::reference_message(change);
                 sink.write_reference_change(&c, mcap_ns(*log_time_ns), publish)
             }
             Record::Log {
@@ -1385,14 +1431,36 @@ impl McapRecordSink {
                 message,
                 log_time_ns,
                 ..
-            } => {
-                let level = match level {
-                    LogLevel::Info => crate::sink::LogLevel::Info,
-                    LogLevel::Warning => crate::sink::LogLevel::Warning,
-                    LogLevel::Error => crate::sink::LogLevel::Error,
-                };
-                sink.write_log(level, file, message, mcap_ns(*log_time_ns), publish)
-            }
+            } => sink.write_log(
+                Self::log_level(*level),
+                file,
+                message,
+                mcap_ns(*log_time_ns),
+                publish,
+            ),
+        }
+    }
+
+    /// The `/reference/<channel>` message of a reference change.
+    pub fn reference_message(change: &ReferenceChange) -> crate::sink::ReferenceChange {
+        crate::sink::ReferenceChange {
+            channel: change.channel.clone(),
+            file: change.file.clone(),
+            frame: change.frame,
+            obs_time: change.obs_time.clone(),
+            reason: change.reason.clone(),
+            reference_kind: change.reference_kind.clone(),
+            sequence: change.sequence,
+            replaces: change.replaces.clone(),
+        }
+    }
+
+    /// The `foxglove.Log` level of a `/log` record.
+    pub fn log_level(level: LogLevel) -> crate::sink::LogLevel {
+        match level {
+            LogLevel::Info => crate::sink::LogLevel::Info,
+            LogLevel::Warning => crate::sink::LogLevel::Warning,
+            LogLevel::Error => crate::sink::LogLevel::Error,
         }
     }
 }

@@ -44,13 +44,14 @@ mod schemas;
 mod segment;
 
 pub use reader::{
-    logged_frames, read_logs, recover_segment, JitterMessage, LogContents, LogMessage,
-    MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
+    logged_frames, read_logs, recover_segment, AlertMessage, JitterMessage, LogContents,
+    LogMessage, MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
 };
 pub use schemas::{
-    frame_alignment_schema, jitter_topic, log_schema, reference_change_schema, reference_topic,
-    FoxgloveTime, LogEntry, LogLevel, ReferenceChange, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA,
-    LOG_TOPIC, MESSAGE_ENCODING, METADATA_NAME, REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
+    alert_schema, frame_alignment_schema, jitter_topic, log_schema, reference_change_schema,
+    reference_topic, Alert, FoxgloveTime, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA,
+    ALERT_TOPIC, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, LOG_TOPIC, MESSAGE_ENCODING, METADATA_NAME,
+    REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
 };
 
 use crate::record::FrameAlignment;
@@ -116,6 +117,7 @@ enum Kind {
     Jitter,
     Reference,
     Log,
+    Alert,
 }
 
 impl Kind {
@@ -124,6 +126,7 @@ impl Kind {
             Kind::Jitter => (FRAME_ALIGNMENT_SCHEMA, frame_alignment_schema),
             Kind::Reference => (REFERENCE_CHANGE_SCHEMA, reference_change_schema),
             Kind::Log => (LOG_SCHEMA, log_schema),
+            Kind::Alert => (ALERT_SCHEMA, alert_schema),
         }
     }
 }
@@ -275,6 +278,23 @@ impl McapSink {
         self.accept(
             Kind::Log,
             LOG_TOPIC.to_string(),
+            data,
+            log_time_ns,
+            publish_time_ns,
+        )
+    }
+
+    /// Logs an alert on `/alert`.
+    pub fn write_alert(
+        &mut self,
+        alert: &Alert,
+        log_time_ns: u64,
+        publish_time_ns: u64,
+    ) -> Result<()> {
+        let data = self.encode(alert)?;
+        self.accept(
+            Kind::Alert,
+            ALERT_TOPIC.to_string(),
             data,
             log_time_ns,
             publish_time_ns,

@@ -2,8 +2,8 @@
 //! maybe a truncated record at the end), read linearly up to the last complete record.
 
 use super::schemas::{
-    LogEntry, LogLevel, ReferenceChange, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, MESSAGE_ENCODING,
-    REFERENCE_CHANGE_SCHEMA,
+    Alert, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA,
+    MESSAGE_ENCODING, REFERENCE_CHANGE_SCHEMA,
 };
 use crate::fits::FrameSpec;
 use crate::record::FrameAlignment;
@@ -43,6 +43,15 @@ pub struct LogMessage {
     pub entry: LogEntry,
 }
 
+/// One `/alert` message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlertMessage {
+    pub segment: usize,
+    pub log_time_ns: u64,
+    pub publish_time_ns: u64,
+    pub alert: Alert,
+}
+
 /// One metadata record (sunjitter writes `sunjitter` with `version` and `config`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MetadataRecord {
@@ -74,6 +83,7 @@ pub struct LogContents {
     pub jitter: Vec<JitterMessage>,
     pub references: Vec<ReferenceMessage>,
     pub logs: Vec<LogMessage>,
+    pub alerts: Vec<AlertMessage>,
     pub metadata: Vec<MetadataRecord>,
     pub segments: Vec<SegmentReport>,
 }
@@ -405,6 +415,14 @@ fn decode_segment(raw: RawSegment, contents: &mut LogContents) {
                     log_time_ns,
                     publish_time_ns,
                     entry,
+                })
+            }),
+            ALERT_SCHEMA => serde_json::from_slice(data).map(|alert| {
+                contents.alerts.push(AlertMessage {
+                    segment,
+                    log_time_ns,
+                    publish_time_ns,
+                    alert,
                 })
             }),
             other => {
