@@ -139,9 +139,21 @@ struct FineResult {
     uabjm_covariance: Covariance4,
     fit: SimilarityFit,
     points: usize,
+    /// The frame resampled onto the reference grid through the final estimate, on `crop`
+    /// only (the mask's box plus every later filter's reach).
     warped: Array2<f32>,
+    crop: Crop,
     passes: usize,
     converged: bool,
+}
+
+impl FineResult {
+    /// `warped` at reference-grid rows and columns (which must lie inside the crop).
+    fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> ArrayView2<'_, f32> {
+        let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
+        self.warped
+            .slice(s![rows.start - y0..rows.end - y0, cols.start - x0..cols.end - x0])
+    }
 }
 
 /// Align `frame` to `reference`: where reference content appears in the frame.
@@ -244,7 +256,7 @@ fn align_inner(
     let (rows, cols) = grown(mask_box, 0.0, w, h);
     let similarity = quality::bhattacharyya(
         ref_data.slice(s![rows.clone(), cols.clone()]),
-        fine.warped.slice(s![rows.clone(), cols.clone()]),
+        fine.warped_at(rows.clone(), cols.clone()),
         mask.slice(s![rows, cols]),
     );
     // Structure only: the large-scale disk brightness correlates even for unrelated images.
@@ -252,7 +264,7 @@ fn align_inner(
     let (rows, cols) = grown(mask_box, trend_px, w, h);
     let correlation = quality::normalised_cross_correlation(
         quality::high_pass(ref_matched.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
-        quality::high_pass(fine.warped.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
+        quality::high_pass(fine.warped_at(rows.clone(), cols.clone()), trend_px).view(),
         mask.slice(s![rows, cols]),
     );
 
@@ -371,19 +383,49 @@ fn fine_alignment(
     let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
     let radius = mask_extent_px(mask);
 
+    // Every pass works on a crop of the reference grid: the mask's box plus what the flow's
+    // domain (at the pass's coarsest level), its border taper, the frame's smoothing and the
+    // quality filters after the last pass read around it. Inside the mask the results equal
+    // those of whole-frame arrays; outside nothing is computed (the disk covers under half of
+    // a full-disk frame).
+    let quality_reach = gaussian_reach(winsize as f64 / 4.0);
+    let smoothing_reach = gaussian_reach(frame_smoothing_px);
+    let crop_for = |levels: usize| -> Crop {
+        let flow = (winsize / 2 + cfg.poly_n + 3 + FLOW_TAPER_PX + 2) << levels;
+        let blur = if levels > 0 { (5usize << levels) / 4 + 2 } else { 0 };
+        let margin = (flow + blur).max(quality_reach) + smoothing_reach;
+        // Aligned so that every level's pixels and flow-grid nodes are those of the whole image.
+        let grid_stride = FlowOptions::affine_grid(winsize).grid_stride;
+        Crop::around(roi, margin, grid_stride << levels, w, h)
+    };
+
     let mut estimate = coarse.recentered(center);
     let mut solver: Option<Farneback> = None;
     let mut pass = 0;
     loop {
         pass += 1;
-        let mut warped = spline.warp_similarity(&estimate, w, h);
+        let first = pass == 1;
+        let pass_levels = if first { levels } else { 0 };
+        let crop = crop_for(pass_levels);
+        let (x0, y0) = (crop.cols.start, crop.rows.start);
+        let (ch, cw) = (crop.rows.len(), crop.cols.len());
+        let to_frame = crate::resample::similarity_map(&estimate);
+        let mut warped = crate::resample::warp_sampler(&spline, cw, ch, |x, y| {
+            to_frame(x + x0 as f64, y + y0 as f64)
+        });
         if frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
         }
-        let first = pass == 1;
+        let ref_crop = reference.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let mask_crop = mask.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let roi_crop = Roi {
+            x: roi.x - x0,
+            y: roi.y - y0,
+            ..roi
+        };
         let params = FarnebackParams {
             pyr_scale: 0.5,
-            levels: if first { levels } else { 0 },
+            levels: pass_levels,
             winsize,
             iterations: if first {
                 cfg.iterations
@@ -403,27 +445,32 @@ fn fine_alignment(
                 .map_err(|e| FineError::Flow(e.to_string()))?,
         };
         let flow = s
-            .compute(reference.view(), warped.view(), Some(roi), None)
+            .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
         solver = Some(s);
 
         // Sample only where the whole window saw data: a window cut by the frame's edge
-        // (or a blank region) measures a biased motion.
+        // (or a blank region) measures a biased motion. The crop's own edge is further than
+        // the window from the mask unless it is the image's edge, which erosion treats alike.
         let mut valid = warped.mapv(f32::is_finite);
         Zip::from(&mut valid)
-            .and(reference)
+            .and(&ref_crop)
             .for_each(|m, v| *m = *m && v.is_finite());
         let mut sample_mask = erode(&valid, winsize / 2);
         Zip::from(&mut sample_mask)
-            .and(mask)
+            .and(&mask_crop)
             .for_each(|a, b| *a = *a && *b);
-        let points = grid_median_sample(
+        let mut points = grid_median_sample(
             flow.u.view(),
             flow.v.view(),
             sample_mask.view(),
             stride,
             cfg.sample,
         );
+        for p in &mut points {
+            p.x += x0 as f64;
+            p.y += y0 as f64;
+        }
         let fit = fit_similarity(&points, center, &ransac)
             .map_err(|source| FineError::Fit { pass, source })?;
         let update = fit.transform;
@@ -450,10 +497,47 @@ fn fine_alignment(
                 points: points.len(),
                 fit,
                 warped,
+                crop,
                 passes: pass,
                 converged,
             });
         }
+    }
+}
+
+/// Outermost pixels of a level that OpenCV's border taper weighs down.
+const FLOW_TAPER_PX: usize = 5;
+
+/// Rows and columns of the reference grid one pass works on.
+#[derive(Debug, Clone, PartialEq)]
+struct Crop {
+    rows: Range<usize>,
+    cols: Range<usize>,
+}
+
+impl Crop {
+    /// `roi` grown by `margin`, its start rounded down and its end up to multiples of `align`,
+    /// clamped to the `w × h` image.
+    fn around(roi: Roi, margin: usize, align: usize, w: usize, h: usize) -> Crop {
+        let span = |lo: usize, len: usize, n: usize| -> Range<usize> {
+            let a = lo.saturating_sub(margin) / align * align;
+            let b = (lo + len + margin).div_ceil(align) * align;
+            a..b.min(n)
+        };
+        Crop {
+            rows: span(roi.y, roi.height, h),
+            cols: span(roi.x, roi.width, w),
+        }
+    }
+}
+
+/// Reach of `preprocess::gaussian_smooth` at σ = `sigma_px` (its truncation radius) plus one
+/// pixel for a central difference; 0 when it does nothing.
+fn gaussian_reach(sigma_px: f64) -> usize {
+    if sigma_px > 0.0 && sigma_px.is_finite() {
+        (4.0 * sigma_px + 0.5) as usize + 1
+    } else {
+        0
     }
 }
 
@@ -506,11 +590,7 @@ const STRUCTURE_TREND_SIGMA_PX: f64 = 8.0;
 /// clamped to the `w × h` image: inside `roi` such filters give the same values on this crop
 /// as on the whole image.
 fn grown(roi: Roi, sigma_px: f64, w: usize, h: usize) -> (Range<usize>, Range<usize>) {
-    let reach = if sigma_px > 0.0 {
-        (4.0 * sigma_px + 0.5) as usize + 1
-    } else {
-        0
-    };
+    let reach = gaussian_reach(sigma_px);
     (
         roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h),
         roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w),
