@@ -157,88 +157,217 @@ impl FineResult {
 }
 
 /// Align `frame` to `reference`: where reference content appears in the frame.
+/// To align several frames to one reference, prepare it once with [`PreparedReference`].
 pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> AlignOutcome {
     let started = Instant::now();
-    let mut outcome = match align_inner(reference, frame, cfg) {
-        Ok(o) => o,
-        Err(reason) => AlignOutcome::failed(
-            &reference.meta.file.display().to_string(),
-            &frame.meta.file.display().to_string(),
-            &reason,
-        ),
-    };
+    let mut outcome = PreparedReference::new(reference, cfg).align(frame);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }
 
+/// The reference's share of an alignment (hot-pixel cleaning, disk check, mask, window,
+/// resolution-matched copies and their high-pass), computed once and reused for every frame
+/// aligned to it: the daemon aligns many frames to one reference. `align` gives exactly what
+/// [`align_images`] gives.
+pub struct PreparedReference {
+    cfg: EngineConfig,
+    file: String,
+    work: Result<ReferenceWork, String>,
+}
+
+struct ReferenceWork {
+    /// The header's metadata, and as checked against the image.
+    meta: FrameMeta,
+    checked: FrameMeta,
+    notes: Vec<String>,
+    cleaned: Array2<f32>,
+    mask: Array2<bool>,
+    /// Why the mask cannot be used (raised after the frame's own checks, as before caching).
+    mask_error: Option<String>,
+    mask_box: Roi,
+    winsize: usize,
+    /// Resolution-matched versions by smoothing σ (few: one per partner plate scale).
+    matched: std::sync::Mutex<Vec<std::sync::Arc<Matched>>>,
+}
+
+/// The reference smoothed to a frame's resolution, and its high-pass for the structure check.
+struct Matched {
+    sigma_px: f64,
+    /// `None`: no smoothing (the cleaned reference itself).
+    data: Option<Array2<f32>>,
+    /// High-pass of `data` on `quality_crop`.
+    high_pass: Array2<f32>,
+    quality_crop: Crop,
+}
+
+/// At most this many resolution-matched versions are kept per reference.
+const MATCHED_CACHE: usize = 4;
+
+impl PreparedReference {
+    pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
+        PreparedReference {
+            cfg: cfg.clone(),
+            file: reference.meta.file.display().to_string(),
+            work: ReferenceWork::new(reference, cfg),
+        }
+    }
+
+    /// The configuration the reference was prepared with (and frames are aligned with).
+    pub fn config(&self) -> &EngineConfig {
+        &self.cfg
+    }
+
+    /// Align `frame` to the prepared reference.
+    pub fn align(&self, frame: &Image) -> AlignOutcome {
+        let started = Instant::now();
+        let result = match &self.work {
+            Ok(work) => align_inner(work, frame, &self.cfg),
+            Err(reason) => Err(reason.clone()),
+        };
+        let mut outcome = result.unwrap_or_else(|reason| {
+            AlignOutcome::failed(&self.file, &frame.meta.file.display().to_string(), &reason)
+        });
+        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+        outcome
+    }
+}
+
+impl ReferenceWork {
+    fn new(reference: &Image, cfg: &EngineConfig) -> Result<ReferenceWork, String> {
+        let (h, w) = reference.data.dim();
+        check_usable("reference", &reference.data)?;
+        let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
+        let mut notes = Vec::new();
+        let (checked, disk_px) = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+
+        // Mask on the reference grid: the disk without its limb, or the whole valid field.
+        let mut mask = match disk_px {
+            Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
+            None => Array2::from_elem((h, w), true),
+        };
+        Zip::from(&mut mask)
+            .and(&cleaned)
+            .for_each(|m, v| *m = *m && v.is_finite());
+        let mask_pixels = mask.iter().filter(|m| **m).count();
+        let mask_error = (mask_pixels < 64).then(|| {
+            format!(
+                "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
+            )
+        });
+        // Filters and statistics below only matter inside the mask: run them on its bounding
+        // box plus the filter's reach (the disk covers under half of a full-disk frame).
+        let mask_box = mask_roi(&mask);
+
+        // Window sized for the plate scale, bounded by what the image's structure supports.
+        let plate = checked.plate_scale_arcsec[0].abs();
+        let structure = if mask_error.is_none() {
+            let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
+            structure_length_px(
+                cleaned.slice(s![rows.clone(), cols.clone()]),
+                mask.slice(s![rows, cols]),
+            )
+        } else {
+            None
+        };
+        let winsize = choose_window(cfg, plate, structure, disk_px.map(|d| d.1), w, h);
+        tracing::debug!(?structure, winsize, plate, "window chosen");
+        Ok(ReferenceWork {
+            meta: reference.meta.clone(),
+            checked,
+            notes,
+            cleaned,
+            mask,
+            mask_error,
+            mask_box,
+            winsize,
+            matched: std::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The reference smoothed by `sigma_px` (cached).
+    fn matched(&self, sigma_px: f64) -> std::sync::Arc<Matched> {
+        let sigma_px = if sigma_px > 0.0 { sigma_px } else { 0.0 };
+        let lock = || match self.matched.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some(m) = lock()
+            .iter()
+            .find(|m| m.sigma_px.to_bits() == sigma_px.to_bits())
+        {
+            return m.clone();
+        }
+        let data = (sigma_px > 0.0)
+            .then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
+        let view = data.as_ref().map_or(self.cleaned.view(), |d| d.view());
+        // Structure only: the large-scale disk brightness correlates even for unrelated images.
+        let (h, w) = self.cleaned.dim();
+        let trend_px = self.trend_px();
+        let (rows, cols) = grown(self.mask_box, trend_px, w, h);
+        let high_pass = quality::high_pass(view.slice(s![rows.clone(), cols.clone()]), trend_px);
+        let made = std::sync::Arc::new(Matched {
+            sigma_px,
+            data,
+            high_pass,
+            quality_crop: Crop { rows, cols },
+        });
+        let mut cache = lock();
+        if cache.len() >= MATCHED_CACHE {
+            cache.remove(0);
+        }
+        cache.push(made.clone());
+        made
+    }
+
+    /// Scale of the trend removed before the structure check, px.
+    fn trend_px(&self) -> f64 {
+        self.winsize as f64 / 4.0
+    }
+}
+
+impl Matched {
+    fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
+        self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+}
+
 fn align_inner(
-    reference: &Image,
+    work: &ReferenceWork,
     frame: &Image,
     cfg: &EngineConfig,
 ) -> Result<AlignOutcome, String> {
-    let (h, w) = reference.data.dim();
-    check_usable("reference", &reference.data)?;
+    let (h, w) = work.cleaned.dim();
     check_usable("frame", &frame.data)?;
-    let mut notes: Vec<String> = Vec::new();
+    let mut notes: Vec<String> = work.notes.clone();
 
-    let ref_data = cleaned(&reference.data, cfg.hot_pixel_fraction);
     let frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
 
     // Coarse: headers, checked against the disks the images show.
-    let geo = effective_geometry(reference, &ref_data, frame, &frame_data);
-    notes.extend(geo.notes.iter().cloned());
-    let coarse = crate::coarse::coarse_transform(&geo.reference, &geo.frame)
+    let (frame_meta, _) = geometry_check::checked(&frame.meta, &frame_data, &mut notes);
+    let coarse = crate::coarse::coarse_transform(&work.checked, &frame_meta)
         .map_err(|e| format!("coarse alignment: {e}"))?;
-
-    // Mask on the reference grid: the disk without its limb, or the whole valid field.
-    let mut mask = match geo.reference_disk_px {
-        Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
-        None => Array2::from_elem((h, w), true),
-    };
-    Zip::from(&mut mask)
-        .and(&ref_data)
-        .for_each(|m, v| *m = *m && v.is_finite());
-    let mask_pixels = mask.iter().filter(|m| **m).count();
-    if mask_pixels < 64 {
-        return Err(format!(
-            "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
-        ));
+    if let Some(e) = &work.mask_error {
+        return Err(e.clone());
     }
-    // Filters and statistics below only matter inside the mask: run them on its bounding box
-    // plus the filter's reach (the disk covers under half of a full-disk frame).
-    let mask_box = mask_roi(&mask);
-
-    // Window sized for the plate scale, bounded by what the image's structure supports.
-    let plate = geo.reference.plate_scale_arcsec[0].abs();
-    let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
-    let structure = structure_length_px(
-        ref_data.slice(s![rows.clone(), cols.clone()]),
-        mask.slice(s![rows, cols]),
-    );
-    let winsize = choose_window(
-        cfg,
-        plate,
-        structure,
-        geo.reference_disk_px.map(|d| d.1),
-        w,
-        h,
-    );
-    tracing::debug!(?structure, winsize, plate, "window chosen");
+    let (mask, mask_box, winsize) = (&work.mask, work.mask_box, work.winsize);
+    let ref_data = &work.cleaned;
 
     // Resolution matching: degrade the sharper image to the other's resolution.
+    let plate = work.checked.plate_scale_arcsec[0].abs();
     let grid_plate = plate;
-    let frame_plate_on_grid = geo.frame.plate_scale_arcsec[0].abs();
+    let frame_plate_on_grid = frame_meta.plate_scale_arcsec[0].abs();
     let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
         preprocess::nyquist_fwhm_arcsec(plate),
         preprocess::nyquist_fwhm_arcsec(frame_plate_on_grid),
         grid_plate,
     );
-    let ref_matched = preprocess::gaussian_smooth(ref_data.view(), sig_ref);
+    let matched = work.matched(sig_ref);
+    let ref_matched = matched.view(work);
 
     let fine = fine_alignment(
-        &ref_matched,
+        ref_matched,
         &frame_data,
-        &mask,
+        mask,
         coarse,
         winsize,
         sig_frame,
@@ -259,13 +388,20 @@ fn align_inner(
         fine.warped_at(rows.clone(), cols.clone()),
         mask.slice(s![rows, cols]),
     );
-    // Structure only: the large-scale disk brightness correlates even for unrelated images.
-    let trend_px = winsize as f64 / 4.0;
-    let (rows, cols) = grown(mask_box, trend_px, w, h);
     let correlation = quality::normalised_cross_correlation(
-        quality::high_pass(ref_matched.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
-        quality::high_pass(fine.warped_at(rows.clone(), cols.clone()), trend_px).view(),
-        mask.slice(s![rows, cols]),
+        matched.high_pass.view(),
+        quality::high_pass(
+            fine.warped_at(
+                matched.quality_crop.rows.clone(),
+                matched.quality_crop.cols.clone(),
+            ),
+            work.trend_px(),
+        )
+        .view(),
+        mask.slice(s![
+            matched.quality_crop.rows.clone(),
+            matched.quality_crop.cols.clone()
+        ]),
     );
 
     let t = fine.transform;
@@ -303,9 +439,9 @@ fn align_inner(
     reasons.extend(notes);
     reasons.push(format!("window {winsize} px, {} passes", fine.passes));
 
-    let ps = reference.meta.plate_scale_arcsec;
+    let ps = work.meta.plate_scale_arcsec;
     let result = AlignResult {
-        reference: reference.meta.file.display().to_string(),
+        reference: work.meta.file.display().to_string(),
         frame: frame.meta.file.display().to_string(),
         scale: Some(t.scale),
         rotation_arcsec: Some(t.rotation_arcsec()),
@@ -341,7 +477,7 @@ fn align_inner(
         coarse: Some(coarse),
         covariance: Some(fine.covariance),
         uabjm_covariance: Some(fine.uabjm_covariance),
-        mask: Some(mask),
+        mask: Some(mask.clone()),
     })
 }
 
@@ -359,7 +495,7 @@ enum FineError {
 }
 
 fn fine_alignment(
-    reference: &Array2<f32>,
+    reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     mask: &Array2<bool>,
     coarse: Similarity,
