@@ -353,25 +353,57 @@ pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
 
 /// Zero-padded 1-D convolution along each row (symmetric kernel).
 fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let r = kernel.len() / 2;
     let (h, w) = a.dim();
     let mut out = Array2::<f32>::zeros((h, w));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(a.axis_iter(Axis(0)))
-        .for_each(|(mut o, row)| {
-            let row = row.to_vec(); // contiguous copy: one row, cheap
-            for (x, ov) in o.iter_mut().enumerate() {
-                let lo = x.saturating_sub(r);
-                let hi = (x + r).min(w - 1);
-                *ov = row[lo..=hi]
-                    .iter()
-                    .zip(&kernel[lo + r - x..=hi + r - x])
-                    .map(|(v, k)| v * k)
-                    .sum();
+        .for_each_init(Vec::new, |buf, (mut o, row)| {
+            buf.clear();
+            buf.extend(row.iter().copied()); // contiguous copy: one row, cheap
+            match o.as_slice_mut() {
+                Some(o) => convolve_row(buf, kernel, o),
+                None => {
+                    let mut tmp = vec![0f32; w];
+                    convolve_row(buf, kernel, &mut tmp);
+                    o.iter_mut().zip(&tmp).for_each(|(d, s)| *d = *s);
+                }
             }
         });
     out
+}
+
+/// `out[x] = Σ_t kernel[t]·row[x + t − r]` over the taps inside the row, summed in tap order.
+/// Interior pixels go tap-outer over contiguous slices (vectorised; same sums, same order).
+fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
+    let r = kernel.len() / 2;
+    let w = row.len();
+    let direct = |x: usize| -> f32 {
+        let lo = x.saturating_sub(r);
+        let hi = (x + r).min(w - 1);
+        row[lo..=hi]
+            .iter()
+            .zip(&kernel[lo + r - x..=hi + r - x])
+            .map(|(v, k)| v * k)
+            .sum()
+    };
+    if w <= 2 * r {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = direct(x);
+        }
+        return;
+    }
+    let n = w - 2 * r;
+    let inner = &mut out[r..r + n];
+    inner.iter_mut().for_each(|o| *o = 0.0);
+    for (t, &k) in kernel.iter().enumerate() {
+        for (o, &v) in inner.iter_mut().zip(&row[t..t + n]) {
+            *o += v * k;
+        }
+    }
+    for x in (0..r).chain(r + n..w) {
+        out[x] = direct(x);
+    }
 }
 
 /// Zero-padded 1-D convolution along each column, row-wise for cache locality.

@@ -340,10 +340,13 @@ fn align_inner(
     check_usable("frame", &frame.data)?;
     let mut notes: Vec<String> = work.notes.clone();
 
+    let started = Instant::now();
     let frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
+    let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
     let (frame_meta, _) = geometry_check::checked(&frame.meta, &frame_data, &mut notes);
+    tracing::debug!(?cleaned_at, checked_at = ?started.elapsed(), "frame prepared");
     let coarse = crate::coarse::coarse_transform(&work.checked, &frame_meta)
         .map_err(|e| format!("coarse alignment: {e}"))?;
     if let Some(e) = &work.mask_error {
@@ -381,6 +384,7 @@ fn align_inner(
         ));
     }
 
+    let fine_at = started.elapsed();
     // Quality of the final match.
     let (rows, cols) = grown(mask_box, 0.0, w, h);
     let similarity = quality::bhattacharyya(
@@ -404,6 +408,7 @@ fn align_inner(
         ]),
     );
 
+    tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
     let sig = sigmas(&fine.covariance);
     let usig = sigmas(&fine.uabjm_covariance);
@@ -540,15 +545,13 @@ fn fine_alignment(
     let mut pass = 0;
     loop {
         pass += 1;
+        let pass_started = Instant::now();
         let first = pass == 1;
         let pass_levels = if first { levels } else { 0 };
         let crop = crop_for(pass_levels);
         let (x0, y0) = (crop.cols.start, crop.rows.start);
         let (ch, cw) = (crop.rows.len(), crop.cols.len());
-        let to_frame = crate::resample::similarity_map(&estimate);
-        let mut warped = crate::resample::warp_sampler(&spline, cw, ch, |x, y| {
-            to_frame(x + x0 as f64, y + y0 as f64)
-        });
+        let mut warped = spline.warp_similarity_window(&estimate, x0, y0, cw, ch);
         if frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
         }
@@ -575,15 +578,17 @@ fn fine_alignment(
         let options = FlowOptions::affine_grid(winsize);
         // The solver keeps its buffers between passes when the parameters allow.
         let mut s = match solver.take() {
-            Some(s) if s.params() == &params => s,
+            Some(s) if s.params() == &params && s.options() == &options => s,
             _ => Farneback::new(params.clone())
                 .and_then(|f| f.with_options(options.clone()))
                 .map_err(|e| FineError::Flow(e.to_string()))?,
         };
+        let warped_at = pass_started.elapsed();
         let flow = s
             .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
         solver = Some(s);
+        let flow_at = pass_started.elapsed();
 
         // Sample only where the whole window saw data: a window cut by the frame's edge
         // (or a blank region) measures a biased motion. The crop's own edge is further than
@@ -609,6 +614,7 @@ fn fine_alignment(
         }
         let fit = fit_similarity(&points, center, &ransac)
             .map_err(|source| FineError::Fit { pass, source })?;
+        tracing::debug!(pass, ?warped_at, ?flow_at, fitted_at = ?pass_started.elapsed(), crop = ?(cw, ch), "fine pass");
         let update = fit.transform;
         let previous = estimate;
         estimate = estimate.after(&update);

@@ -46,7 +46,7 @@
 mod grid;
 mod poly;
 mod pyramid;
-mod simd;
+pub(crate) mod simd;
 mod solve;
 
 use crate::error::{Error, Result};
