@@ -541,7 +541,7 @@ fn fine_alignment(
     };
 
     let mut estimate = coarse.recentered(center);
-    let mut solver: Option<Farneback> = None;
+    let mut solver: Option<Farneback> = spare_solver(None);
     let mut pass = 0;
     loop {
         pass += 1;
@@ -576,10 +576,16 @@ fn fine_alignment(
             gaussian_window: false,
         };
         let options = FlowOptions::affine_grid(winsize);
-        // The solver keeps its buffers between passes when the parameters allow.
+        // The solver keeps its buffers between passes and frames.
         let mut s = match solver.take() {
-            Some(s) if s.params() == &params && s.options() == &options => s,
-            _ => Farneback::new(params.clone())
+            Some(mut s) => {
+                if s.params() != &params || s.options() != &options {
+                    s.reconfigure(params.clone(), options.clone())
+                        .map_err(|e| FineError::Flow(e.to_string()))?;
+                }
+                s
+            }
+            None => Farneback::new(params.clone())
                 .and_then(|f| f.with_options(options.clone()))
                 .map_err(|e| FineError::Flow(e.to_string()))?,
         };
@@ -629,6 +635,7 @@ fn fine_alignment(
             if cfg.sigma == SigmaMethod::Calibrated {
                 sigma::add_floor(&mut calibrated, &inliers, center, cfg.systematic_floor_px);
             }
+            spare_solver(solver.take());
             let zero = [[0.0; 4]; 4];
             let (_, cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
             let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
@@ -680,6 +687,25 @@ fn gaussian_reach(sigma_px: f64) -> usize {
         (4.0 * sigma_px + 0.5) as usize + 1
     } else {
         0
+    }
+}
+
+/// Hand back a flow solver for the next alignment (`Some`), or take the spare one (`None`).
+/// One is kept, whatever the reference: its buffers (≈ 35 bytes per pixel of the crop) are
+/// the largest working memory of an alignment, and faulting them in again for every frame
+/// costs more than the flow's arithmetic on the coarse levels.
+fn spare_solver(give: Option<Farneback>) -> Option<Farneback> {
+    static SPARE: std::sync::Mutex<Option<Farneback>> = std::sync::Mutex::new(None);
+    let mut spare = match SPARE.lock() {
+        Ok(g) => g,
+        Err(poisoned) => poisoned.into_inner(),
+    };
+    match give {
+        Some(s) => {
+            *spare = Some(s);
+            None
+        }
+        None => spare.take(),
     }
 }
 

@@ -353,6 +353,18 @@ impl Farneback {
         &self.params
     }
 
+    /// Change the parameters and options, keeping every buffer (a solver reused for another
+    /// pass or frame does not page-fault its working memory in again).
+    pub fn reconfigure(&mut self, params: FarnebackParams, options: FlowOptions) -> Result<()> {
+        check_params(&params)?;
+        let fresh = Farneback::new(params)?.with_options(options)?;
+        self.params = fresh.params;
+        self.options = fresh.options;
+        self.poly = fresh.poly;
+        self.gauss = fresh.gauss;
+        Ok(())
+    }
+
     /// Use `options` (see [`FlowOptions`]); errors on a zero stride or zero iterations.
     pub fn with_options(mut self, options: FlowOptions) -> Result<Self> {
         if options.grid_stride == 0
