@@ -237,7 +237,10 @@ impl RowMap {
     #[inline(always)]
     fn at(&self, x: usize, y: f64) -> (f64, f64) {
         let (u, v) = (x as f64 + self.x0 - self.cx, y - self.cy);
-        (self.a * u - self.b * v + self.ox, self.b * u + self.a * v + self.oy)
+        (
+            self.a * u - self.b * v + self.ox,
+            self.b * u + self.a * v + self.oy,
+        )
     }
 }
 

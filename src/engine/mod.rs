@@ -151,8 +151,10 @@ impl FineResult {
     /// `warped` at reference-grid rows and columns (which must lie inside the crop).
     fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> ArrayView2<'_, f32> {
         let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
-        self.warped
-            .slice(s![rows.start - y0..rows.end - y0, cols.start - x0..cols.end - x0])
+        self.warped.slice(s![
+            rows.start - y0..rows.end - y0,
+            cols.start - x0..cols.end - x0
+        ])
     }
 }
 
@@ -297,8 +299,8 @@ impl ReferenceWork {
         {
             return m.clone();
         }
-        let data = (sigma_px > 0.0)
-            .then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
+        let data =
+            (sigma_px > 0.0).then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
         let view = data.as_ref().map_or(self.cleaned.view(), |d| d.view());
         // Structure only: the large-scale disk brightness correlates even for unrelated images.
         let (h, w) = self.cleaned.dim();
@@ -533,7 +535,11 @@ fn fine_alignment(
     let smoothing_reach = gaussian_reach(frame_smoothing_px);
     let crop_for = |levels: usize| -> Crop {
         let flow = (winsize / 2 + cfg.poly_n + 3 + FLOW_TAPER_PX + 2) << levels;
-        let blur = if levels > 0 { (5usize << levels) / 4 + 2 } else { 0 };
+        let blur = if levels > 0 {
+            (5usize << levels) / 4 + 2
+        } else {
+            0
+        };
         let margin = (flow + blur).max(quality_reach) + smoothing_reach;
         // Aligned so that every level's pixels and flow-grid nodes are those of the whole image.
         let grid_stride = FlowOptions::affine_grid(winsize).grid_stride;

@@ -29,7 +29,9 @@ pub fn bhattacharyya(
     );
     let (_, &mut lo, above) = pooled.select_nth_unstable_by(k_lo, f64::total_cmp);
     let hi = if k_hi > k_lo {
-        *above.select_nth_unstable_by(k_hi - k_lo - 1, f64::total_cmp).1
+        *above
+            .select_nth_unstable_by(k_hi - k_lo - 1, f64::total_cmp)
+            .1
     } else {
         lo
     };
