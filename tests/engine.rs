@@ -206,7 +206,7 @@ fn synthetic_full_disk() -> Image {
         .status()
         .expect("run sunjitter synth");
     assert!(status.success(), "sunjitter synth failed");
-    read_frame(&FrameSpec::file(&dir.path().join("synth_0000.fits"))).expect("synth frame reads")
+    read_frame(&FrameSpec::file(dir.path().join("synth_0000.fits"))).expect("synth frame reads")
 }
 
 #[test]
