@@ -373,6 +373,7 @@ fn align_inner(
         ref_matched,
         &frame_data,
         mask,
+        mask_box,
         coarse,
         winsize,
         sig_frame,
@@ -505,6 +506,7 @@ fn fine_alignment(
     reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     mask: &Array2<bool>,
+    roi: Roi,
     coarse: Similarity,
     winsize: usize,
     frame_smoothing_px: f64,
@@ -513,7 +515,6 @@ fn fine_alignment(
     let (h, w) = reference.dim();
     let center = Similarity::array_center(w, h);
     let spline = SplineImage::new(frame.view());
-    let roi = mask_roi(mask);
     let levels = cfg
         .pyramid_levels
         .unwrap_or_else(|| auto_levels(roi.width.min(roi.height)));
@@ -524,7 +525,7 @@ fn fine_alignment(
         ..RansacParams::default()
     };
     let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
-    let radius = mask_extent_px(mask);
+    let radius = mask_extent_px(mask, roi);
 
     // Every pass works on a crop of the reference grid: the mask's box plus what the flow's
     // domain (at the pass's coarsest level), its border taper, the frame's smoothing and the
@@ -717,23 +718,36 @@ fn spare_solver(give: Option<Farneback>) -> Option<Farneback> {
 
 /// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
 fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
+    use rayon::prelude::*;
     let (h, w) = valid.dim();
-    // Integral image of invalid pixels.
-    let mut integral = Array2::<u32>::zeros((h + 1, w + 1));
-    for y in 0..h {
-        let mut row = 0u32;
-        for x in 0..w {
-            row += u32::from(!valid[[y, x]]);
-            integral[[y + 1, x + 1]] = integral[[y, x + 1]] + row;
+    // Integral image of invalid pixels, row-major with a zero first row and column.
+    let iw = w + 1;
+    let mut integral = vec![0u32; (h + 1) * iw];
+    for (y, row) in valid.rows().into_iter().enumerate() {
+        let (above, below) = integral.split_at_mut((y + 1) * iw);
+        let (prev, cur) = (&above[y * iw..], &mut below[..iw]);
+        let mut count = 0u32;
+        for (x, v) in row.iter().enumerate() {
+            count += u32::from(!*v);
+            cur[x + 1] = prev[x + 1] + count;
         }
     }
-    Array2::from_shape_fn((h, w), |(y, x)| {
-        if y < r || x < r || y + r >= h || x + r >= w {
-            return false;
-        }
-        let (y0, y1, x0, x1) = (y - r, y + r + 1, x - r, x + r + 1);
-        integral[[y1, x1]] + integral[[y0, x0]] == integral[[y0, x1]] + integral[[y1, x0]]
-    })
+    let mut out = Array2::from_elem((h, w), false);
+    out.axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut o)| {
+            if y < r || y + r >= h {
+                return;
+            }
+            let (top, bottom) = ((y - r) * iw, (y + r + 1) * iw);
+            for x in r..w.saturating_sub(r) {
+                let (x0, x1) = (x - r, x + r + 1);
+                o[x] = integral[bottom + x1] + integral[top + x0]
+                    == integral[top + x1] + integral[bottom + x0];
+            }
+        });
+    out
 }
 
 /// Largest displacement the transform causes within `radius` of its centre.
@@ -743,14 +757,16 @@ fn max_motion_px(t: &Similarity, radius: f64) -> f64 {
     (t.dx * t.dx + t.dy * t.dy).sqrt() + linear
 }
 
-/// Half the diagonal of the mask's bounding box around the array centre.
-fn mask_extent_px(mask: &Array2<bool>) -> f64 {
+/// Largest distance of a mask pixel from the array centre (`roi`: the mask's bounding box).
+fn mask_extent_px(mask: &Array2<bool>, roi: Roi) -> f64 {
     let (h, w) = mask.dim();
     let c = Similarity::array_center(w, h);
     let mut r2: f64 = 0.0;
-    for ((y, x), &m) in mask.indexed_iter() {
+    let boxed = mask.slice(s![roi.y..roi.y + roi.height, roi.x..roi.x + roi.width]);
+    for ((y, x), &m) in boxed.indexed_iter() {
         if m {
-            r2 = r2.max((x as f64 - c[0]).powi(2) + (y as f64 - c[1]).powi(2));
+            let (x, y) = ((x + roi.x) as f64, (y + roi.y) as f64);
+            r2 = r2.max((x - c[0]).powi(2) + (y - c[1]).powi(2));
         }
     }
     r2.sqrt()
