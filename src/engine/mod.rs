@@ -373,7 +373,6 @@ fn align_inner(
         ref_matched,
         &frame_data,
         mask,
-        mask_box,
         coarse,
         winsize,
         sig_frame,
@@ -506,7 +505,6 @@ fn fine_alignment(
     reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     mask: &Array2<bool>,
-    roi: Roi,
     coarse: Similarity,
     winsize: usize,
     frame_smoothing_px: f64,
@@ -515,6 +513,7 @@ fn fine_alignment(
     let (h, w) = reference.dim();
     let center = Similarity::array_center(w, h);
     let spline = SplineImage::new(frame.view());
+    let roi = mask_roi(mask);
     let levels = cfg
         .pyramid_levels
         .unwrap_or_else(|| auto_levels(roi.width.min(roi.height)));
@@ -535,6 +534,8 @@ fn fine_alignment(
     let quality_reach = gaussian_reach(winsize as f64 / 4.0);
     let smoothing_reach = gaussian_reach(frame_smoothing_px);
     let crop_for = |levels: usize| -> Crop {
+        // 2^16 px exceeds any image: more levels only clamp the crop to the whole image.
+        let levels = levels.min(16);
         let flow = (winsize / 2 + cfg.poly_n + 3 + FLOW_TAPER_PX + 2) << levels;
         let blur = if levels > 0 {
             (5usize << levels) / 4 + 2
