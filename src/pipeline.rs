@@ -14,7 +14,7 @@
 //! apart from `publish_time` and the engine's own `elapsed_ms`.
 
 use crate::config::Config;
-use crate::engine::{AlignOutcome, EngineConfig, Image};
+use crate::engine::{AlignOutcome, EngineConfig, Image, PreparedReference};
 use crate::fits::FrameSpec;
 use crate::meta::FrameMeta;
 use crate::record::{FrameAlignment, Status};
@@ -176,13 +176,97 @@ impl FrameReader for FitsReader {
     }
 }
 
-/// The alignment engine.
-#[derive(Debug, Clone, Default)]
-pub struct EngineAligner(pub EngineConfig);
+/// The alignment engine. Keeps the last few prepared references (cleaned image, mask,
+/// window, …), so a reference used for many frames is prepared once.
+pub struct EngineAligner {
+    config: EngineConfig,
+    prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
+}
+
+/// At most this many prepared references are kept (a 4096² one holds ≈ 150 MB): enough for
+/// a few channels processed at once.
+const PREPARED_REFERENCES: usize = 3;
+
+/// Identifies a reference image in memory: the same `Image` allocation with the same pixel
+/// buffer, file and a sample of its pixels (so a freed image whose addresses are reused by
+/// another is not mistaken for it).
+#[derive(Debug, Clone, PartialEq)]
+struct ReferenceKey {
+    image: usize,
+    pixels: usize,
+    shape: (usize, usize),
+    file: std::path::PathBuf,
+    sample: Vec<u32>,
+}
+
+impl ReferenceKey {
+    fn of(image: &Image) -> ReferenceKey {
+        let data = &image.data;
+        let n = data.len();
+        let step = (n / 61).max(1);
+        ReferenceKey {
+            image: image as *const Image as usize,
+            pixels: data.as_ptr() as usize,
+            shape: data.dim(),
+            file: image.meta.file.clone(),
+            sample: match data.as_slice_memory_order() {
+                Some(all) => all.iter().step_by(step).map(|v| v.to_bits()).collect(),
+                None => data.iter().step_by(step).map(|v| v.to_bits()).collect(),
+            },
+        }
+    }
+}
+
+impl EngineAligner {
+    pub fn new(config: EngineConfig) -> EngineAligner {
+        EngineAligner {
+            config,
+            prepared: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn config(&self) -> &EngineConfig {
+        &self.config
+    }
+
+    /// The prepared reference for `reference`, from the cache or made now.
+    fn prepared(&self, reference: &Image) -> Arc<PreparedReference> {
+        let key = ReferenceKey::of(reference);
+        let lock = || match self.prepared.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some((_, p)) = lock().iter().find(|(k, _)| *k == key) {
+            return p.clone();
+        }
+        // Prepared outside the lock: other channels keep aligning meanwhile.
+        let made = Arc::new(PreparedReference::new(reference, &self.config));
+        let mut cache = lock();
+        if cache.len() >= PREPARED_REFERENCES {
+            cache.remove(0);
+        }
+        cache.push((key, made.clone()));
+        made
+    }
+}
+
+impl Default for EngineAligner {
+    fn default() -> Self {
+        EngineAligner::new(EngineConfig::default())
+    }
+}
+
+impl std::fmt::Debug for EngineAligner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EngineAligner")
+            .field("config", &self.config)
+            .finish_non_exhaustive()
+    }
+}
 
 impl Aligner for EngineAligner {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
-        crate::engine::align_images(reference, frame, &self.0)
+        self.prepared(reference).align(frame)
     }
 }
 

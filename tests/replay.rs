@@ -249,7 +249,7 @@ async fn replay_writes_what_watch_wrote_for_the_same_frames() {
     let (sink, history) = open_output(&out_watch, &config).unwrap();
     let (progress_tx, mut progress) = watch::channel(Progress::default());
     let parts = RunParts {
-        aligner: Arc::new(EngineAligner(config.engine.clone())),
+        aligner: Arc::new(EngineAligner::new(config.engine.clone())),
         config: Arc::new(config),
         reader: Arc::new(FitsReader),
         sink,
