@@ -251,6 +251,10 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
     daemon.wait_for("all 90 frames", |p| p.finished >= 90).await;
     let progress = daemon.shutdown().await;
     assert!(progress.write_errors >= 4);
+    eprintln!(
+        "full disk: intake stopped at {held} of 90 inputs finished; {} failed writes; resumed",
+        progress.write_errors
+    );
 
     // What is on disk, read back by the sink's reader (every segment finished).
     let logs = sunjitter::sink::read_logs(&[out.path().to_path_buf()]).unwrap();
