@@ -293,3 +293,32 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
         "{message}"
     );
 }
+
+/// `daemon.follow_symlinks = true`: a symbolic link to a frame outside the watched tree is
+/// taken like the file itself (by default it gets a `/log` entry instead: bad_input_daemon).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn symlinks_are_followed_when_configured() {
+    let src = source();
+    let frames = crops(&src, "link", 6, 24, 5);
+    let dir = tempfile::tempdir().unwrap();
+    let outside = tempfile::tempdir().unwrap();
+    let mut config = quick_config();
+    config.daemon.follow_symlinks = true;
+    let (daemon, sink) = memory_daemon(dir.path(), config);
+    daemon.watching().await;
+    for f in &frames {
+        let target = outside.path().join(&f.name);
+        std::fs::write(&target, &f.bytes).unwrap();
+        std::os::unix::fs::symlink(&target, dir.path().join(&f.name)).unwrap();
+    }
+    daemon.wait_for("6 frames", |p| p.finished >= 6).await;
+    daemon.shutdown().await;
+    let records = sink.records();
+    let split = split(&records);
+    assert_each_once_and_true(&split, &frames);
+    assert!(
+        split.logs.iter().all(|l| l.2.contains("out of time order")),
+        "{:?}",
+        split.logs
+    );
+}
