@@ -52,6 +52,7 @@ fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k:
         sigma_chained_dy_px: None,
         sigma_chained_rotation_arcsec: None,
         sigma_chained_scale: None,
+        pixel_checksum: None,
     };
     let t = frame.meta.obs_time_ns.unwrap_or(0).max(0) as u64 + k;
     sink.write_frame(&record, t, t).expect("MCAP write");

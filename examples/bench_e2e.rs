@@ -108,6 +108,7 @@ fn main() -> anyhow::Result<()> {
             sigma_chained_dy_px: None,
             sigma_chained_rotation_arcsec: None,
             sigma_chained_scale: None,
+            pixel_checksum: None,
         };
         let now_ns = SystemTime::now().duration_since(UNIX_EPOCH)?.as_nanos() as u64;
         let log_ns = frame.meta.obs_time_ns.map_or(now_ns, |t| t.max(0) as u64);

@@ -639,6 +639,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
             item.obs_time_ns,
         )),
         Ok(image) => {
+            let checksum = crate::record::pixel_checksum(image.data.view());
             let frame = LoadedFrame {
                 key: item.key.clone(),
                 spec: item.spec.clone(),
@@ -649,8 +650,16 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
                 state.process(&frame, partner.as_ref(), ctx)
             }));
             match step {
-                Ok(out) => {
+                Ok(mut out) => {
                     partner_out = out.partner;
+                    // This frame's own message carries what was read (proves no torn reads).
+                    for r in &mut out.records {
+                        if let Record::Frame { message, .. } = r {
+                            if message.align.frame == item.key {
+                                message.pixel_checksum = Some(checksum.clone());
+                            }
+                        }
+                    }
                     let notes: Vec<Record> = out
                         .records
                         .iter()
@@ -1139,10 +1148,32 @@ fn write_with_retry(
 ) -> Result<()> {
     let mut delay = Duration::from_millis(100);
     let mut attempts_while_stopping = 0;
+    let mut failures = 0u64;
+    let started = Instant::now();
     loop {
         match sink.write(record, now_ns()) {
-            Ok(()) => return Ok(()),
+            Ok(()) => {
+                if failures > 0 {
+                    // Say in the log itself that it had a gap in time (nothing was lost).
+                    let note = Record::log(
+                        LogLevel::Warning,
+                        "",
+                        format!(
+                            "log output was unwritable for {:.1} s ({failures} failed attempts); \
+                             input waited meanwhile, nothing was lost",
+                            started.elapsed().as_secs_f64()
+                        ),
+                        now_ns(),
+                    );
+                    tracing::warn!("writing the log resumed after {failures} failed attempts");
+                    if sink.write(&note, now_ns()).is_ok() {
+                        progress.send_modify(|p| count(p, &note));
+                    }
+                }
+                return Ok(());
+            }
             Err(e) => {
+                failures += 1;
                 tracing::error!("writing the log failed (will retry; input waits): {e}");
                 progress.send_modify(|p| {
                     p.write_errors += 1;
@@ -2005,7 +2036,11 @@ mod tests {
             .into_iter()
             .map(|(f, _)| f)
             .collect();
-        assert_eq!(files, ["f0", "f1", "f2"]);
+        assert_eq!(
+            files,
+            ["f0", "", "f1", "f2"],
+            "the outage is noted after f0"
+        );
         assert_eq!((prx.borrow().write_errors, prx.borrow().finished), (3, 3));
     }
 }

@@ -85,6 +85,7 @@ fn record(
             sigma_chained_dy_px: v(sigma),
             sigma_chained_rotation_arcsec: v(0.5),
             sigma_chained_scale: v(2e-6),
+            pixel_checksum: None,
         },
     }
 }

@@ -90,7 +90,8 @@ pub fn run(args: &Args) -> Result<i32> {
         progress: progress_tx,
         live: true,
     };
-    let result = runtime.block_on(crate::daemon::run_daemon(&args.dir, parts, termination()));
+    let result = runtime
+        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()).await });
     let stopped = {
         let _inside = runtime.enter();
         monitor.stop()
@@ -133,26 +134,36 @@ pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
         .map_err(|e| Error::output("runtime", e.to_string()))
 }
 
-/// Resolves on SIGINT or SIGTERM.
-pub(crate) async fn termination() {
+/// Resolves on SIGINT or SIGTERM. Call it inside the runtime: the handlers are installed at
+/// once, so a signal that arrives before the future is first polled still stops the run
+/// cleanly (instead of killing the process with the default action).
+pub(crate) fn termination() -> impl std::future::Future<Output = ()> + Send + 'static {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => {
-                tokio::select! {
-                    _ = tokio::signal::ctrl_c() => {}
-                    _ = term.recv() => {}
+        let handlers = (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+        );
+        async move {
+            match handlers {
+                (Ok(mut term), Ok(mut int)) => {
+                    tokio::select! {
+                        _ = term.recv() => {}
+                        _ = int.recv() => {}
+                    }
                 }
-            }
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
+                _ => {
+                    let _ = tokio::signal::ctrl_c().await;
+                }
             }
         }
     }
     #[cfg(not(unix))]
     {
-        let _ = tokio::signal::ctrl_c().await;
+        async {
+            let _ = tokio::signal::ctrl_c().await;
+        }
     }
 }
 

@@ -656,6 +656,7 @@ pub(crate) mod testdata {
                 sigma_chained_dy_px: v(0.01),
                 sigma_chained_rotation_arcsec: v(0.1),
                 sigma_chained_scale: v(1e-6),
+                pixel_checksum: None,
             },
         }
     }

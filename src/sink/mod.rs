@@ -163,6 +163,21 @@ struct Broken {
     durable_len: u64,
 }
 
+/// A handle on a sink's write budget (test hook, see [`McapSink::write_budget`]).
+#[doc(hidden)]
+#[derive(Debug, Clone)]
+pub struct WriteBudget(Arc<AtomicU64>);
+
+impl WriteBudget {
+    /// At most `bytes` more bytes reach the files (then `StorageFull`); `None`: no limit.
+    pub fn set(&self, bytes: Option<u64>) {
+        self.0.store(
+            bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)),
+            Ordering::SeqCst,
+        );
+    }
+}
+
 /// Writes a run's log as MCAP segment files (see the module docs for the guarantees).
 pub struct McapSink {
     dir: PathBuf,
@@ -371,10 +386,15 @@ impl McapSink {
     /// write, then `StorageFull`); `None` lifts the limit.
     #[doc(hidden)]
     pub fn set_write_budget(&mut self, bytes: Option<u64>) {
-        self.budget.store(
-            bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)),
-            Ordering::SeqCst,
-        );
+        self.write_budget().set(bytes);
+    }
+
+    /// Test hook: [`McapSink::set_write_budget`] through a handle that stays usable after the
+    /// sink has moved to the daemon's writer thread (fault-injection tests fill the "disk"
+    /// while the daemon runs, then free it).
+    #[doc(hidden)]
+    pub fn write_budget(&self) -> WriteBudget {
+        WriteBudget(self.budget.clone())
     }
 
     fn encode<T: Serialize>(&self, value: &T) -> Result<Vec<u8>> {

@@ -272,6 +272,12 @@ pub fn frame_alignment_schema() -> Value {
     }
     let required: Vec<&String> = properties.keys().collect();
     let required = json!(required);
+    // Beyond the contract, optional (additive): absent from logs written before it existed.
+    properties.insert(
+        "pixel_checksum".to_string(),
+        json!({ "type": "string",
+                "description": "fnv1a64:HEX of the aligned pixels as read (width, height, f32 bits)" }),
+    );
     json!({
         "title": FRAME_ALIGNMENT_SCHEMA,
         "description": "Alignment of one frame to its reference (sunjitter CONTRACT.md)",
