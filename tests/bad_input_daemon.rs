@@ -113,7 +113,7 @@ async fn every_bad_input_gets_one_log_entry_and_the_daemon_goes_on() {
         &root,
         config.clone(),
         reader,
-        Arc::new(EngineAligner(config.engine.clone())),
+        Arc::new(EngineAligner::new(config.engine.clone())),
         Box::new(sink.clone()),
     );
     daemon.watching().await;

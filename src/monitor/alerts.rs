@@ -569,6 +569,7 @@ mod tests {
             sigma_chained_dy_px: None,
             sigma_chained_rotation_arcsec: None,
             sigma_chained_scale: None,
+            pixel_checksum: None,
         }
     }
 
