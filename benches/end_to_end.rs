@@ -6,14 +6,14 @@
 //!
 //! Frames: realistic synthetic full-disk pairs written by `sunjitter synth --frames 2 --size N`
 //! (channel SYNTH_171, default jitter) into a temporary directory; frame 0 is the reference
-//! (held in memory, as the daemon keeps it), frame 1 is read, aligned and logged every
-//! iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see PERFORMANCE.md).
+//! (prepared once and held in memory, as the daemon keeps it), frame 1 is read, aligned and
+//! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see PERFORMANCE.md).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::engine::{align_images, EngineConfig, Image};
+use sunjitter::engine::{EngineConfig, PreparedReference};
 use sunjitter::fits::{read_frame, FrameSpec};
 use sunjitter::sink::{McapSink, SinkConfig};
 use sunjitter::FrameAlignment;
@@ -35,9 +35,9 @@ fn synth_pair(dir: &Path, size: usize) -> (PathBuf, PathBuf) {
     (dir.join("synth_0000.fits"), dir.join("synth_0001.fits"))
 }
 
-fn one_frame(reference: &Image, path: &Path, sink: &mut McapSink, cfg: &EngineConfig, k: u64) {
+fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k: u64) {
     let frame = read_frame(&FrameSpec::file(path)).expect("read frame");
-    let outcome = align_images(reference, &frame, cfg);
+    let outcome = reference.align(&frame);
     let record = FrameAlignment {
         obs_time: frame.meta.obs_time_iso().unwrap_or_default(),
         channel: frame.meta.channel.clone(),
@@ -52,6 +52,7 @@ fn one_frame(reference: &Image, path: &Path, sink: &mut McapSink, cfg: &EngineCo
         sigma_chained_dy_px: None,
         sigma_chained_rotation_arcsec: None,
         sigma_chained_scale: None,
+        pixel_checksum: None,
     };
     let t = frame.meta.obs_time_ns.unwrap_or(0).max(0) as u64 + k;
     sink.write_frame(&record, t, t).expect("MCAP write");
@@ -82,6 +83,7 @@ fn bench(c: &mut Criterion) {
         let logs = tempfile::tempdir().expect("temp dir");
         let (reference_path, frame_path) = synth_pair(frames.path(), size);
         let reference = read_frame(&FrameSpec::file(&reference_path)).expect("read reference");
+        let reference = PreparedReference::new(&reference, &cfg);
         let mut sink =
             McapSink::new(logs.path(), SinkConfig::default(), "{}".into()).expect("sink");
         let mut group = c.benchmark_group(format!("end_to_end_{size}"));
@@ -90,7 +92,7 @@ fn bench(c: &mut Criterion) {
         group.bench_function(format!("{}_threads", rayon::current_num_threads()), |b| {
             b.iter(|| {
                 k += 1;
-                one_frame(&reference, &frame_path, &mut sink, &cfg, k);
+                one_frame(&reference, &frame_path, &mut sink, k);
             })
         });
         group.finish();

@@ -25,6 +25,12 @@ pub struct Config {
     pub channels: BTreeMap<String, ChannelConfig>,
     /// Rename channels: header-derived name → name used in topics (e.g. `AIA_304 = "EUV_304"`).
     pub channel_names: BTreeMap<String, String>,
+    /// Alert thresholds and the alert command (`watch`).
+    pub alerts: crate::monitor::alerts::AlertsConfig,
+    /// The health status file (`watch`).
+    pub health: crate::monitor::HealthConfig,
+    /// The live view (`watch --live`).
+    pub live: crate::monitor::LiveConfig,
 }
 
 /// How files are found and taken, and how much runs at once.
@@ -214,6 +220,11 @@ impl Config {
         }
         for name in self.channels.keys() {
             self.partner_chain(name)?;
+        }
+        self.alerts.validate()?;
+        self.health.validate()?;
+        if self.live.queue == 0 {
+            return bad("live.queue must be ≥ 1");
         }
         Ok(())
     }

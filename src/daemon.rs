@@ -559,7 +559,23 @@ fn examine(
         }
     }
     let stamp = std::fs::metadata(path).ok().map(|m| file_stamp(&m));
-    let outcome = inspect_file(path, reader, config, history, config.daemon.follow_symlinks);
+    // A reader bug on some odd file must not lose the file silently (a panic here would
+    // leave it "reading" forever): it is finished with a /log entry instead.
+    let inspected = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        inspect_file(path, reader, config, history, config.daemon.follow_symlinks)
+    }));
+    let outcome = inspected.unwrap_or_else(|panic| {
+        let what = panic
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| panic.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown".into());
+        tracing::error!(file = %path.display(), "internal error while reading: {what}");
+        FileOutcome::Skip(Some(unreadable_record(
+            path,
+            &format!("internal error while reading: {what}"),
+        )))
+    });
     Examined::Outcome(Box::new(outcome), stamp)
 }
 
@@ -851,6 +867,49 @@ mod tests {
         assert!(ghost.contains("vanished") && !finishes, "{ghost}");
         let (sub, _, finishes) = find("sub");
         assert!(sub.contains("not watched") && !finishes, "{sub}");
+    }
+
+    /// A reader that panics on some file: the file is finished with one `/log` error naming
+    /// it (it used to stay "reading" forever, with only a tracing line).
+    #[test]
+    fn a_reader_panic_finishes_the_file_with_a_log_entry() {
+        struct Panicking;
+        impl FrameReader for Panicking {
+            fn read_meta(&self, _: &Path) -> Result<Vec<crate::meta::FrameMeta>> {
+                panic!("boom")
+            }
+            fn read_frame(&self, _: &crate::fits::FrameSpec) -> Result<crate::engine::Image> {
+                panic!("boom")
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().canonicalize().unwrap().join("odd.fits");
+        std::fs::write(&path, b"SIMPLE  =").unwrap();
+        let examined = examine(
+            &path,
+            Origin::Event,
+            &Panicking,
+            &Config::default(),
+            &History::default(),
+        );
+        let Examined::Outcome(outcome, _) = examined else {
+            panic!("not examined")
+        };
+        match *outcome {
+            FileOutcome::Skip(Some(Record::Log {
+                level,
+                file,
+                message,
+                finishes,
+                ..
+            })) => {
+                assert_eq!(level, LogLevel::Error);
+                assert!(finishes);
+                assert_eq!(file, path.display().to_string());
+                assert_eq!(message, "internal error while reading: boom");
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

@@ -643,7 +643,7 @@ impl FrameClock {
     fn apply(&self, meta: &mut FrameMeta, header: &Header, i: usize, frames: usize) {
         if let (true, Some(start)) = (self.has_table(), self.start_ns) {
             let p = table_position(i, frames, self.seconds.len());
-            meta.obs_time_ns = Some(start + (interpolate(&self.seconds, p) * 1e9).round() as i64);
+            meta.obs_time_ns = offset_time(start, interpolate(&self.seconds, p));
             if !self.exposures.is_empty() {
                 meta.exptime_s = Some(interpolate(&self.exposures, p));
             }
@@ -653,9 +653,19 @@ impl FrameClock {
             meta::time_axis_seconds(header, i),
             meta::time_reference_ns(header),
         ) {
-            meta.obs_time_ns = Some(reference + (t * 1e9).round() as i64);
+            meta.obs_time_ns = offset_time(reference, t);
         }
     }
+}
+
+/// `start` plus `seconds`, in ns; `None` when the sum is not a representable time (an absurd
+/// table or time axis: the frame is then reported as having no observation time).
+fn offset_time(start: i64, seconds: f64) -> Option<i64> {
+    let ns = seconds * 1e9;
+    if !ns.is_finite() || ns.abs() >= 9.0e18 {
+        return None;
+    }
+    start.checked_add(ns.round() as i64)
 }
 
 /// Table row (fractional) of frame `i`. Equal lengths map one to one; a cube resampled along
@@ -954,6 +964,15 @@ mod tests {
             FrameSpec::parse(odd.to_str().unwrap()),
             FrameSpec::file(&odd)
         );
+    }
+
+    /// Fuzzing found absurd table/time-axis times overflowing the ns count.
+    #[test]
+    fn offset_times_that_do_not_fit_are_none() {
+        assert_eq!(offset_time(1_000, 2.5), Some(2_500_001_000));
+        assert_eq!(offset_time(i64::MAX - 10, 1.0), None);
+        assert_eq!(offset_time(0, f64::NAN), None);
+        assert_eq!(offset_time(0, 1e300), None);
     }
 
     #[test]

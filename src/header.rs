@@ -15,6 +15,9 @@ pub const CARD: usize = 80;
 pub const MAX_FRAME_PIXELS: u64 = 1 << 28;
 /// Largest length of a single axis accepted.
 pub const MAX_AXIS: u64 = 1 << 24;
+/// Most frames (planes beyond the second axis) accepted in one image: a day at 1 s cadence
+/// fits; a tiny file claiming millions of planes cannot make the reader list them all.
+pub const MAX_FRAMES: u64 = 1 << 17;
 
 /// A header keyword's value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -483,31 +486,55 @@ fn check_sizes(axes: &[u64], prefix: &str) -> Result<(), String> {
             i + 1
         ));
     }
+    let dims = || {
+        let dims: Vec<String> = axes.iter().map(u64::to_string).collect();
+        dims.join(" × ")
+    };
     let frame = axes[0].saturating_mul(axes.get(1).copied().unwrap_or(1));
     if frame > MAX_FRAME_PIXELS {
-        let dims: Vec<String> = axes.iter().map(u64::to_string).collect();
         return Err(format!(
             "absurd image size {} (a frame over {MAX_FRAME_PIXELS} pixels)",
-            dims.join(" × ")
+            dims()
+        ));
+    }
+    // The planes' product could overflow (tile-compressed images are not bounded by the
+    // file's size) or ask for millions of frames (found reviewing the fuzz target's paths).
+    let frames = axes.iter().skip(2).try_fold(1u64, |n, &a| n.checked_mul(a));
+    if frames.is_none_or(|n| n > MAX_FRAMES) {
+        return Err(format!(
+            "absurd image size {} (over {MAX_FRAMES} frames)",
+            dims()
         ));
     }
     Ok(())
 }
 
-/// Compression tiles (`ZTILEn`) larger than the image would make cfitsio allocate for them.
+/// Compression tiles (`ZTILEn`) larger than the image would make cfitsio allocate for them;
+/// and the table must hold one row per tile (the tiled-image convention), which ties the
+/// image's claimed size to the file's.
 fn check_tiles(header: &Header, axes: &[u64]) -> Result<(), String> {
+    let mut tiles: u64 = 1;
     for (i, &axis) in axes.iter().enumerate() {
         let key = format!("ZTILE{}", i + 1);
-        if let Some(tile) = header.i64(&key) {
-            if tile < 1 || tile as u64 > axis {
-                return Err(format!(
-                    "{key} = {tile} does not fit ZNAXIS{} = {axis}",
-                    i + 1
-                ));
-            }
+        // Default tiling: whole rows.
+        let tile = header
+            .i64(&key)
+            .unwrap_or(if i == 0 { axis as i64 } else { 1 });
+        if tile < 1 || tile as u64 > axis {
+            return Err(format!(
+                "{key} = {tile} does not fit ZNAXIS{} = {axis}",
+                i + 1
+            ));
         }
+        tiles = tiles.saturating_mul(axis.div_ceil(tile as u64));
     }
-    Ok(())
+    match header.i64("NAXIS2") {
+        Some(rows) if rows >= 0 && rows as u64 == tiles => Ok(()),
+        rows => Err(format!(
+            "tile-compressed image of {tiles} tiles in a table of {} rows (one row per tile)",
+            rows.map_or("no".to_string(), |r| r.to_string())
+        )),
+    }
 }
 
 /// The FITS standard fixes the order of the first cards (`SIMPLE`/`XTENSION`, `BITPIX`,
@@ -620,6 +647,42 @@ mod tests {
             "NAXIS3  = 4",
         ]);
         assert!(data_size_bytes(&huge).unwrap_err().contains("absurd"));
+        // Planes (found by reading the code while fuzzing). A tiny tile-compressed table
+        // claiming 2⁷² planes overflowed the frame count; 2²⁴ would have listed 16 M frames.
+        for planes in [
+            &[
+                "ZNAXIS3 = 16777216",
+                "ZNAXIS4 = 16777216",
+                "ZNAXIS5 = 16777216",
+            ][..],
+            &["ZNAXIS3 = 16777216"][..],
+        ] {
+            let mut cards = vec![
+                "XTENSION= 'BINTABLE'".to_string(),
+                "NAXIS   = 2".into(),
+                "NAXIS1  = 8".into(),
+                "NAXIS2  = 2".into(),
+                "ZIMAGE  = T".into(),
+                "ZBITPIX = 16".into(),
+                format!("ZNAXIS  = {}", 2 + planes.len()),
+                "ZNAXIS1 = 2".into(),
+                "ZNAXIS2 = 2".into(),
+            ];
+            cards.extend(planes.iter().map(|p| p.to_string()));
+            let refs: Vec<&str> = cards.iter().map(String::as_str).collect();
+            let e = image_geometry(&header(&refs), &HduKind::BinTable).unwrap_err();
+            assert!(e.contains("frames"), "{e}");
+        }
+        let many = header(&[
+            "SIMPLE  = T",
+            "BITPIX  = 8",
+            "NAXIS   = 3",
+            "NAXIS1  = 1",
+            "NAXIS2  = 1",
+            "NAXIS3  = 16777216",
+        ]);
+        let e = image_geometry(&many, &HduKind::Primary).unwrap_err();
+        assert!(e.contains("over 131072 frames"), "{e}");
     }
 
     #[test]
@@ -659,6 +722,26 @@ mod tests {
         assert!(image_geometry(&bad, &HduKind::BinTable)
             .unwrap_err()
             .contains("ZTILE1"));
+        // One row per tile: 64 × 16 in 16 × 4 tiles is 4 × 4 = 16 rows, not 15.
+        let tiles = |rows: &str| {
+            header(&[
+                "XTENSION= 'BINTABLE'",
+                "BITPIX  = 8",
+                "NAXIS   = 2",
+                "NAXIS1  = 8",
+                rows,
+                "ZIMAGE  = T",
+                "ZBITPIX = 16",
+                "ZNAXIS  = 2",
+                "ZNAXIS1 = 64",
+                "ZNAXIS2 = 16",
+                "ZTILE1  = 16",
+                "ZTILE2  = 4",
+            ])
+        };
+        assert!(image_geometry(&tiles("NAXIS2  = 16"), &HduKind::BinTable).is_ok());
+        let e = image_geometry(&tiles("NAXIS2  = 15"), &HduKind::BinTable).unwrap_err();
+        assert!(e.contains("16 tiles in a table of 15 rows"), "{e}");
         // A plain binary table holds no image.
         let table = header(&[
             "XTENSION= 'BINTABLE'",

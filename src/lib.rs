@@ -34,6 +34,7 @@ pub mod simulate;
 
 pub mod config;
 pub mod daemon;
+pub mod monitor;
 pub mod pipeline;
 pub mod reference;
 pub mod sink;

@@ -30,6 +30,8 @@ enum Command {
     Simulate(commands::simulate::Args),
     /// Write a synthetic FITS sequence with known jitter.
     Synth(commands::synth::Args),
+    /// Print a running (or stopped) daemon's health status.
+    Status(commands::status::Args),
 }
 
 fn main() {
@@ -57,6 +59,7 @@ fn main() {
         Command::Inspect(a) => commands::inspect::run(a),
         Command::Simulate(a) => commands::simulate::run(a),
         Command::Synth(a) => commands::synth::run(a),
+        Command::Status(a) => commands::status::run(a),
     };
     match outcome {
         Ok(code) => std::process::exit(code),

@@ -14,7 +14,7 @@
 //! apart from `publish_time` and the engine's own `elapsed_ms`.
 
 use crate::config::Config;
-use crate::engine::{AlignOutcome, EngineConfig, Image};
+use crate::engine::{AlignOutcome, EngineConfig, Image, PreparedReference};
 use crate::fits::FrameSpec;
 use crate::meta::FrameMeta;
 use crate::record::{FrameAlignment, Status};
@@ -158,6 +158,9 @@ pub trait RecordSink: Send {
     fn flush(&mut self) -> Result<()>;
     /// Close cleanly (MCAP: summary and index).
     fn finish(self: Box<Self>) -> Result<()>;
+    /// Seconds from the frame `frame` (a frame key) entering the pipeline until its alignment
+    /// finished; sent just before the frame's records. Monitoring sinks use it; default: ignored.
+    fn note_lag(&mut self, _frame: &str, _lag_s: f64) {}
 }
 
 /// The FITS reader.
@@ -173,13 +176,97 @@ impl FrameReader for FitsReader {
     }
 }
 
-/// The alignment engine.
-#[derive(Debug, Clone, Default)]
-pub struct EngineAligner(pub EngineConfig);
+/// The alignment engine. Keeps the last few prepared references (cleaned image, mask,
+/// window, …), so a reference used for many frames is prepared once.
+pub struct EngineAligner {
+    config: EngineConfig,
+    prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
+}
+
+/// At most this many prepared references are kept (a 4096² one holds ≈ 150 MB): enough for
+/// a few channels processed at once.
+const PREPARED_REFERENCES: usize = 3;
+
+/// Identifies a reference image in memory: the same `Image` allocation with the same pixel
+/// buffer, file and a sample of its pixels (so a freed image whose addresses are reused by
+/// another is not mistaken for it).
+#[derive(Debug, Clone, PartialEq)]
+struct ReferenceKey {
+    image: usize,
+    pixels: usize,
+    shape: (usize, usize),
+    file: std::path::PathBuf,
+    sample: Vec<u32>,
+}
+
+impl ReferenceKey {
+    fn of(image: &Image) -> ReferenceKey {
+        let data = &image.data;
+        let n = data.len();
+        let step = (n / 61).max(1);
+        ReferenceKey {
+            image: image as *const Image as usize,
+            pixels: data.as_ptr() as usize,
+            shape: data.dim(),
+            file: image.meta.file.clone(),
+            sample: match data.as_slice_memory_order() {
+                Some(all) => all.iter().step_by(step).map(|v| v.to_bits()).collect(),
+                None => data.iter().step_by(step).map(|v| v.to_bits()).collect(),
+            },
+        }
+    }
+}
+
+impl EngineAligner {
+    pub fn new(config: EngineConfig) -> EngineAligner {
+        EngineAligner {
+            config,
+            prepared: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn config(&self) -> &EngineConfig {
+        &self.config
+    }
+
+    /// The prepared reference for `reference`, from the cache or made now.
+    fn prepared(&self, reference: &Image) -> Arc<PreparedReference> {
+        let key = ReferenceKey::of(reference);
+        let lock = || match self.prepared.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some((_, p)) = lock().iter().find(|(k, _)| *k == key) {
+            return p.clone();
+        }
+        // Prepared outside the lock: other channels keep aligning meanwhile.
+        let made = Arc::new(PreparedReference::new(reference, &self.config));
+        let mut cache = lock();
+        if cache.len() >= PREPARED_REFERENCES {
+            cache.remove(0);
+        }
+        cache.push((key, made.clone()));
+        made
+    }
+}
+
+impl Default for EngineAligner {
+    fn default() -> Self {
+        EngineAligner::new(EngineConfig::default())
+    }
+}
+
+impl std::fmt::Debug for EngineAligner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EngineAligner")
+            .field("config", &self.config)
+            .finish_non_exhaustive()
+    }
+}
 
 impl Aligner for EngineAligner {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
-        crate::engine::align_images(reference, frame, &self.0)
+        self.prepared(reference).align(frame)
     }
 }
 
@@ -319,6 +406,11 @@ pub struct Progress {
     pub watching: bool,
     pub write_errors: u64,
     pub last_error: Option<String>,
+    /// Frames in the pipeline not yet finished (buffered or being aligned), plus files the
+    /// daemon's front end holds that may still yield frames.
+    pub queued: u64,
+    /// Frames buffered or being aligned, per channel.
+    pub queued_per_channel: BTreeMap<String, u64>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -524,6 +616,8 @@ pub struct JobDone {
     pub state: ChannelState,
     pub records: Vec<Record>,
     pub partner: Option<PartnerFrame>,
+    /// When the frame entered the pipeline (for the ingest lag).
+    pub arrived: Instant,
 }
 
 /// Run one job (blocking: reads the image, runs the engine).
@@ -545,6 +639,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
             item.obs_time_ns,
         )),
         Ok(image) => {
+            let checksum = crate::record::pixel_checksum(image.data.view());
             let frame = LoadedFrame {
                 key: item.key.clone(),
                 spec: item.spec.clone(),
@@ -555,8 +650,16 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
                 state.process(&frame, partner.as_ref(), ctx)
             }));
             match step {
-                Ok(out) => {
+                Ok(mut out) => {
                     partner_out = out.partner;
+                    // This frame's own message carries what was read (proves no torn reads).
+                    for r in &mut out.records {
+                        if let Record::Frame { message, .. } = r {
+                            if message.align.frame == item.key {
+                                message.pixel_checksum = Some(checksum.clone());
+                            }
+                        }
+                    }
                     let notes: Vec<Record> = out
                         .records
                         .iter()
@@ -600,6 +703,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
         state,
         records,
         partner: partner_out,
+        arrived: item.arrived,
     }
 }
 
@@ -732,6 +836,14 @@ impl Scheduler {
 
     pub fn buffered(&self) -> usize {
         self.lanes.values().map(|l| l.buffer.len()).sum()
+    }
+
+    /// Frames buffered or being aligned, per channel.
+    pub fn queued_by_channel(&self) -> BTreeMap<String, u64> {
+        self.lanes
+            .iter()
+            .map(|(name, l)| (name.clone(), l.buffer.len() as u64 + u64::from(l.in_flight)))
+            .collect()
     }
 
     /// Everything that can start now.
@@ -981,6 +1093,11 @@ impl Scheduler {
 pub enum WriterMsg {
     Record(Record),
     Flush,
+    /// The ingest lag of a frame whose records follow (see [`RecordSink::note_lag`]).
+    Lag {
+        frame: String,
+        lag_s: f64,
+    },
 }
 
 /// Start the one thread that owns the sink. It writes records in the order received,
@@ -1006,6 +1123,7 @@ pub fn spawn_writer(
                             });
                         }
                     }
+                    WriterMsg::Lag { frame, lag_s } => sink.note_lag(&frame, lag_s),
                     WriterMsg::Record(record) => {
                         write_with_retry(sink.as_mut(), &record, &progress, &stopping)?;
                         progress.send_modify(|p| count(p, &record));
@@ -1030,10 +1148,32 @@ fn write_with_retry(
 ) -> Result<()> {
     let mut delay = Duration::from_millis(100);
     let mut attempts_while_stopping = 0;
+    let mut failures = 0u64;
+    let started = Instant::now();
     loop {
         match sink.write(record, now_ns()) {
-            Ok(()) => return Ok(()),
+            Ok(()) => {
+                if failures > 0 {
+                    // Say in the log itself that it had a gap in time (nothing was lost).
+                    let note = Record::log(
+                        LogLevel::Warning,
+                        "",
+                        format!(
+                            "log output was unwritable for {:.1} s ({failures} failed attempts); \
+                             input waited meanwhile, nothing was lost",
+                            started.elapsed().as_secs_f64()
+                        ),
+                        now_ns(),
+                    );
+                    tracing::warn!("writing the log resumed after {failures} failed attempts");
+                    if sink.write(&note, now_ns()).is_ok() {
+                        progress.send_modify(|p| count(p, &note));
+                    }
+                }
+                return Ok(());
+            }
             Err(e) => {
+                failures += 1;
                 tracing::error!("writing the log failed (will retry; input waits): {e}");
                 progress.send_modify(|p| {
                     p.write_errors += 1;
@@ -1109,6 +1249,7 @@ pub async fn run_pipeline(
     let stopping = Arc::new(AtomicBool::new(false));
     let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
     let progress_rx = progress.subscribe();
+    let queue_progress = progress.clone();
     let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
     let settings = SchedulerSettings::from_config(&config, live);
     let scheduler = Scheduler::new(config.clone(), settings, &history);
@@ -1123,6 +1264,7 @@ pub async fn run_pipeline(
         stopping,
         flush_every,
         pending_files,
+        queue_progress,
     )
     .await;
     let written = tokio::task::spawn_blocking(move || writer.join())
@@ -1145,6 +1287,7 @@ async fn drive(
     stopping: Arc<AtomicBool>,
     flush_every: Duration,
     pending_files: Option<Arc<AtomicUsize>>,
+    progress: watch::Sender<Progress>,
 ) -> Result<()> {
     let gone = || Error::output("log writer", "stopped unexpectedly");
     let mut jobs: JoinSet<JobDone> = JoinSet::new();
@@ -1198,6 +1341,7 @@ async fn drive(
                 }
             }
         }
+        publish_queue(&progress, &scheduler, pending_files.as_deref());
         if jobs.is_empty() && (stopped || (scheduler.is_eof() && scheduler.idle())) {
             break;
         }
@@ -1213,6 +1357,13 @@ async fn drive(
             joined = jobs.join_next(), if !jobs.is_empty() => {
                 match joined {
                     Some(Ok(done)) => {
+                        if let Some(frame) = done.records.iter().find_map(|r| match r {
+                            Record::Frame { message, .. } => Some(message.align.frame.clone()),
+                            _ => None,
+                        }) {
+                            let lag_s = done.arrived.elapsed().as_secs_f64();
+                            writer.send(WriterMsg::Lag { frame, lag_s }).await.map_err(|_| gone())?;
+                        }
                         for record in &done.records {
                             writer.send(WriterMsg::Record(record.clone())).await.map_err(|_| gone())?;
                         }
@@ -1244,6 +1395,25 @@ async fn drive(
     }
     drop(writer);
     Ok(())
+}
+
+/// Queue depth for the health status (only sent when it changed).
+fn publish_queue(
+    progress: &watch::Sender<Progress>,
+    scheduler: &Scheduler,
+    pending_files: Option<&AtomicUsize>,
+) {
+    let per_channel = scheduler.queued_by_channel();
+    let files = pending_files.map_or(0, |p| p.load(Ordering::SeqCst) as u64);
+    let queued = per_channel.values().sum::<u64>() + files;
+    progress.send_if_modified(|p| {
+        if p.queued == queued && p.queued_per_channel == per_channel {
+            return false;
+        }
+        p.queued = queued;
+        p.queued_per_channel = per_channel;
+        true
+    });
 }
 
 async fn sleep_until_opt(deadline: Option<Instant>) {
@@ -1328,7 +1498,7 @@ fn clamp_ns(ns: u64) -> i64 {
 }
 
 /// MCAP timestamps are unsigned: times before 1970 are written as 0.
-fn mcap_ns(ns: i64) -> u64 {
+pub fn mcap_ns(ns: i64) -> u64 {
     u64::try_from(ns).unwrap_or(0)
 }
 
@@ -1367,16 +1537,7 @@ impl McapRecordSink {
                 change,
                 log_time_ns,
             } => {
-                let c = crate::sink::ReferenceChange {
-                    channel: change.channel.clone(),
-                    file: change.file.clone(),
-                    frame: change.frame,
-                    obs_time: change.obs_time.clone(),
-                    reason: change.reason.clone(),
-                    reference_kind: change.reference_kind.clone(),
-                    sequence: change.sequence,
-                    replaces: change.replaces.clone(),
-                };
+                let c = Self::reference_message(change);
                 sink.write_reference_change(&c, mcap_ns(*log_time_ns), publish)
             }
             Record::Log {
@@ -1385,14 +1546,36 @@ impl McapRecordSink {
                 message,
                 log_time_ns,
                 ..
-            } => {
-                let level = match level {
-                    LogLevel::Info => crate::sink::LogLevel::Info,
-                    LogLevel::Warning => crate::sink::LogLevel::Warning,
-                    LogLevel::Error => crate::sink::LogLevel::Error,
-                };
-                sink.write_log(level, file, message, mcap_ns(*log_time_ns), publish)
-            }
+            } => sink.write_log(
+                Self::log_level(*level),
+                file,
+                message,
+                mcap_ns(*log_time_ns),
+                publish,
+            ),
+        }
+    }
+
+    /// The `/reference/<channel>` message of a reference change.
+    pub fn reference_message(change: &ReferenceChange) -> crate::sink::ReferenceChange {
+        crate::sink::ReferenceChange {
+            channel: change.channel.clone(),
+            file: change.file.clone(),
+            frame: change.frame,
+            obs_time: change.obs_time.clone(),
+            reason: change.reason.clone(),
+            reference_kind: change.reference_kind.clone(),
+            sequence: change.sequence,
+            replaces: change.replaces.clone(),
+        }
+    }
+
+    /// The `foxglove.Log` level of a `/log` record.
+    pub fn log_level(level: LogLevel) -> crate::sink::LogLevel {
+        match level {
+            LogLevel::Info => crate::sink::LogLevel::Info,
+            LogLevel::Warning => crate::sink::LogLevel::Warning,
+            LogLevel::Error => crate::sink::LogLevel::Error,
         }
     }
 }
@@ -1853,7 +2036,11 @@ mod tests {
             .into_iter()
             .map(|(f, _)| f)
             .collect();
-        assert_eq!(files, ["f0", "f1", "f2"]);
+        assert_eq!(
+            files,
+            ["f0", "", "f1", "f2"],
+            "the outage is noted after f0"
+        );
         assert_eq!((prx.borrow().write_errors, prx.borrow().finished), (3, 3));
     }
 }

@@ -120,79 +120,105 @@ fn median_of(vals: &mut [f32]) -> f32 {
     }
 }
 
-/// Median of 9 finite values by Devillard's 19-exchange network (opt_med9).
-#[inline]
-fn median9(p: &mut [f32; 9]) -> f32 {
-    #[inline]
-    fn sort2(p: &mut [f32; 9], a: usize, b: usize) {
-        let (lo, hi) = (p[a].min(p[b]), p[a].max(p[b]));
-        p[a] = lo;
-        p[b] = hi;
-    }
-    for (a, b) in [
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 1),
-        (3, 4),
-        (6, 7),
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 3),
-        (5, 8),
-        (4, 7),
-        (3, 6),
-        (1, 4),
-        (2, 5),
-        (4, 7),
-        (4, 2),
-        (6, 4),
-        (4, 2),
-    ] {
-        sort2(p, a, b);
-    }
-    p[4]
-}
-
 /// 3×3 median of the finite pixels (window clipped at the borders), NaN if none.
+///
+/// Interior pixels with nine finite values use the column-sort identity: with each column's
+/// three values sorted into (lo, mid, hi), the median of the nine is
+/// `med3(max(lo), med3(mid), min(hi))` — exact, and each column sort is shared by three
+/// outputs, in straight-line min/max loops the compiler vectorises. Other pixels fall back
+/// to sorting their finite neighbours.
 fn median3x3(img: &ArrayView2<f32>) -> Array2<f32> {
     let (h, w) = img.dim();
     let mut out = Array2::<f32>::zeros((h, w));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(y, mut row)| {
-            let mut buf = [0f32; 9];
-            for (x, o) in row.iter_mut().enumerate() {
-                let interior = y >= 1 && x >= 1 && y + 1 < h && x + 1 < w;
-                if interior {
-                    for (i, v) in buf.iter_mut().enumerate() {
-                        *v = img[[y + i / 3 - 1, x + i % 3 - 1]];
-                    }
-                    if buf.iter().all(|v| v.is_finite()) {
-                        *o = median9(&mut buf);
-                        continue;
-                    }
-                }
-                let mut n = 0;
-                for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                        let v = img[[yy, xx]];
-                        if v.is_finite() {
-                            buf[n] = v;
-                            n += 1;
+        .for_each_init(
+            || (vec![0f32; w], vec![0f32; w], vec![0f32; w], vec![false; w]),
+            |(lo, mid, hi, finite), (y, mut row)| {
+                let mut fast_ok = false;
+                if y >= 1 && y + 1 < h && w >= 3 {
+                    if let (Some(a), Some(b), Some(c)) = (
+                        img.row(y - 1).to_slice(),
+                        img.row(y).to_slice(),
+                        img.row(y + 1).to_slice(),
+                    ) {
+                        sort_columns(a, b, c, lo, mid, hi, finite);
+                        if let Some(o) = row.as_slice_mut() {
+                            median_of_sorted_columns(lo, mid, hi, o);
+                            fast_ok = true;
                         }
                     }
                 }
-                *o = if n == 0 {
-                    f32::NAN
-                } else {
-                    median_of(&mut buf[..n])
-                };
-            }
-        });
+                for x in 0..w {
+                    let interior = fast_ok && x >= 1 && x + 1 < w;
+                    if interior && finite[x - 1] && finite[x] && finite[x + 1] {
+                        continue;
+                    }
+                    row[x] = median3x3_at(img, y, x);
+                }
+            },
+        );
     out
+}
+
+/// Each column `x` of rows `a`, `b`, `c` sorted into `lo ≤ mid ≤ hi`; `finite[x]` when all
+/// three values are finite (otherwise the sorted values are meaningless).
+fn sort_columns(
+    a: &[f32],
+    b: &[f32],
+    c: &[f32],
+    lo: &mut [f32],
+    mid: &mut [f32],
+    hi: &mut [f32],
+    finite: &mut [bool],
+) {
+    for x in 0..a.len() {
+        let (p, q, r) = (a[x], b[x], c[x]);
+        let (l1, h1) = (p.min(q), p.max(q));
+        lo[x] = l1.min(r);
+        let m = l1.max(r);
+        mid[x] = m.min(h1);
+        hi[x] = m.max(h1);
+        finite[x] = p.is_finite() & q.is_finite() & r.is_finite();
+    }
+}
+
+/// `out[x] = med3(max(lo[x-1..=x+1]), med3(mid[x-1..=x+1]), min(hi[x-1..=x+1]))` for the
+/// interior columns.
+fn median_of_sorted_columns(lo: &[f32], mid: &[f32], hi: &[f32], out: &mut [f32]) {
+    #[inline(always)]
+    fn med3(a: f32, b: f32, c: f32) -> f32 {
+        a.min(b).max(a.max(b).min(c))
+    }
+    let w = out.len();
+    for x in 1..w - 1 {
+        let l = lo[x - 1].max(lo[x]).max(lo[x + 1]);
+        let m = med3(mid[x - 1], mid[x], mid[x + 1]);
+        let u = hi[x - 1].min(hi[x]).min(hi[x + 1]);
+        out[x] = med3(l, m, u);
+    }
+}
+
+/// Median of the finite pixels of the 3×3 window at `(y, x)`, clipped at the borders.
+fn median3x3_at(img: &ArrayView2<f32>, y: usize, x: usize) -> f32 {
+    let (h, w) = img.dim();
+    let mut buf = [0f32; 9];
+    let mut n = 0;
+    for yy in y.saturating_sub(1)..(y + 2).min(h) {
+        for xx in x.saturating_sub(1)..(x + 2).min(w) {
+            let v = img[[yy, xx]];
+            if v.is_finite() {
+                buf[n] = v;
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        f32::NAN
+    } else {
+        median_of(&mut buf[..n])
+    }
 }
 
 /// Divide by the mean of the finite pixels inside `mask`; returns that mean, or `None`
@@ -327,25 +353,57 @@ pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
 
 /// Zero-padded 1-D convolution along each row (symmetric kernel).
 fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let r = kernel.len() / 2;
     let (h, w) = a.dim();
     let mut out = Array2::<f32>::zeros((h, w));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(a.axis_iter(Axis(0)))
-        .for_each(|(mut o, row)| {
-            let row = row.to_vec(); // contiguous copy: one row, cheap
-            for (x, ov) in o.iter_mut().enumerate() {
-                let lo = x.saturating_sub(r);
-                let hi = (x + r).min(w - 1);
-                *ov = row[lo..=hi]
-                    .iter()
-                    .zip(&kernel[lo + r - x..=hi + r - x])
-                    .map(|(v, k)| v * k)
-                    .sum();
+        .for_each_init(Vec::new, |buf, (mut o, row)| {
+            buf.clear();
+            buf.extend(row.iter().copied()); // contiguous copy: one row, cheap
+            match o.as_slice_mut() {
+                Some(o) => convolve_row(buf, kernel, o),
+                None => {
+                    let mut tmp = vec![0f32; w];
+                    convolve_row(buf, kernel, &mut tmp);
+                    o.iter_mut().zip(&tmp).for_each(|(d, s)| *d = *s);
+                }
             }
         });
     out
+}
+
+/// `out[x] = Σ_t kernel[t]·row[x + t − r]` over the taps inside the row, summed in tap order.
+/// Interior pixels go tap-outer over contiguous slices (vectorised; same sums, same order).
+fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
+    let r = kernel.len() / 2;
+    let w = row.len();
+    let direct = |x: usize| -> f32 {
+        let lo = x.saturating_sub(r);
+        let hi = (x + r).min(w - 1);
+        row[lo..=hi]
+            .iter()
+            .zip(&kernel[lo + r - x..=hi + r - x])
+            .map(|(v, k)| v * k)
+            .sum()
+    };
+    if w <= 2 * r {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = direct(x);
+        }
+        return;
+    }
+    let n = w - 2 * r;
+    let inner = &mut out[r..r + n];
+    inner.iter_mut().for_each(|o| *o = 0.0);
+    for (t, &k) in kernel.iter().enumerate() {
+        for (o, &v) in inner.iter_mut().zip(&row[t..t + n]) {
+            *o += v * k;
+        }
+    }
+    for x in (0..r).chain(r + n..w) {
+        out[x] = direct(x);
+    }
 }
 
 /// Zero-padded 1-D convolution along each column, row-wise for cache locality.
@@ -903,19 +961,45 @@ mod tests {
     }
 
     #[test]
-    fn median_network_agrees_with_sorting() {
-        let mut state = 7u64;
-        for _ in 0..2000 {
-            let mut p = [0f32; 9];
-            for v in &mut p {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                *v = ((state >> 40) % 17) as f32; // many ties
+    fn median3x3_equals_the_sorted_median_of_each_window() {
+        // Truth: the middle of each window's finite values sorted (even counts: mean of the
+        // two middle ones), on values with many ties and scattered NaNs.
+        let (h, w) = (23, 37);
+        let mut state = 11u64;
+        let img = Array2::from_shape_fn((h, w), |_| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            if (state >> 33) % 13 == 0 {
+                f32::NAN
+            } else {
+                ((state >> 40) % 9) as f32
             }
-            let mut sorted = p;
-            sorted.sort_by(f32::total_cmp);
-            assert_eq!(median9(&mut p), sorted[4]);
+        });
+        let med = median3x3(&img.view());
+        for y in 0..h {
+            for x in 0..w {
+                let mut v: Vec<f32> = Vec::new();
+                for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                        if img[[yy, xx]].is_finite() {
+                            v.push(img[[yy, xx]]);
+                        }
+                    }
+                }
+                v.sort_by(f32::total_cmp);
+                let n = v.len();
+                let truth = match n {
+                    0 => f32::NAN,
+                    _ if n % 2 == 1 => v[n / 2],
+                    _ => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+                };
+                let got = med[[y, x]];
+                assert!(
+                    got == truth || (got.is_nan() && truth.is_nan()),
+                    "({x}, {y}): {got} vs {truth}"
+                );
+            }
         }
     }
 

@@ -69,4 +69,29 @@ pub struct FrameAlignment {
     pub sigma_chained_dy_px: Option<f64>,
     pub sigma_chained_rotation_arcsec: Option<f64>,
     pub sigma_chained_scale: Option<f64>,
+    /// Beyond the contract (additive): checksum of the pixels that were aligned, as read
+    /// (see [`pixel_checksum`]), so a log can prove no frame was read half-written.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_checksum: Option<String>,
+}
+
+/// `fnv1a64:<16 hex digits>`: 64-bit FNV-1a over the width and height (u64, little-endian)
+/// then every pixel's f32 bit pattern (little-endian), row by row.
+pub fn pixel_checksum(pixels: ndarray::ArrayView2<f32>) -> String {
+    const OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+    const PRIME: u64 = 0x0000_0100_0000_01b3;
+    let mut h = OFFSET;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h ^= u64::from(b);
+            h = h.wrapping_mul(PRIME);
+        }
+    };
+    let (height, width) = pixels.dim();
+    eat(&(width as u64).to_le_bytes());
+    eat(&(height as u64).to_le_bytes());
+    for v in pixels.iter() {
+        eat(&v.to_bits().to_le_bytes());
+    }
+    format!("fnv1a64:{h:016x}")
 }

@@ -952,6 +952,7 @@ impl ChannelState {
             sigma_chained_dy_px: sig.map(|s| s[3]),
             sigma_chained_rotation_arcsec: sig.map(|s| s[1] * ARCSEC_PER_RAD),
             sigma_chained_scale: sig.map(|s| s[0]),
+            pixel_checksum: None,
         };
         records.push(Record::Frame {
             message: Box::new(message.clone()),

@@ -62,7 +62,7 @@ fn mirror(i: isize, n: usize) -> usize {
 }
 
 /// Integer position and fraction, `None` outside the sample hull.
-#[inline]
+#[inline(always)]
 fn locate(v: f64, n: usize) -> Option<(usize, f64)> {
     // A hair of tolerance for round-off at the last sample.
     const TOL: f64 = 1e-9;
@@ -75,7 +75,7 @@ fn locate(v: f64, n: usize) -> Option<(usize, f64)> {
     Some((i, v - i as f64))
 }
 
-#[inline]
+#[inline(always)]
 fn bspline3_weights(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
@@ -97,7 +97,7 @@ fn keys_weights(t: f64) -> [f64; 4] {
 }
 
 /// 4×4 weighted sum around `(ix, iy)` (offsets −1..=2), mirrored at the borders.
-#[inline]
+#[inline(always)]
 fn sum4x4(data: &ArrayView2<f32>, ix: usize, iy: usize, wx: &[f64; 4], wy: &[f64; 4]) -> f64 {
     let (h, w) = data.dim();
     let mut acc = 0.0;
@@ -159,19 +159,49 @@ impl SplineImage {
         out_width: usize,
         out_height: usize,
     ) -> Array2<f32> {
-        warp_sampler(self, out_width, out_height, similarity_map(t))
+        self.warp_similarity_window(t, 0, 0, out_width, out_height)
     }
-}
 
-impl Sampler for SplineImage {
-    fn width(&self) -> usize {
-        self.coeffs.ncols()
+    /// The `out_width × out_height` window at column `x0`, row `y0` of
+    /// [`SplineImage::warp_similarity`]'s output (same values, computed only there).
+    pub fn warp_similarity_window(
+        &self,
+        t: &Similarity,
+        x0: usize,
+        y0: usize,
+        out_width: usize,
+        out_height: usize,
+    ) -> Array2<f32> {
+        let (a, b) = t.ab();
+        let [cx, cy] = t.center;
+        let map = RowMap {
+            a,
+            b,
+            cx,
+            cy,
+            ox: cx + t.dx,
+            oy: cy + t.dy,
+            x0: x0 as f64,
+        };
+        let mut out = Array2::<f32>::zeros((out_height, out_width));
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| match row.as_slice_mut() {
+                Some(r) => spline_similarity_row(self, &map, (y + y0) as f64, r),
+                None => {
+                    for (x, v) in row.iter_mut().enumerate() {
+                        let (sx, sy) = map.at(x, (y + y0) as f64);
+                        *v = self.sample_at(sx, sy);
+                    }
+                }
+            });
+        out
     }
-    fn height(&self) -> usize {
-        self.coeffs.nrows()
-    }
-    #[inline]
-    fn sample(&self, x: f64, y: f64) -> f32 {
+
+    /// [`Sampler::sample`], inlined into the row loops.
+    #[inline(always)]
+    fn sample_at(&self, x: f64, y: f64) -> f32 {
         let (h, w) = self.coeffs.dim();
         let (Some((ix, tx)), Some((iy, ty))) = (locate(x, w), locate(y, h)) else {
             return f32::NAN;
@@ -188,6 +218,59 @@ impl Sampler for SplineImage {
             &bspline3_weights(tx),
             &bspline3_weights(ty),
         ) as f32
+    }
+}
+
+/// A similarity as `similarity_map` evaluates it, for output columns offset by `x0`.
+struct RowMap {
+    a: f64,
+    b: f64,
+    cx: f64,
+    cy: f64,
+    ox: f64,
+    oy: f64,
+    x0: f64,
+}
+
+impl RowMap {
+    /// Same arithmetic as `similarity_map` at `(x + x0, y)`, so results are bitwise equal.
+    #[inline(always)]
+    fn at(&self, x: usize, y: f64) -> (f64, f64) {
+        let (u, v) = (x as f64 + self.x0 - self.cx, y - self.cy);
+        (
+            self.a * u - self.b * v + self.ox,
+            self.b * u + self.a * v + self.oy,
+        )
+    }
+}
+
+crate::flow::simd::multiversion!(fn spline_similarity_row(
+    sp: &SplineImage,
+    map: &RowMap,
+    y: f64,
+    out: &mut [f32],
+) => spline_similarity_row_body);
+
+/// One output row of a spline warp (compiled for AVX2 when available: `floor` becomes one
+/// instruction; no FMA contraction, so the values do not depend on the CPU).
+#[inline(always)]
+fn spline_similarity_row_body(sp: &SplineImage, map: &RowMap, y: f64, out: &mut [f32]) {
+    for (x, v) in out.iter_mut().enumerate() {
+        let (sx, sy) = map.at(x, y);
+        *v = sp.sample_at(sx, sy);
+    }
+}
+
+impl Sampler for SplineImage {
+    fn width(&self) -> usize {
+        self.coeffs.ncols()
+    }
+    fn height(&self) -> usize {
+        self.coeffs.nrows()
+    }
+    #[inline]
+    fn sample(&self, x: f64, y: f64) -> f32 {
+        self.sample_at(x, y)
     }
 }
 

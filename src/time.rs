@@ -105,7 +105,7 @@ pub fn tai_to_utc_ns(tai_ns: i64) -> i64 {
             offset = dat;
         }
     }
-    tai_ns - offset * NS_PER_S
+    tai_ns.saturating_sub(offset * NS_PER_S)
 }
 
 /// Format ns since the epoch as ISO 8601 UTC with milliseconds: `YYYY-MM-DDTHH:MM:SS.sssZ`.
@@ -140,7 +140,9 @@ pub fn parse_fits_time(text: &str, default_scale: TimeScale) -> Result<i64, Stri
 pub fn parse_date_and_time(date: &str, time: &str, scale: TimeScale) -> Result<i64, String> {
     let day_ns = parse_fits_time(date.trim(), scale)?;
     let tod_ns = parse_time_of_day(time.trim())?;
-    Ok(day_ns + tod_ns)
+    day_ns
+        .checked_add(tod_ns)
+        .ok_or_else(|| out_of_range(&format!("{date} {time}")))
 }
 
 /// Parse without applying the time scale: (ns of the calendar label, explicit scale if any).
@@ -162,7 +164,16 @@ fn parse_labelled(text: &str) -> Result<(i64, Option<TimeScale>), String> {
     } else {
         parse_time_of_day(time_part).map_err(|_| bad())?
     };
-    Ok((days * NS_PER_DAY + tod_ns, scale))
+    let ns = days
+        .checked_mul(NS_PER_DAY)
+        .and_then(|d| d.checked_add(tod_ns))
+        .ok_or_else(|| out_of_range(text))?;
+    Ok((ns, scale))
+}
+
+/// A date a 64-bit count of ns since 1970 cannot hold (before 1677 or after 2262).
+fn out_of_range(text: &str) -> String {
+    format!("date/time {text:?} is outside the years 1678–2261 that sunjitter represents")
 }
 
 /// Strip a trailing time-scale marker (`Z`, `_TAI`, ` UTC`…) and report the scale.
@@ -286,6 +297,24 @@ mod tests {
         assert_eq!(iso("2004-03-01"), "2004-03-01T00:00:00.000Z");
         assert_eq!(iso("19/05/98"), "1998-05-19T00:00:00.000Z");
         assert_eq!(iso("2014.03.01_00:01:30_UTC"), "2014-03-01T00:01:30.000Z");
+    }
+
+    /// Found by fuzzing (fuzz/corpus/fits_header/crash-time-year-4028): a year beyond 2262
+    /// overflowed the ns count (a panic in debug builds, a wrapped time in release).
+    #[test]
+    fn dates_beyond_the_ns_range_are_refused() {
+        for text in [
+            "4028-03-29T14:09:38.830",
+            "2262-04-12",
+            "1600-01-01T00:00:00_TAI",
+        ] {
+            let e = parse_fits_time(text, TimeScale::Utc).unwrap_err();
+            assert!(e.contains("outside the years"), "{e}");
+        }
+        assert!(parse_date_and_time("2262-04-11", "23:59:59", TimeScale::Utc).is_err());
+        // The ends of the range still work (2262-04-11T23:47:16.854775807Z is i64::MAX ns).
+        assert_eq!(iso("2262-04-11T23:47:16"), "2262-04-11T23:47:16.000Z");
+        assert_eq!(iso("1678-01-01"), "1678-01-01T00:00:00.000Z");
     }
 
     #[test]

@@ -516,7 +516,7 @@ mod real {
         let memory = MemorySink::default(); // unused here: the MCAP file is the record
         let (progress_tx, progress) = watch::channel(Progress::default());
         let parts = RunParts {
-            aligner: Arc::new(EngineAligner(config.engine.clone())),
+            aligner: Arc::new(EngineAligner::new(config.engine.clone())),
             config: Arc::new(config),
             reader: Arc::new(FitsReader),
             sink,

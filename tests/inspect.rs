@@ -85,6 +85,7 @@ fn record(
             sigma_chained_dy_px: v(sigma),
             sigma_chained_rotation_arcsec: v(0.5),
             sigma_chained_scale: v(2e-6),
+            pixel_checksum: None,
         },
     }
 }
@@ -176,7 +177,12 @@ fn recovers_injected_period_counts_and_glitch() {
 fn json_report_has_the_documented_fields() {
     let (frames, _) = measured_series();
     let a = inspect::analyse(&frames, &InspectOptions::default());
-    let v = serde_json::to_value(inspect::report(&["run.mcap".into()], &a)).unwrap();
+    let v = serde_json::to_value(inspect::report(
+        &["run.mcap".into()],
+        &a,
+        Default::default(),
+    ))
+    .unwrap();
     assert_eq!(v["files"][0], "run.mcap");
     let c = &v["channels"][0];
     for key in [
@@ -429,4 +435,57 @@ fn command_reads_a_run_split_over_segments() {
         .unwrap();
     assert_eq!(missing.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&missing.stderr).contains("nope.mcap"));
+}
+
+/// A file that never becomes a frame (not FITS) is only on `/log`; `inspect` must still
+/// account for it, while the real frames land in their channels.
+#[test]
+fn inspect_accounts_for_inputs_that_only_reached_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("log");
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let bad = root.join("data/malformed/not_actually_fits.fits");
+    let replay = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("replay")
+        .arg(&bad)
+        .arg(root.join("data/real/eit_171_20040301T010016_128.fits"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        replay.status.success(),
+        "{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
+    let json = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(["inspect", "--json"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&json.stdout).unwrap();
+    assert_eq!(v["channels"].as_array().unwrap().len(), 1);
+    assert_eq!(v["channels"][0]["frames"], 1);
+    assert_eq!(v["log"]["errors"], 1);
+    let unaligned = v["log"]["unaligned"].as_array().unwrap();
+    assert_eq!(unaligned.len(), 1);
+    assert!(unaligned[0]["file"]
+        .as_str()
+        .unwrap()
+        .ends_with("not_actually_fits.fits"));
+    assert!(unaligned[0]["message"]
+        .as_str()
+        .unwrap()
+        .contains("not a FITS file"));
+
+    let text = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("inspect")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8(text.stdout).unwrap();
+    assert!(
+        text.contains("/log: 1 error(s), 0 warning(s); 1 input(s) with no alignment"),
+        "{text}"
+    );
 }

@@ -97,6 +97,7 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         sigma_chained_dy_px: chained(rng, 0.02).map(f64::abs),
         sigma_chained_rotation_arcsec: chained(rng, 0.2).map(f64::abs),
         sigma_chained_scale: chained(rng, 1e-6).map(f64::abs),
+        pixel_checksum: None,
     }
 }
 
@@ -340,8 +341,12 @@ fn layout_follows_the_contract() {
     props.sort();
     required.sort();
     contract.sort();
-    assert_eq!(props, contract);
     assert_eq!(required, contract);
+    // Properties: the contract's, plus the additive, optional pixel checksum.
+    let mut with_checksum = contract.clone();
+    with_checksum.push("pixel_checksum");
+    with_checksum.sort();
+    assert_eq!(props, with_checksum);
 
     // foxglove.Log fields and types as Foxglove publishes them (docs.foxglove.dev, Log schema).
     let log = summary

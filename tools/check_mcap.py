@@ -5,7 +5,8 @@ Checks every file (directories: every *.mcap in them) against CONTRACT.md's "MCA
   - a finished file: summary with statistics, zstd chunks each with a message index;
   - the metadata record `sunjitter` with `version` and `config` (a JSON document);
   - topics and schemas: /jitter/<channel> -> sunjitter.FrameAlignment,
-    /reference/<channel> -> sunjitter.ReferenceChange, /log -> foxglove.Log; schema encoding
+    /reference/<channel> -> sunjitter.ReferenceChange, /log -> foxglove.Log, /alert ->
+    sunjitter.Alert; schema encoding
     `jsonschema`, message encoding `json`; no other topic;
   - every schema loads in Foxglove: its JSON Schema parser takes one `type` per field (or a
     `oneOf` of numeric consts), so nullable fields are `"nullable": true` (OpenAPI style);
@@ -48,6 +49,7 @@ SCHEMA_FOR = [
     (re.compile(r"^/jitter/[^/]+$"), "sunjitter.FrameAlignment"),
     (re.compile(r"^/reference/[^/]+$"), "sunjitter.ReferenceChange"),
     (re.compile(r"^/log$"), "foxglove.Log"),
+    (re.compile(r"^/alert$"), "sunjitter.Alert"),
 ]
 NAME = re.compile(r"^sunjitter-\d{8}T\d{6}Z-\d{4,}\.mcap$")
 ISO = re.compile(r"^(\d{4})-(\d{2})-(\d{2})T(\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?(Z|[+-]00:?00)?$")

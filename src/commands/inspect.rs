@@ -22,7 +22,9 @@
 //!     } | null,
 //!     "outliers": [ { "sequence", "obs_time", "log_time_ns", "frame", "parameter", "series",
 //!                     "value", "baseline", "deviation", "sigma", "z" }, … ]
-//!   } ] }
+//!   } ],
+//!   "log": { "warnings": 2, "errors": 1,
+//!            "unaligned": [ { "file": "…fits", "message": "…" }, … ] } }
 //! STATS = { "n", "mean", "rms" (about the mean), "min", "max", "peak_to_peak", "median_sigma" }
 //! PEAK  = { "period_s", "frequency_hz", "power" (0–1, fraction of variance),
 //!           "false_alarm_probability" (Baluev 2008) }
@@ -34,7 +36,7 @@
 //! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
 //! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
 
-use crate::inspect::{self, InspectOptions, LoggedFrame};
+use crate::inspect::{self, InspectOptions, LogSummary, LoggedFrame};
 use crate::{Error, Result};
 use std::path::PathBuf;
 
@@ -68,10 +70,10 @@ pub fn run(args: &Args) -> Result<i32> {
         }
     }
     let files = log_files(&args.logs)?;
-    let frames = read_frames(&files)?;
+    let (frames, log) = read_frames(&files)?;
     let analyses = inspect::analyse(&frames, &InspectOptions::default());
     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
-    let report = inspect::report(&names, &analyses);
+    let report = inspect::report(&names, &analyses, log);
 
     if let Some(path) = &args.csv {
         let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
@@ -120,19 +122,29 @@ pub fn log_files(args: &[PathBuf]) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// Every `/jitter/<channel>` message of `files`, with its `log_time`; damaged or unfinished
-/// segments are read as far as they go, with a warning naming what was skipped.
-pub fn read_frames(files: &[PathBuf]) -> Result<Vec<LoggedFrame>> {
+/// Every `/jitter/<channel>` message of `files`, with its `log_time`, and the `/log` tally;
+/// damaged or unfinished segments are read as far as they go, with a warning naming what was
+/// skipped.
+pub fn read_frames(files: &[PathBuf]) -> Result<(Vec<LoggedFrame>, LogSummary)> {
     let contents = crate::sink::read_logs(files)?;
     for note in contents.notes() {
         tracing::warn!("{note}");
     }
-    Ok(contents
+    let frames: Vec<LoggedFrame> = contents
         .jitter
         .into_iter()
         .map(|m| LoggedFrame {
             log_time_ns: i64::try_from(m.log_time_ns).unwrap_or(i64::MAX),
             record: m.record,
         })
-        .collect())
+        .collect();
+    let entries = contents.logs.iter().map(|m| {
+        (
+            m.entry.level as u8,
+            m.entry.file.as_str(),
+            m.entry.message.as_str(),
+        )
+    });
+    let log = inspect::summarise_log(entries, &frames);
+    Ok((frames, log))
 }

@@ -7,6 +7,7 @@ pub mod info;
 pub mod inspect;
 pub mod replay;
 pub mod simulate;
+pub mod status;
 pub mod synth;
 pub mod watch;
 

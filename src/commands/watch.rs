@@ -1,7 +1,8 @@
 //! `sunjitter watch DIR --out OUT`: the daemon.
 
 use crate::config::{Config, Overrides};
-use crate::pipeline::{open_output, EngineAligner, FitsReader, Progress, RunParts};
+use crate::monitor::{Monitor, MonitorSetup};
+use crate::pipeline::{read_history, EngineAligner, FitsReader, History, Progress, RunParts};
 use crate::{Error, Result};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -22,8 +23,15 @@ pub struct Args {
     /// Watch subdirectories too.
     #[arg(long)]
     pub recursive: bool,
-    /// Also serve the logged topics live over the Foxglove WebSocket protocol.
-    #[arg(long, value_name = "ADDR:PORT")]
+    /// Also serve the logged topics live over the Foxglove WebSocket protocol, on
+    /// 127.0.0.1:8765 unless another address is given (port 0: any free port). A
+    /// non-loopback address exposes the data to the network (read-only).
+    #[arg(
+        long,
+        value_name = "ADDR:PORT",
+        num_args = 0..=1,
+        default_missing_value = "127.0.0.1:8765"
+    )]
     pub live: Option<String>,
     /// On exit, print a JSON summary of the run on stdout.
     #[arg(long)]
@@ -46,16 +54,7 @@ pub fn effective_config(
 }
 
 pub fn run(args: &Args) -> Result<i32> {
-    if let Some(live) = &args.live {
-        let addr: std::net::SocketAddr = live.parse().map_err(|_| {
-            Error::Usage(format!(
-                "--live {live}: expected ADDR:PORT, e.g. 127.0.0.1:8765"
-            ))
-        })?;
-        return Err(Error::Usage(format!(
-            "--live {addr}: the live Foxglove view is not implemented yet"
-        )));
-    }
+    let live = args.live.as_deref().map(parse_live_address).transpose()?;
     let config = effective_config(
         args.config.as_deref(),
         args.reference.as_deref(),
@@ -64,19 +63,41 @@ pub fn run(args: &Args) -> Result<i32> {
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
-    let (sink, history) = open_output(&args.out, &config)?;
+    let history = if args.out.is_dir() {
+        read_history(&args.out)?
+    } else {
+        History::default()
+    };
+    let mcap =
+        crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?;
+    let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
+    let runtime = runtime()?;
+    let setup = MonitorSetup {
+        config: &config,
+        watching: &args.dir,
+        out: &args.out,
+        live,
+        progress: progress_rx,
+    };
+    let (monitor, sink) = runtime.block_on(Monitor::start(setup, mcap))?;
     let config = Arc::new(config);
     let parts = RunParts {
         config: config.clone(),
         reader: Arc::new(FitsReader),
-        aligner: Arc::new(EngineAligner(config.engine.clone())),
-        sink,
+        aligner: Arc::new(EngineAligner::new(config.engine.clone())),
+        sink: Box::new(sink),
         history,
-        progress: tokio::sync::watch::channel(Progress::default()).0,
+        progress: progress_tx,
         live: true,
     };
-    let runtime = runtime()?;
-    let progress = runtime.block_on(crate::daemon::run_daemon(&args.dir, parts, termination()))?;
+    let result = runtime
+        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()).await });
+    let stopped = {
+        let _inside = runtime.enter();
+        monitor.stop()
+    };
+    let progress = result?;
+    stopped?;
     tracing::info!(
         frames = progress.frames,
         skipped = progress.skipped,
@@ -88,6 +109,23 @@ pub fn run(args: &Args) -> Result<i32> {
     Ok(0)
 }
 
+/// `--live ADDR:PORT` (a host name is resolved; its first address is used).
+pub fn parse_live_address(text: &str) -> Result<std::net::SocketAddr> {
+    use std::net::ToSocketAddrs;
+    let bad = || {
+        Error::Usage(format!(
+            "--live {text}: expected ADDR:PORT, e.g. 127.0.0.1:8765"
+        ))
+    };
+    if let Ok(addr) = text.parse() {
+        return Ok(addr);
+    }
+    text.to_socket_addrs()
+        .map_err(|_| bad())?
+        .next()
+        .ok_or_else(bad)
+}
+
 pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -96,26 +134,36 @@ pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
         .map_err(|e| Error::output("runtime", e.to_string()))
 }
 
-/// Resolves on SIGINT or SIGTERM.
-pub(crate) async fn termination() {
+/// Resolves on SIGINT or SIGTERM. Call it inside the runtime: the handlers are installed at
+/// once, so a signal that arrives before the future is first polled still stops the run
+/// cleanly (instead of killing the process with the default action).
+pub(crate) fn termination() -> impl std::future::Future<Output = ()> + Send + 'static {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};
-        match signal(SignalKind::terminate()) {
-            Ok(mut term) => {
-                tokio::select! {
-                    _ = tokio::signal::ctrl_c() => {}
-                    _ = term.recv() => {}
+        let handlers = (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+        );
+        async move {
+            match handlers {
+                (Ok(mut term), Ok(mut int)) => {
+                    tokio::select! {
+                        _ = term.recv() => {}
+                        _ = int.recv() => {}
+                    }
                 }
-            }
-            Err(_) => {
-                let _ = tokio::signal::ctrl_c().await;
+                _ => {
+                    let _ = tokio::signal::ctrl_c().await;
+                }
             }
         }
     }
     #[cfg(not(unix))]
     {
-        let _ = tokio::signal::ctrl_c().await;
+        async {
+            let _ = tokio::signal::ctrl_c().await;
+        }
     }
 }
 

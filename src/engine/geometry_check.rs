@@ -40,7 +40,8 @@ pub fn effective_geometry(
     }
 }
 
-fn checked(
+/// One image's header against its disk: the metadata to use, the disk for the mask.
+pub(super) fn checked(
     meta: &FrameMeta,
     data: &Array2<f32>,
     notes: &mut Vec<String>,

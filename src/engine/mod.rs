@@ -152,7 +152,10 @@ struct FineResult {
     uabjm_covariance: Covariance4,
     fit: SimilarityFit,
     points: usize,
+    /// The frame resampled onto the reference grid through the final estimate, on `crop`
+    /// only (the mask's box plus every later filter's reach).
     warped: Array2<f32>,
+    crop: Crop,
     passes: usize,
     converged: bool,
     /// What the refinement needs: the frame's spline, the sampling mask, the inliers.
@@ -161,89 +164,232 @@ struct FineResult {
     inliers: Vec<crate::sampling::Correspondence>,
 }
 
+impl FineResult {
+    /// `warped` at reference-grid rows and columns (which must lie inside the crop).
+    fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> ArrayView2<'_, f32> {
+        let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
+        self.warped.slice(s![
+            rows.start - y0..rows.end - y0,
+            cols.start - x0..cols.end - x0
+        ])
+    }
+}
+
 /// Align `frame` to `reference`: where reference content appears in the frame.
+/// To align several frames to one reference, prepare it once with [`PreparedReference`].
 pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> AlignOutcome {
     let started = Instant::now();
-    let mut outcome = match align_inner(reference, frame, cfg) {
-        Ok(o) => o,
-        Err(reason) => AlignOutcome::failed(
-            &reference.meta.file.display().to_string(),
-            &frame.meta.file.display().to_string(),
-            &reason,
-        ),
-    };
+    let mut outcome = PreparedReference::new(reference, cfg).align(frame);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }
 
+/// The reference's share of an alignment (hot-pixel cleaning, disk check, mask, window,
+/// resolution-matched copies and their high-pass), computed once and reused for every frame
+/// aligned to it: the daemon aligns many frames to one reference. `align` gives exactly what
+/// [`align_images`] gives.
+pub struct PreparedReference {
+    cfg: EngineConfig,
+    file: String,
+    work: Result<ReferenceWork, String>,
+}
+
+struct ReferenceWork {
+    /// The header's metadata, and as checked against the image.
+    meta: FrameMeta,
+    checked: FrameMeta,
+    notes: Vec<String>,
+    cleaned: Array2<f32>,
+    mask: Array2<bool>,
+    /// Why the mask cannot be used (raised after the frame's own checks, as before caching).
+    mask_error: Option<String>,
+    mask_box: Roi,
+    winsize: usize,
+    /// Resolution-matched versions by smoothing σ (few: one per partner plate scale).
+    matched: std::sync::Mutex<Vec<std::sync::Arc<Matched>>>,
+}
+
+/// The reference smoothed to a frame's resolution, and its high-pass for the structure check.
+struct Matched {
+    sigma_px: f64,
+    /// `None`: no smoothing (the cleaned reference itself).
+    data: Option<Array2<f32>>,
+    /// High-pass of `data` on `quality_crop`.
+    high_pass: Array2<f32>,
+    quality_crop: Crop,
+}
+
+/// At most this many resolution-matched versions are kept per reference.
+const MATCHED_CACHE: usize = 4;
+
+impl PreparedReference {
+    pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
+        PreparedReference {
+            cfg: cfg.clone(),
+            file: reference.meta.file.display().to_string(),
+            work: ReferenceWork::new(reference, cfg),
+        }
+    }
+
+    /// The configuration the reference was prepared with (and frames are aligned with).
+    pub fn config(&self) -> &EngineConfig {
+        &self.cfg
+    }
+
+    /// Align `frame` to the prepared reference.
+    pub fn align(&self, frame: &Image) -> AlignOutcome {
+        let started = Instant::now();
+        let result = match &self.work {
+            Ok(work) => align_inner(work, frame, &self.cfg),
+            Err(reason) => Err(reason.clone()),
+        };
+        let mut outcome = result.unwrap_or_else(|reason| {
+            AlignOutcome::failed(&self.file, &frame.meta.file.display().to_string(), &reason)
+        });
+        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+        outcome
+    }
+}
+
+impl ReferenceWork {
+    fn new(reference: &Image, cfg: &EngineConfig) -> Result<ReferenceWork, String> {
+        let (h, w) = reference.data.dim();
+        check_usable("reference", &reference.data)?;
+        let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
+        let mut notes = Vec::new();
+        let (checked, disk_px) = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+
+        // Mask on the reference grid: the disk without its limb, or the whole valid field.
+        let mut mask = match disk_px {
+            Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
+            None => Array2::from_elem((h, w), true),
+        };
+        Zip::from(&mut mask)
+            .and(&cleaned)
+            .for_each(|m, v| *m = *m && v.is_finite());
+        let mask_pixels = mask.iter().filter(|m| **m).count();
+        let mask_error = (mask_pixels < 64).then(|| {
+            format!(
+                "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
+            )
+        });
+        // Filters and statistics below only matter inside the mask: run them on its bounding
+        // box plus the filter's reach (the disk covers under half of a full-disk frame).
+        let mask_box = mask_roi(&mask);
+
+        // Window sized for the plate scale, bounded by what the image's structure supports.
+        let plate = checked.plate_scale_arcsec[0].abs();
+        let structure = if mask_error.is_none() {
+            let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
+            structure_length_px(
+                cleaned.slice(s![rows.clone(), cols.clone()]),
+                mask.slice(s![rows, cols]),
+            )
+        } else {
+            None
+        };
+        let winsize = choose_window(cfg, plate, structure, disk_px.map(|d| d.1), w, h);
+        tracing::debug!(?structure, winsize, plate, "window chosen");
+        Ok(ReferenceWork {
+            meta: reference.meta.clone(),
+            checked,
+            notes,
+            cleaned,
+            mask,
+            mask_error,
+            mask_box,
+            winsize,
+            matched: std::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The reference smoothed by `sigma_px` (cached).
+    fn matched(&self, sigma_px: f64) -> std::sync::Arc<Matched> {
+        let sigma_px = if sigma_px > 0.0 { sigma_px } else { 0.0 };
+        let lock = || match self.matched.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some(m) = lock()
+            .iter()
+            .find(|m| m.sigma_px.to_bits() == sigma_px.to_bits())
+        {
+            return m.clone();
+        }
+        let data =
+            (sigma_px > 0.0).then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
+        let view = data.as_ref().map_or(self.cleaned.view(), |d| d.view());
+        // Structure only: the large-scale disk brightness correlates even for unrelated images.
+        let (h, w) = self.cleaned.dim();
+        let trend_px = self.trend_px();
+        let (rows, cols) = grown(self.mask_box, trend_px, w, h);
+        let high_pass = quality::high_pass(view.slice(s![rows.clone(), cols.clone()]), trend_px);
+        let made = std::sync::Arc::new(Matched {
+            sigma_px,
+            data,
+            high_pass,
+            quality_crop: Crop { rows, cols },
+        });
+        let mut cache = lock();
+        if cache.len() >= MATCHED_CACHE {
+            cache.remove(0);
+        }
+        cache.push(made.clone());
+        made
+    }
+
+    /// Scale of the trend removed before the structure check, px.
+    fn trend_px(&self) -> f64 {
+        self.winsize as f64 / 4.0
+    }
+}
+
+impl Matched {
+    fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
+        self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+}
+
 fn align_inner(
-    reference: &Image,
+    work: &ReferenceWork,
     frame: &Image,
     cfg: &EngineConfig,
 ) -> Result<AlignOutcome, String> {
-    let (h, w) = reference.data.dim();
-    check_usable("reference", &reference.data)?;
+    let (h, w) = work.cleaned.dim();
     check_usable("frame", &frame.data)?;
-    let mut notes: Vec<String> = Vec::new();
+    let mut notes: Vec<String> = work.notes.clone();
 
-    let ref_data = cleaned(&reference.data, cfg.hot_pixel_fraction);
+    let started = Instant::now();
     let frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
+    let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
-    let geo = effective_geometry(reference, &ref_data, frame, &frame_data);
-    notes.extend(geo.notes.iter().cloned());
-    let coarse = crate::coarse::coarse_transform(&geo.reference, &geo.frame)
+    let (frame_meta, _) = geometry_check::checked(&frame.meta, &frame_data, &mut notes);
+    tracing::debug!(?cleaned_at, checked_at = ?started.elapsed(), "frame prepared");
+    let coarse = crate::coarse::coarse_transform(&work.checked, &frame_meta)
         .map_err(|e| format!("coarse alignment: {e}"))?;
-
-    // Mask on the reference grid: the disk without its limb, or the whole valid field.
-    let mut mask = match geo.reference_disk_px {
-        Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
-        None => Array2::from_elem((h, w), true),
-    };
-    Zip::from(&mut mask)
-        .and(&ref_data)
-        .for_each(|m, v| *m = *m && v.is_finite());
-    let mask_pixels = mask.iter().filter(|m| **m).count();
-    if mask_pixels < 64 {
-        return Err(format!(
-            "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
-        ));
+    if let Some(e) = &work.mask_error {
+        return Err(e.clone());
     }
-    // Filters and statistics below only matter inside the mask: run them on its bounding box
-    // plus the filter's reach (the disk covers under half of a full-disk frame).
-    let mask_box = mask_roi(&mask);
-
-    // Window sized for the plate scale, bounded by what the image's structure supports.
-    let plate = geo.reference.plate_scale_arcsec[0].abs();
-    let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
-    let structure = structure_length_px(
-        ref_data.slice(s![rows.clone(), cols.clone()]),
-        mask.slice(s![rows, cols]),
-    );
-    let winsize = choose_window(
-        cfg,
-        plate,
-        structure,
-        geo.reference_disk_px.map(|d| d.1),
-        w,
-        h,
-    );
-    tracing::debug!(?structure, winsize, plate, "window chosen");
+    let (mask, mask_box, winsize) = (&work.mask, work.mask_box, work.winsize);
+    let ref_data = &work.cleaned;
 
     // Resolution matching: degrade the sharper image to the other's resolution.
+    let plate = work.checked.plate_scale_arcsec[0].abs();
     let grid_plate = plate;
-    let frame_plate_on_grid = geo.frame.plate_scale_arcsec[0].abs();
+    let frame_plate_on_grid = frame_meta.plate_scale_arcsec[0].abs();
     let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
         preprocess::nyquist_fwhm_arcsec(plate),
         preprocess::nyquist_fwhm_arcsec(frame_plate_on_grid),
         grid_plate,
     );
-    let ref_matched = preprocess::gaussian_smooth(ref_data.view(), sig_ref);
+    let matched = work.matched(sig_ref);
+    let ref_matched = matched.view(work);
 
     let mut fine = fine_alignment(
-        &ref_matched,
+        ref_matched,
         &frame_data,
-        &mask,
+        mask,
         coarse,
         winsize,
         sig_frame,
@@ -257,11 +403,11 @@ fn align_inner(
         ));
     }
 
-    if refine::wanted(cfg.refine, &reference.meta, &frame.meta) {
+    if refine::wanted(cfg.refine, &work.meta, &frame.meta) {
         notes.push(refine::apply(
             &mut fine.transform,
             &mut fine.covariance,
-            &ref_matched,
+            ref_matched,
             &fine.spline,
             &fine.sample_mask,
             &fine.inliers,
@@ -269,23 +415,31 @@ fn align_inner(
             cfg,
         ));
     }
-
+    let fine_at = started.elapsed();
     // Quality of the final match.
     let (rows, cols) = grown(mask_box, 0.0, w, h);
     let similarity = quality::bhattacharyya(
         ref_data.slice(s![rows.clone(), cols.clone()]),
-        fine.warped.slice(s![rows.clone(), cols.clone()]),
+        fine.warped_at(rows.clone(), cols.clone()),
         mask.slice(s![rows, cols]),
     );
-    // Structure only: the large-scale disk brightness correlates even for unrelated images.
-    let trend_px = winsize as f64 / 4.0;
-    let (rows, cols) = grown(mask_box, trend_px, w, h);
     let correlation = quality::rank_correlation(
-        quality::high_pass(ref_matched.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
-        quality::high_pass(fine.warped.slice(s![rows.clone(), cols.clone()]), trend_px).view(),
-        mask.slice(s![rows, cols]),
+        matched.high_pass.view(),
+        quality::high_pass(
+            fine.warped_at(
+                matched.quality_crop.rows.clone(),
+                matched.quality_crop.cols.clone(),
+            ),
+            work.trend_px(),
+        )
+        .view(),
+        mask.slice(s![
+            matched.quality_crop.rows.clone(),
+            matched.quality_crop.cols.clone()
+        ]),
     );
 
+    tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
     let sig = sigmas(&fine.covariance);
     let usig = sigmas(&fine.uabjm_covariance);
@@ -321,9 +475,9 @@ fn align_inner(
     reasons.extend(notes);
     reasons.push(format!("window {winsize} px, {} passes", fine.passes));
 
-    let ps = reference.meta.plate_scale_arcsec;
+    let ps = work.meta.plate_scale_arcsec;
     let result = AlignResult {
-        reference: reference.meta.file.display().to_string(),
+        reference: work.meta.file.display().to_string(),
         frame: frame.meta.file.display().to_string(),
         scale: Some(t.scale),
         rotation_arcsec: Some(t.rotation_arcsec()),
@@ -359,7 +513,7 @@ fn align_inner(
         coarse: Some(coarse),
         covariance: Some(fine.covariance),
         uabjm_covariance: Some(fine.uabjm_covariance),
-        mask: Some(mask),
+        mask: Some(mask.clone()),
     })
 }
 
@@ -377,7 +531,7 @@ enum FineError {
 }
 
 fn fine_alignment(
-    reference: &Array2<f32>,
+    reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     mask: &Array2<bool>,
     coarse: Similarity,
@@ -399,21 +553,55 @@ fn fine_alignment(
         ..RansacParams::default()
     };
     let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
-    let radius = mask_extent_px(mask);
+    let radius = mask_extent_px(mask, roi);
+
+    // Every pass works on a crop of the reference grid: the mask's box plus what the flow's
+    // domain (at the pass's coarsest level), its border taper, the frame's smoothing and the
+    // quality filters after the last pass read around it. Inside the mask the results equal
+    // those of whole-frame arrays; outside nothing is computed (the disk covers under half of
+    // a full-disk frame).
+    let quality_reach = gaussian_reach(winsize as f64 / 4.0);
+    let smoothing_reach = gaussian_reach(frame_smoothing_px);
+    let crop_for = |levels: usize| -> Crop {
+        // 2^16 px exceeds any image: more levels only clamp the crop to the whole image.
+        let levels = levels.min(16);
+        let flow = (winsize / 2 + cfg.poly_n + 3 + FLOW_TAPER_PX + 2) << levels;
+        let blur = if levels > 0 {
+            (5usize << levels) / 4 + 2
+        } else {
+            0
+        };
+        let margin = (flow + blur).max(quality_reach) + smoothing_reach;
+        // Aligned so that every level's pixels and flow-grid nodes are those of the whole image.
+        let grid_stride = FlowOptions::affine_grid(winsize).grid_stride;
+        Crop::around(roi, margin, grid_stride << levels, w, h)
+    };
 
     let mut estimate = coarse.recentered(center);
-    let mut solver: Option<Farneback> = None;
+    let mut solver: Option<Farneback> = spare_solver(None);
     let mut pass = 0;
     loop {
         pass += 1;
-        let mut warped = spline.warp_similarity(&estimate, w, h);
+        let pass_started = Instant::now();
+        let first = pass == 1;
+        let pass_levels = if first { levels } else { 0 };
+        let crop = crop_for(pass_levels);
+        let (x0, y0) = (crop.cols.start, crop.rows.start);
+        let (ch, cw) = (crop.rows.len(), crop.cols.len());
+        let mut warped = spline.warp_similarity_window(&estimate, x0, y0, cw, ch);
         if frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
         }
-        let first = pass == 1;
+        let ref_crop = reference.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let mask_crop = mask.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let roi_crop = Roi {
+            x: roi.x - x0,
+            y: roi.y - y0,
+            ..roi
+        };
         let params = FarnebackParams {
             pyr_scale: 0.5,
-            levels: if first { levels } else { 0 },
+            levels: pass_levels,
             winsize,
             iterations: if first {
                 cfg.iterations
@@ -425,37 +613,51 @@ fn fine_alignment(
             gaussian_window: false,
         };
         let options = FlowOptions::affine_grid(winsize);
-        // The solver keeps its buffers between passes when the parameters allow.
+        // The solver keeps its buffers between passes and frames.
         let mut s = match solver.take() {
-            Some(s) if s.params() == &params => s,
-            _ => Farneback::new(params.clone())
+            Some(mut s) => {
+                if s.params() != &params || s.options() != &options {
+                    s.reconfigure(params.clone(), options.clone())
+                        .map_err(|e| FineError::Flow(e.to_string()))?;
+                }
+                s
+            }
+            None => Farneback::new(params.clone())
                 .and_then(|f| f.with_options(options.clone()))
                 .map_err(|e| FineError::Flow(e.to_string()))?,
         };
+        let warped_at = pass_started.elapsed();
         let flow = s
-            .compute(reference.view(), warped.view(), Some(roi), None)
+            .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
         solver = Some(s);
+        let flow_at = pass_started.elapsed();
 
         // Sample only where the whole window saw data: a window cut by the frame's edge
-        // (or a blank region) measures a biased motion.
+        // (or a blank region) measures a biased motion. The crop's own edge is further than
+        // the window from the mask unless it is the image's edge, which erosion treats alike.
         let mut valid = warped.mapv(f32::is_finite);
         Zip::from(&mut valid)
-            .and(reference)
+            .and(&ref_crop)
             .for_each(|m, v| *m = *m && v.is_finite());
         let mut sample_mask = erode(&valid, winsize / 2);
         Zip::from(&mut sample_mask)
-            .and(mask)
+            .and(&mask_crop)
             .for_each(|a, b| *a = *a && *b);
-        let points = grid_median_sample(
+        let mut points = grid_median_sample(
             flow.u.view(),
             flow.v.view(),
             sample_mask.view(),
             stride,
             cfg.sample,
         );
+        for p in &mut points {
+            p.x += x0 as f64;
+            p.y += y0 as f64;
+        }
         let fit = fit_similarity(&points, center, &ransac)
             .map_err(|source| FineError::Fit { pass, source })?;
+        tracing::debug!(pass, ?warped_at, ?flow_at, fitted_at = ?pass_started.elapsed(), crop = ?(cw, ch), "fine pass");
         let update = fit.transform;
         let previous = estimate;
         estimate = estimate.after(&update);
@@ -470,9 +672,11 @@ fn fine_alignment(
             if cfg.sigma == SigmaMethod::Calibrated {
                 sigma::add_floor(&mut calibrated, &inliers, center, cfg.systematic_floor_px);
             }
+            spare_solver(solver.take());
             let zero = [[0.0; 4]; 4];
             let (_, cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
             let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
+            let whole_sample_mask = uncropped(&sample_mask, &crop, h, w);
             return Ok(FineResult {
                 transform: estimate,
                 covariance: cov,
@@ -480,35 +684,113 @@ fn fine_alignment(
                 points: points.len(),
                 fit,
                 warped,
+                crop,
                 passes: pass,
                 converged,
                 spline,
-                sample_mask,
+                sample_mask: whole_sample_mask,
                 inliers,
             });
         }
     }
 }
 
-/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
-fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
-    let (h, w) = valid.dim();
-    // Integral image of invalid pixels.
-    let mut integral = Array2::<u32>::zeros((h + 1, w + 1));
-    for y in 0..h {
-        let mut row = 0u32;
-        for x in 0..w {
-            row += u32::from(!valid[[y, x]]);
-            integral[[y + 1, x + 1]] = integral[[y, x + 1]] + row;
+/// A crop's mask placed on the whole `h × w` grid (false outside the crop).
+fn uncropped(mask: &Array2<bool>, crop: &Crop, h: usize, w: usize) -> Array2<bool> {
+    let mut whole = Array2::from_elem((h, w), false);
+    whole
+        .slice_mut(s![crop.rows.clone(), crop.cols.clone()])
+        .assign(mask);
+    whole
+}
+
+/// Outermost pixels of a level that OpenCV's border taper weighs down.
+const FLOW_TAPER_PX: usize = 5;
+
+/// Rows and columns of the reference grid one pass works on.
+#[derive(Debug, Clone, PartialEq)]
+struct Crop {
+    rows: Range<usize>,
+    cols: Range<usize>,
+}
+
+impl Crop {
+    /// `roi` grown by `margin`, its start rounded down and its end up to multiples of `align`,
+    /// clamped to the `w × h` image.
+    fn around(roi: Roi, margin: usize, align: usize, w: usize, h: usize) -> Crop {
+        let span = |lo: usize, len: usize, n: usize| -> Range<usize> {
+            let a = lo.saturating_sub(margin) / align * align;
+            let b = (lo + len + margin).div_ceil(align) * align;
+            a..b.min(n)
+        };
+        Crop {
+            rows: span(roi.y, roi.height, h),
+            cols: span(roi.x, roi.width, w),
         }
     }
-    Array2::from_shape_fn((h, w), |(y, x)| {
-        if y < r || x < r || y + r >= h || x + r >= w {
-            return false;
+}
+
+/// Reach of `preprocess::gaussian_smooth` at σ = `sigma_px` (its truncation radius) plus one
+/// pixel for a central difference; 0 when it does nothing.
+fn gaussian_reach(sigma_px: f64) -> usize {
+    if sigma_px > 0.0 && sigma_px.is_finite() {
+        (4.0 * sigma_px + 0.5) as usize + 1
+    } else {
+        0
+    }
+}
+
+/// Hand back a flow solver for the next alignment (`Some`), or take the spare one (`None`).
+/// One is kept, whatever the reference: its buffers (≈ 35 bytes per pixel of the crop) are
+/// the largest working memory of an alignment, and faulting them in again for every frame
+/// costs more than the flow's arithmetic on the coarse levels.
+fn spare_solver(give: Option<Farneback>) -> Option<Farneback> {
+    static SPARE: std::sync::Mutex<Option<Farneback>> = std::sync::Mutex::new(None);
+    let mut spare = match SPARE.lock() {
+        Ok(g) => g,
+        Err(poisoned) => poisoned.into_inner(),
+    };
+    match give {
+        Some(s) => {
+            *spare = Some(s);
+            None
         }
-        let (y0, y1, x0, x1) = (y - r, y + r + 1, x - r, x + r + 1);
-        integral[[y1, x1]] + integral[[y0, x0]] == integral[[y0, x1]] + integral[[y1, x0]]
-    })
+        None => spare.take(),
+    }
+}
+
+/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
+fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
+    use rayon::prelude::*;
+    let (h, w) = valid.dim();
+    // Integral image of invalid pixels, row-major with a zero first row and column.
+    let iw = w + 1;
+    let mut integral = vec![0u32; (h + 1) * iw];
+    for (y, row) in valid.rows().into_iter().enumerate() {
+        let (above, below) = integral.split_at_mut((y + 1) * iw);
+        let (prev, cur) = (&above[y * iw..], &mut below[..iw]);
+        let mut count = 0u32;
+        for (x, v) in row.iter().enumerate() {
+            count += u32::from(!*v);
+            cur[x + 1] = prev[x + 1] + count;
+        }
+    }
+    let mut out = Array2::from_elem((h, w), false);
+    out.axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut o)| {
+            if y < r || y + r >= h {
+                return;
+            }
+            let (top, bottom) = ((y - r) * iw, (y + r + 1) * iw);
+            for x in r..w.saturating_sub(r) {
+                let (x0, x1) = (x - r, x + r + 1);
+                o[x] = integral[bottom + x1] + integral[top + x0]
+                    == integral[top + x1] + integral[bottom + x0];
+            }
+        });
+    out
 }
 
 /// Largest displacement the transform causes within `radius` of its centre.
@@ -518,14 +800,16 @@ fn max_motion_px(t: &Similarity, radius: f64) -> f64 {
     (t.dx * t.dx + t.dy * t.dy).sqrt() + linear
 }
 
-/// Half the diagonal of the mask's bounding box around the array centre.
-fn mask_extent_px(mask: &Array2<bool>) -> f64 {
+/// Largest distance of a mask pixel from the array centre (`roi`: the mask's bounding box).
+fn mask_extent_px(mask: &Array2<bool>, roi: Roi) -> f64 {
     let (h, w) = mask.dim();
     let c = Similarity::array_center(w, h);
     let mut r2: f64 = 0.0;
-    for ((y, x), &m) in mask.indexed_iter() {
+    let boxed = mask.slice(s![roi.y..roi.y + roi.height, roi.x..roi.x + roi.width]);
+    for ((y, x), &m) in boxed.indexed_iter() {
         if m {
-            r2 = r2.max((x as f64 - c[0]).powi(2) + (y as f64 - c[1]).powi(2));
+            let (x, y) = ((x + roi.x) as f64, (y + roi.y) as f64);
+            r2 = r2.max((x - c[0]).powi(2) + (y - c[1]).powi(2));
         }
     }
     r2.sqrt()
@@ -539,11 +823,7 @@ const STRUCTURE_TREND_SIGMA_PX: f64 = 8.0;
 /// clamped to the `w × h` image: inside `roi` such filters give the same values on this crop
 /// as on the whole image.
 fn grown(roi: Roi, sigma_px: f64, w: usize, h: usize) -> (Range<usize>, Range<usize>) {
-    let reach = if sigma_px > 0.0 {
-        (4.0 * sigma_px + 0.5) as usize + 1
-    } else {
-        0
-    };
+    let reach = gaussian_reach(sigma_px);
     (
         roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h),
         roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w),

@@ -22,9 +22,19 @@ pub fn bhattacharyya(
     let na = normalise_by_mean(va)?;
     let nb = normalise_by_mean(vb)?;
     let mut pooled: Vec<f64> = na.iter().chain(nb.iter()).copied().collect();
-    pooled.sort_by(f64::total_cmp);
-    let lo = pooled[(pooled.len() as f64 * 0.005) as usize];
-    let hi = pooled[((pooled.len() as f64 * 0.995) as usize).min(pooled.len() - 1)];
+    // The two order statistics by selection (same values as after a full sort).
+    let (k_lo, k_hi) = (
+        (pooled.len() as f64 * 0.005) as usize,
+        ((pooled.len() as f64 * 0.995) as usize).min(pooled.len() - 1),
+    );
+    let (_, &mut lo, above) = pooled.select_nth_unstable_by(k_lo, f64::total_cmp);
+    let hi = if k_hi > k_lo {
+        *above
+            .select_nth_unstable_by(k_hi - k_lo - 1, f64::total_cmp)
+            .1
+    } else {
+        lo
+    };
     if hi <= lo {
         // Both constant and equal after normalisation: identical histograms.
         return Some(1.0);

@@ -210,7 +210,7 @@ fn gradient(img: &Array2<f32>, x: usize, y: usize) -> (f64, f64) {
 /// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (measured: by 2×
 /// at 3× TRACE's background noise), which would halve the σ and slow convergence.
 pub fn refine(
-    reference: &Array2<f32>,
+    reference: ArrayView2<f32>,
     frame: &SplineImage,
     pixels: &[(usize, usize, usize)],
     grid: &CellGrid,
@@ -548,7 +548,7 @@ pub fn wanted(
 pub fn apply(
     transform: &mut Similarity,
     covariance: &mut Covariance4,
-    reference: &Array2<f32>,
+    reference: ArrayView2<f32>,
     frame: &SplineImage,
     sample_mask: &Array2<bool>,
     inliers: &[Correspondence],
@@ -628,7 +628,7 @@ pub fn apply(
 /// is refined from the exact answer, and what the refinement reports instead is its bias
 /// (interpolation of sharp or undersampled structure, mostly). Added in quadrature to the σ.
 fn self_test_bias(
-    reference: &Array2<f32>,
+    reference: ArrayView2<f32>,
     pixels: &[(usize, usize, usize)],
     grid: &CellGrid,
     transform: &Similarity,

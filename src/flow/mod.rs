@@ -46,7 +46,7 @@
 mod grid;
 mod poly;
 mod pyramid;
-mod simd;
+pub(crate) mod simd;
 mod solve;
 
 use crate::error::{Error, Result};
@@ -351,6 +351,18 @@ impl Farneback {
 
     pub fn params(&self) -> &FarnebackParams {
         &self.params
+    }
+
+    /// Change the parameters and options, keeping every buffer (a solver reused for another
+    /// pass or frame does not page-fault its working memory in again).
+    pub fn reconfigure(&mut self, params: FarnebackParams, options: FlowOptions) -> Result<()> {
+        check_params(&params)?;
+        let fresh = Farneback::new(params)?.with_options(options)?;
+        self.params = fresh.params;
+        self.options = fresh.options;
+        self.poly = fresh.poly;
+        self.gauss = fresh.gauss;
+        Ok(())
     }
 
     /// Use `options` (see [`FlowOptions`]); errors on a zero stride or zero iterations.

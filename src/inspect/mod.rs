@@ -112,6 +112,55 @@ pub struct Report {
     /// The MCAP files read, in the order read.
     pub files: Vec<String>,
     pub channels: Vec<ChannelReport>,
+    /// What `/log` says; frames that never reached a channel are only there.
+    pub log: LogSummary,
+}
+
+/// The `/log` topic in numbers.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LogSummary {
+    pub warnings: usize,
+    pub errors: usize,
+    /// Input files logged as errors that have no `/jitter` message (e.g. unreadable files),
+    /// so they appear in no channel's count; in log order.
+    pub unaligned: Vec<UnalignedFrame>,
+}
+
+/// An input logged as an error, with no alignment message.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct UnalignedFrame {
+    pub file: String,
+    pub message: String,
+}
+
+/// Tallies `/log` entries as (level, file, message): foxglove.Log levels 3 = warning, ≥ 4 =
+/// error. An error entry is `unaligned` when no frame in `frames` names its file.
+pub fn summarise_log<'a>(
+    entries: impl IntoIterator<Item = (u8, &'a str, &'a str)>,
+    frames: &[LoggedFrame],
+) -> LogSummary {
+    let aligned: std::collections::HashSet<&str> = frames
+        .iter()
+        .map(|f| f.record.align.frame.as_str())
+        .collect();
+    let mut summary = LogSummary::default();
+    let mut seen = std::collections::HashSet::new();
+    for (level, file, message) in entries {
+        match level {
+            3 => summary.warnings += 1,
+            l if l >= 4 => {
+                summary.errors += 1;
+                if !file.is_empty() && !aligned.contains(file) && seen.insert(file.to_string()) {
+                    summary.unaligned.push(UnalignedFrame {
+                        file: file.to_string(),
+                        message: message.to_string(),
+                    });
+                }
+            }
+            _ => {}
+        }
+    }
+    summary
 }
 
 /// Statistics of the four parameters of one series.
@@ -224,10 +273,11 @@ pub fn analyse(frames: &[LoggedFrame], opts: &InspectOptions) -> Vec<ChannelAnal
 }
 
 /// The JSON report of [`analyse`]'s results.
-pub fn report(files: &[String], analyses: &[ChannelAnalysis]) -> Report {
+pub fn report(files: &[String], analyses: &[ChannelAnalysis], log: LogSummary) -> Report {
     Report {
         files: files.to_vec(),
         channels: analyses.iter().map(|a| a.report.clone()).collect(),
+        log,
     }
 }
 
@@ -398,7 +448,6 @@ pub fn render_text(report: &Report) -> String {
     let mut s = String::new();
     if report.channels.is_empty() {
         let _ = writeln!(s, "no /jitter messages in {} file(s)", report.files.len());
-        return s;
     }
     for c in &report.channels {
         let _ = writeln!(
@@ -518,7 +567,24 @@ pub fn render_text(report: &Report) -> String {
             }
         }
     }
+    render_log(&mut s, &report.log);
     s
+}
+
+fn render_log(s: &mut String, log: &LogSummary) {
+    let _ = writeln!(
+        s,
+        "/log: {} error(s), {} warning(s); {} input(s) with no alignment",
+        log.errors,
+        log.warnings,
+        log.unaligned.len()
+    );
+    for u in log.unaligned.iter().take(10) {
+        let _ = writeln!(s, "  {}: {}", u.file, u.message);
+    }
+    if log.unaligned.len() > 10 {
+        let _ = writeln!(s, "  … {} more in --json", log.unaligned.len() - 10);
+    }
 }
 
 fn series_name(k: SeriesKind) -> &'static str {
@@ -590,6 +656,7 @@ pub(crate) mod testdata {
                 sigma_chained_dy_px: v(0.01),
                 sigma_chained_rotation_arcsec: v(0.1),
                 sigma_chained_scale: v(1e-6),
+                pixel_checksum: None,
             },
         }
     }
@@ -644,7 +711,7 @@ mod tests {
             (c.outliers[0].sequence, c.outliers[0].parameter.as_str()),
             (60, "dx_px")
         );
-        let text = render_text(&report(&["a.mcap".into()], &a));
+        let text = render_text(&report(&["a.mcap".into()], &a, LogSummary::default()));
         assert!(
             text.contains("SYNTH_171: 85 frames (83 ok, 1 degraded, 1 failed)"),
             "{text}"

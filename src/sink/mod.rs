@@ -44,13 +44,14 @@ mod schemas;
 mod segment;
 
 pub use reader::{
-    logged_frames, read_logs, recover_segment, JitterMessage, LogContents, LogMessage,
-    MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
+    logged_frames, read_logs, recover_segment, AlertMessage, JitterMessage, LogContents,
+    LogMessage, MetadataRecord, RecoveryOutcome, ReferenceMessage, SegmentReport,
 };
 pub use schemas::{
-    frame_alignment_schema, jitter_topic, log_schema, reference_change_schema, reference_topic,
-    FoxgloveTime, LogEntry, LogLevel, ReferenceChange, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA,
-    LOG_TOPIC, MESSAGE_ENCODING, METADATA_NAME, REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
+    alert_schema, frame_alignment_schema, jitter_topic, log_schema, reference_change_schema,
+    reference_topic, Alert, FoxgloveTime, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA,
+    ALERT_TOPIC, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, LOG_TOPIC, MESSAGE_ENCODING, METADATA_NAME,
+    REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
 };
 
 use crate::record::FrameAlignment;
@@ -116,6 +117,7 @@ enum Kind {
     Jitter,
     Reference,
     Log,
+    Alert,
 }
 
 impl Kind {
@@ -124,6 +126,7 @@ impl Kind {
             Kind::Jitter => (FRAME_ALIGNMENT_SCHEMA, frame_alignment_schema),
             Kind::Reference => (REFERENCE_CHANGE_SCHEMA, reference_change_schema),
             Kind::Log => (LOG_SCHEMA, log_schema),
+            Kind::Alert => (ALERT_SCHEMA, alert_schema),
         }
     }
 }
@@ -158,6 +161,21 @@ struct Broken {
     path: PathBuf,
     handle: File,
     durable_len: u64,
+}
+
+/// A handle on a sink's write budget (test hook, see [`McapSink::write_budget`]).
+#[doc(hidden)]
+#[derive(Debug, Clone)]
+pub struct WriteBudget(Arc<AtomicU64>);
+
+impl WriteBudget {
+    /// At most `bytes` more bytes reach the files (then `StorageFull`); `None`: no limit.
+    pub fn set(&self, bytes: Option<u64>) {
+        self.0.store(
+            bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)),
+            Ordering::SeqCst,
+        );
+    }
 }
 
 /// Writes a run's log as MCAP segment files (see the module docs for the guarantees).
@@ -281,6 +299,23 @@ impl McapSink {
         )
     }
 
+    /// Logs an alert on `/alert`.
+    pub fn write_alert(
+        &mut self,
+        alert: &Alert,
+        log_time_ns: u64,
+        publish_time_ns: u64,
+    ) -> Result<()> {
+        let data = self.encode(alert)?;
+        self.accept(
+            Kind::Alert,
+            ALERT_TOPIC.to_string(),
+            data,
+            log_time_ns,
+            publish_time_ns,
+        )
+    }
+
     /// Writes everything accepted so far to disk (ends the current chunk).
     pub fn flush(&mut self) -> Result<()> {
         if self.open.is_none() && self.pending.is_empty() {
@@ -351,10 +386,15 @@ impl McapSink {
     /// write, then `StorageFull`); `None` lifts the limit.
     #[doc(hidden)]
     pub fn set_write_budget(&mut self, bytes: Option<u64>) {
-        self.budget.store(
-            bytes.map_or(UNLIMITED, |b| b.min(UNLIMITED - 1)),
-            Ordering::SeqCst,
-        );
+        self.write_budget().set(bytes);
+    }
+
+    /// Test hook: [`McapSink::set_write_budget`] through a handle that stays usable after the
+    /// sink has moved to the daemon's writer thread (fault-injection tests fill the "disk"
+    /// while the daemon runs, then free it).
+    #[doc(hidden)]
+    pub fn write_budget(&self) -> WriteBudget {
+        WriteBudget(self.budget.clone())
     }
 
     fn encode<T: Serialize>(&self, value: &T) -> Result<Vec<u8>> {

@@ -2,8 +2,8 @@
 //! maybe a truncated record at the end), read linearly up to the last complete record.
 
 use super::schemas::{
-    LogEntry, LogLevel, ReferenceChange, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, MESSAGE_ENCODING,
-    REFERENCE_CHANGE_SCHEMA,
+    Alert, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA,
+    MESSAGE_ENCODING, REFERENCE_CHANGE_SCHEMA,
 };
 use crate::fits::FrameSpec;
 use crate::record::FrameAlignment;
@@ -43,6 +43,15 @@ pub struct LogMessage {
     pub entry: LogEntry,
 }
 
+/// One `/alert` message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct AlertMessage {
+    pub segment: usize,
+    pub log_time_ns: u64,
+    pub publish_time_ns: u64,
+    pub alert: Alert,
+}
+
 /// One metadata record (sunjitter writes `sunjitter` with `version` and `config`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MetadataRecord {
@@ -74,6 +83,7 @@ pub struct LogContents {
     pub jitter: Vec<JitterMessage>,
     pub references: Vec<ReferenceMessage>,
     pub logs: Vec<LogMessage>,
+    pub alerts: Vec<AlertMessage>,
     pub metadata: Vec<MetadataRecord>,
     pub segments: Vec<SegmentReport>,
 }
@@ -407,6 +417,14 @@ fn decode_segment(raw: RawSegment, contents: &mut LogContents) {
                     entry,
                 })
             }),
+            ALERT_SCHEMA => serde_json::from_slice(data).map(|alert| {
+                contents.alerts.push(AlertMessage {
+                    segment,
+                    log_time_ns,
+                    publish_time_ns,
+                    alert,
+                })
+            }),
             other => {
                 report.skipped += 1;
                 first_error.get_or_insert_with(|| format!("{}: schema {other:?}", channel.topic));
@@ -441,6 +459,9 @@ pub enum RecoveryOutcome {
         /// Bytes of the old file that could not be used (the truncated tail).
         dropped_bytes: u64,
     },
+    /// Unfinished and without a single message (killed between creating it and its first
+    /// flush): removed, rather than rewritten as an empty file readers would have to skip.
+    RemovedEmpty,
 }
 
 /// Turns an unfinished segment (a crash) into a finished one that every MCAP reader opens:
@@ -456,6 +477,11 @@ pub(super) fn recover_segment_with(path: &Path, sync: bool) -> Result<RecoveryOu
     let raw = parse_segment(path, &bytes)?;
     if raw.report.complete {
         return Ok(RecoveryOutcome::AlreadyComplete);
+    }
+    if raw.messages.is_empty() {
+        std::fs::remove_file(path)
+            .map_err(|e| Error::output(path, format!("cannot remove empty segment: {e}")))?;
+        return Ok(RecoveryOutcome::RemovedEmpty);
     }
     let mut tmp_name = path.as_os_str().to_os_string();
     tmp_name.push(".recovering");
@@ -526,6 +552,36 @@ pub(super) fn recover_segment_with(path: &Path, sync: bool) -> Result<RecoveryOu
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Found by the crash test: a daemon killed right after creating a segment left one with
+    /// only its header and metadata, "recovered" into a file with no chunks at all.
+    #[test]
+    fn unfinished_segments_without_messages_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let empty = dir.path().join("sunjitter-20260101T000000Z-0000.mcap");
+        std::fs::write(&empty, b"").unwrap();
+        let header_only = dir.path().join("sunjitter-20260101T000000Z-0001.mcap");
+        {
+            let file = std::fs::File::create(&header_only).unwrap();
+            let mut w = mcap::WriteOptions::new()
+                .create(std::io::BufWriter::new(file))
+                .unwrap();
+            w.write_metadata(&mcap::records::Metadata {
+                name: "sunjitter".into(),
+                metadata: BTreeMap::from([("version".to_string(), "0".to_string())]),
+            })
+            .unwrap();
+            w.flush().unwrap();
+            std::mem::forget(w); // killed: no summary, no footer
+        }
+        for path in [&empty, &header_only] {
+            assert_eq!(
+                recover_segment(path).unwrap(),
+                RecoveryOutcome::RemovedEmpty
+            );
+            assert!(!path.exists());
+        }
+    }
 
     #[test]
     fn frame_ids_parse_cube_indexes() {

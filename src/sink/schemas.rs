@@ -14,6 +14,7 @@ pub const MESSAGE_ENCODING: &str = "json";
 pub const FRAME_ALIGNMENT_SCHEMA: &str = "sunjitter.FrameAlignment";
 pub const REFERENCE_CHANGE_SCHEMA: &str = "sunjitter.ReferenceChange";
 pub const LOG_SCHEMA: &str = "foxglove.Log";
+pub const ALERT_SCHEMA: &str = "sunjitter.Alert";
 
 /// Topic of the per-frame alignments of one channel.
 pub fn jitter_topic(channel: &str) -> String {
@@ -27,6 +28,9 @@ pub fn reference_topic(channel: &str) -> String {
 
 /// Topic of warnings and errors per input file.
 pub const LOG_TOPIC: &str = "/log";
+
+/// Topic of alerts raised and resolved by the daemon's monitor.
+pub const ALERT_TOPIC: &str = "/alert";
 
 /// Name of the metadata record written at the start of every segment.
 pub const METADATA_NAME: &str = "sunjitter";
@@ -50,6 +54,30 @@ pub struct ReferenceChange {
     pub sequence: u64,
     /// The reference it replaces (`FILE` or `FILE[N]`), `null` for the first.
     pub replaces: Option<String>,
+}
+
+/// One `/alert` message: a monitored condition of a channel started (`raised`) or ended
+/// (`resolved`). A `resolved` message repeats the `channel`, `kind` and `threshold` of the
+/// `raised` one it ends; `value` is the value that ended it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Alert {
+    pub channel: String,
+    /// The configuration key of the threshold, e.g. `jump_px`, `silence_s`.
+    pub kind: String,
+    /// `raised` or `resolved`.
+    pub state: String,
+    /// `warning` or `error`.
+    pub severity: String,
+    pub value: f64,
+    pub threshold: f64,
+    /// Unit of `value` and `threshold`: `px`, `arcsec`, `s` or `frames`.
+    pub unit: String,
+    /// The frame (`FILE` or `FILE[N]`) that changed the state; `null` for time-based changes.
+    pub frame: Option<String>,
+    /// When: the frame's observation time, or the wall clock for time-based changes (ISO 8601 UTC).
+    pub time: String,
+    /// One line for people.
+    pub message: String,
 }
 
 /// Foxglove log levels (`foxglove.LogLevel`), serialised as their numbers.
@@ -244,6 +272,12 @@ pub fn frame_alignment_schema() -> Value {
     }
     let required: Vec<&String> = properties.keys().collect();
     let required = json!(required);
+    // Beyond the contract, optional (additive): absent from logs written before it existed.
+    properties.insert(
+        "pixel_checksum".to_string(),
+        json!({ "type": "string",
+                "description": "fnv1a64:HEX of the aligned pixels as read (width, height, f32 bits)" }),
+    );
     json!({
         "title": FRAME_ALIGNMENT_SCHEMA,
         "description": "Alignment of one frame to its reference (sunjitter CONTRACT.md)",
@@ -275,6 +309,30 @@ pub fn reference_change_schema() -> Value {
         },
         "required": ["channel", "file", "frame", "obs_time", "reason", "reference_kind",
                      "sequence", "replaces"]
+    })
+}
+
+/// JSON Schema of `sunjitter.Alert`.
+pub fn alert_schema() -> Value {
+    json!({
+        "title": ALERT_SCHEMA,
+        "description": "A monitored condition of a channel was raised or resolved",
+        "type": "object",
+        "properties": {
+            "channel": { "type": "string" },
+            "kind": { "type": "string", "description": "Threshold key, e.g. jump_px" },
+            "state": { "type": "string", "enum": ["raised", "resolved"] },
+            "severity": { "type": "string", "enum": ["warning", "error"] },
+            "value": { "type": "number" },
+            "threshold": { "type": "number" },
+            "unit": { "type": "string", "enum": ["px", "arcsec", "s", "frames"] },
+            "frame": { "type": "string", "nullable": true,
+                       "description": "The frame that changed the state" },
+            "time": { "type": "string", "description": "ISO 8601 UTC" },
+            "message": { "type": "string" }
+        },
+        "required": ["channel", "kind", "state", "severity", "value", "threshold", "unit",
+                     "frame", "time", "message"]
     })
 }
 
@@ -360,6 +418,7 @@ mod tests {
             (FRAME_ALIGNMENT_SCHEMA, frame_alignment_schema()),
             (REFERENCE_CHANGE_SCHEMA, reference_change_schema()),
             (LOG_SCHEMA, log_schema()),
+            (ALERT_SCHEMA, alert_schema()),
         ] {
             foxglove_parsable(&schema, name).unwrap();
         }

@@ -1,0 +1,295 @@
+//! The live view: the logged topics served over the Foxglove WebSocket protocol.
+//!
+//! The writer thread hands each message it has logged to [`LiveTap::offer`], which never
+//! waits: a bounded queue feeds one `sunjitter-live` thread, and when the queue is full the
+//! message is dropped for the live view only (counted in the status file). That thread encodes
+//! the message exactly as the MCAP sink does (same schema, same JSON, same `log_time`) and logs
+//! it to the SDK's server, which keeps its own bounded queue per client and drops the oldest
+//! messages of a slow client. The server advertises no capability: clients can subscribe,
+//! nothing else (no publishing, services or parameters).
+
+use crate::pipeline::{mcap_ns, McapRecordSink, Record};
+use crate::sink::{self, Alert, LogEntry};
+use crate::{Error, Result};
+use foxglove::websocket::{ChannelView, Client, ServerListener};
+use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::Arc;
+
+/// What the live thread publishes.
+#[derive(Debug)]
+pub enum LiveMessage {
+    Record(Record),
+    Alert(Box<Alert>, i64),
+}
+
+/// The writer thread's end: non-blocking.
+#[derive(Clone)]
+pub struct LiveTap {
+    tx: SyncSender<LiveMessage>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl LiveTap {
+    /// A tap on a queue of `capacity` messages, and the queue's receiving end.
+    pub fn new(capacity: usize) -> (LiveTap, Receiver<LiveMessage>) {
+        let (tx, rx) = sync_channel(capacity.max(1));
+        let tap = LiveTap {
+            tx,
+            dropped: Arc::new(AtomicU64::new(0)),
+        };
+        (tap, rx)
+    }
+
+    /// Queue a message for the live view; drops it when the queue is full.
+    pub fn offer(&self, message: LiveMessage) {
+        match self.tx.try_send(message) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
+                self.dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// Messages the live view did not get (queue full or live thread gone).
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+}
+
+/// The running server and its publishing thread.
+pub struct LiveServer {
+    tap: LiveTap,
+    handle: Option<WebSocketServerHandle>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    pub addr: SocketAddr,
+}
+
+/// Logs subscriptions (read-only server: that is all a client can do).
+struct Listener;
+
+impl ServerListener for Listener {
+    fn on_subscribe(&self, client: Client, channel: ChannelView) {
+        tracing::info!(
+            client = client.id().to_string(),
+            topic = channel.topic(),
+            "live: subscribed"
+        );
+    }
+    fn on_unsubscribe(&self, client: Client, channel: ChannelView) {
+        tracing::info!(
+            client = client.id().to_string(),
+            topic = channel.topic(),
+            "live: unsubscribed"
+        );
+    }
+    fn on_client_connect(&self) {
+        tracing::info!("live: client connected");
+    }
+    fn on_client_disconnect(&self) {
+        tracing::info!("live: client disconnected");
+    }
+}
+
+impl LiveServer {
+    /// Start serving on `addr` (inside a tokio runtime). `topics` are advertised at once (the
+    /// channels named in the configuration, `/log`, `/alert`), so a client can subscribe before
+    /// their first message; other topics appear with their first message. `queue` is the
+    /// capacity of the writer → live queue.
+    pub async fn start(addr: SocketAddr, topics: &[String], queue: usize) -> Result<LiveServer> {
+        if !addr.ip().is_loopback() {
+            tracing::warn!(
+                %addr,
+                "live view on a non-loopback address: anyone who can reach it can read the data"
+            );
+        }
+        let context = Context::new();
+        let handle = context
+            .websocket_server()
+            .name(format!("sunjitter {}", env!("CARGO_PKG_VERSION")))
+            .bind(addr.ip().to_string(), addr.port())
+            .listener(Arc::new(Listener))
+            .start()
+            .await
+            .map_err(|e| Error::Usage(format!("--live {addr}: cannot serve the live view: {e}")))?;
+        let addr = SocketAddr::new(addr.ip(), handle.port());
+        let mut publisher = Publisher {
+            context,
+            channels: HashMap::new(),
+        };
+        for topic in topics {
+            publisher.channel(topic);
+        }
+        let (tap, rx) = LiveTap::new(queue);
+        let thread = std::thread::Builder::new()
+            .name("sunjitter-live".into())
+            .spawn(move || publisher.run(rx))
+            .map_err(|e| Error::output("live view", e.to_string()))?;
+        tracing::info!(%addr, "live view: Foxglove WebSocket server listening (ws://{addr})");
+        Ok(LiveServer {
+            tap,
+            handle: Some(handle),
+            thread: Some(thread),
+            addr,
+        })
+    }
+
+    pub fn tap(&self) -> LiveTap {
+        self.tap.clone()
+    }
+
+    /// Stop serving: close client connections without waiting for slow ones.
+    pub fn stop(mut self) {
+        if let Some(handle) = self.handle.take() {
+            handle.stop().detach_all();
+        }
+        // The thread ends when every tap is gone (the sink drops its copy when it finishes).
+        drop(self.tap);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+struct Publisher {
+    context: Arc<Context>,
+    channels: HashMap<String, Option<Arc<RawChannel>>>,
+}
+
+impl Publisher {
+    fn run(mut self, rx: Receiver<LiveMessage>) {
+        while let Ok(message) = rx.recv() {
+            let Some((topic, data, log_time_ns)) = encode(&message) else {
+                continue;
+            };
+            if let Some(channel) = self.channel(&topic) {
+                channel.log_with_meta(&data, PartialMetadata::with_log_time(log_time_ns));
+            }
+        }
+    }
+
+    fn channel(&mut self, topic: &str) -> Option<Arc<RawChannel>> {
+        if let Some(c) = self.channels.get(topic) {
+            return c.clone();
+        }
+        let (name, schema) = schema_of(topic);
+        let bytes = serde_json::to_vec(&schema()).unwrap_or_default();
+        let built = self
+            .context
+            .channel_builder(topic)
+            .message_encoding(sink::MESSAGE_ENCODING)
+            .schema(Schema::new(name, sink::SCHEMA_ENCODING, bytes))
+            .build_raw();
+        let channel = match built {
+            Ok(c) => Some(c),
+            Err(e) => {
+                tracing::error!(topic, "live view: cannot create the channel: {e}");
+                None
+            }
+        };
+        self.channels.insert(topic.to_string(), channel.clone());
+        channel
+    }
+}
+
+/// Schema of a topic, as the MCAP sink writes it.
+fn schema_of(topic: &str) -> (&'static str, fn() -> serde_json::Value) {
+    if topic.starts_with("/jitter/") {
+        (sink::FRAME_ALIGNMENT_SCHEMA, sink::frame_alignment_schema)
+    } else if topic.starts_with("/reference/") {
+        (sink::REFERENCE_CHANGE_SCHEMA, sink::reference_change_schema)
+    } else if topic == sink::ALERT_TOPIC {
+        (sink::ALERT_SCHEMA, sink::alert_schema)
+    } else {
+        (sink::LOG_SCHEMA, sink::log_schema)
+    }
+}
+
+/// Topic, JSON payload and `log_time` of a message: the bytes the MCAP sink writes.
+pub fn encode(message: &LiveMessage) -> Option<(String, Vec<u8>, u64)> {
+    let encoded = match message {
+        LiveMessage::Alert(alert, log_time_ns) => (
+            sink::ALERT_TOPIC.to_string(),
+            serde_json::to_vec(alert),
+            mcap_ns(*log_time_ns),
+        ),
+        LiveMessage::Record(record) => {
+            let log_time = mcap_ns(record.log_time_ns());
+            let data = match record {
+                Record::Frame { message, .. } => serde_json::to_vec(message.as_ref()),
+                Record::Reference { change, .. } => {
+                    serde_json::to_vec(&McapRecordSink::reference_message(change))
+                }
+                Record::Log {
+                    level,
+                    file,
+                    message,
+                    ..
+                } => serde_json::to_vec(&LogEntry {
+                    timestamp: sink::FoxgloveTime::from_ns(log_time),
+                    level: McapRecordSink::log_level(*level),
+                    message: message.clone(),
+                    name: "sunjitter".to_string(),
+                    file: file.clone(),
+                    line: 0,
+                }),
+            };
+            (record.topic(), data, log_time)
+        }
+    };
+    match encoded {
+        (topic, Ok(data), t) => Some((topic, data, t)),
+        (topic, Err(e), _) => {
+            tracing::error!(topic, "live view: cannot encode: {e}");
+            None
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::LogLevel;
+
+    #[test]
+    fn a_full_live_queue_drops_for_the_live_view_and_never_waits() {
+        // Nobody reads the queue (a stalled live thread): offers return at once, extras drop.
+        let (tap, rx) = LiveTap::new(2);
+        for i in 0..5 {
+            let r = Record::log(LogLevel::Warning, &format!("f{i}.fits"), "note", i);
+            tap.offer(LiveMessage::Record(r));
+        }
+        assert_eq!(tap.dropped(), 3);
+        let kept: Vec<i64> = rx
+            .try_iter()
+            .map(|m| match m {
+                LiveMessage::Record(r) => r.log_time_ns(),
+                LiveMessage::Alert(_, t) => t,
+            })
+            .collect();
+        assert_eq!(kept, vec![0, 1], "the oldest queued messages are kept");
+    }
+
+    #[test]
+    fn log_entries_are_encoded_as_foxglove_log_at_their_log_time() {
+        let r = Record::log(
+            LogLevel::Error,
+            "/data/a.fits",
+            "not a FITS file",
+            1_500_000_000,
+        );
+        let (topic, data, t) = encode(&LiveMessage::Record(r)).unwrap();
+        assert_eq!((topic.as_str(), t), ("/log", 1_500_000_000));
+        let v: serde_json::Value = serde_json::from_slice(&data).unwrap();
+        // foxglove.Log: ERROR is level 4; timestamp split into sec / nsec.
+        assert_eq!(v["level"], 4);
+        assert_eq!(
+            v["timestamp"],
+            serde_json::json!({"sec": 1, "nsec": 500_000_000})
+        );
+        assert_eq!(v["file"], "/data/a.fits");
+    }
+}

@@ -1,0 +1,208 @@
+//! The live view end to end, seen by an independent client: `@foxglove/ws-protocol` (the
+//! protocol library Foxglove's own apps use, tools/live_client) against `sunjitter watch
+//! --live`, fed real IRIS frames. Also the health status file of the same run.
+//!
+//! Needs `npm ci --prefix tools/live_client` once (the CI script does it).
+
+mod common;
+mod monitor_support;
+
+use monitor_support::*;
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+
+const CONFIG: &str = r#"
+[daemon]
+settle_s = 0.1
+reorder_window_s = 0.3
+reorder_window_frames = 64
+flush_interval_s = 0.1
+
+[health]
+interval_s = 0.05
+
+# Naming the channel advertises /jitter/SJI_1400 from the start.
+[channels.SJI_1400]
+"#;
+
+#[test]
+fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_costs_nothing() {
+    NodeClient::require_installed();
+    let tmp = tempfile::tempdir().unwrap();
+    let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = tmp.path().join("sunjitter.toml");
+    std::fs::write(&config, CONFIG).unwrap();
+    // Real frames 7–16 of the IRIS cube.
+    let indices: Vec<usize> = (7..17).collect();
+    let staged = stage_frames(
+        &tmp.path().join("stage"),
+        &indices
+            .iter()
+            .map(|i| (*i, Alter::None))
+            .collect::<Vec<_>>(),
+    );
+
+    let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
+    let line = daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]);
+    let url = live_url(&line);
+    // Meanwhile, a reader of the status file: it must find a whole document every time.
+    let reads = Arc::new(AtomicU64::new(0));
+    let stop_reading = Arc::new(AtomicBool::new(false));
+    let status_reader = {
+        let (out, reads, stop) = (out.clone(), reads.clone(), stop_reading.clone());
+        std::thread::spawn(move || {
+            while !stop.load(Ordering::SeqCst) {
+                if let Ok(text) = std::fs::read_to_string(out.join("status.json")) {
+                    serde_json::from_str::<serde_json::Value>(&text)
+                        .unwrap_or_else(|e| panic!("status file not whole JSON ({e}): {text}"));
+                    reads.fetch_add(1, Ordering::SeqCst);
+                }
+            }
+        })
+    };
+
+    let reader = NodeClient::start(&url, &["read", "/jitter/SJI_1400"]);
+    // The channel is advertised with the log's schema and encodings, then subscribed.
+    let advertised = loop {
+        let a = reader.expect("advertised");
+        if a["topic"] == "/jitter/SJI_1400" {
+            break a;
+        }
+    };
+    assert_eq!(advertised["schemaName"], "sunjitter.FrameAlignment");
+    assert_eq!(advertised["schemaEncoding"], "jsonschema");
+    assert_eq!(advertised["encoding"], "json");
+    let subscribed = reader.expect("subscribed");
+    assert_eq!(subscribed["topic"], "/jitter/SJI_1400");
+    daemon.expect_stderr(&["live: subscribed", "/jitter/SJI_1400"]);
+    let stalled = NodeClient::start(&url, &["stall"]);
+    stalled.expect("stalled");
+    // The stalled client subscribed to every advertised topic (/alert, /jitter, /log).
+    for _ in 0..3 {
+        daemon.expect_stderr(&["live: subscribed", "client=\"2\""]);
+    }
+
+    move_in(&staged, &watched);
+    let mut live = Vec::new();
+    while live.len() < indices.len() {
+        let m = reader.expect("message");
+        assert_eq!(m["topic"], "/jitter/SJI_1400");
+        live.push(m);
+    }
+    wait_for("every frame in the status file", || {
+        (status_frames(&out) == indices.len() as u64).then_some(())
+    });
+    let (exit, log) = daemon.terminate();
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    stop_reading.store(true, Ordering::SeqCst);
+    status_reader
+        .join()
+        .expect("status reads were all whole JSON");
+    assert!(reads.load(Ordering::SeqCst) > 0);
+    // Nothing more came after the last frame.
+    assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
+
+    // The log is the truth: one message per frame, and the live ones are the same messages.
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(contents.jitter.len(), indices.len());
+    let frames: Vec<String> = contents
+        .jitter
+        .iter()
+        .map(|m| m.record.align.frame.clone())
+        .collect();
+    for i in &indices {
+        let name = format!("sji1400_f{i:04}.fits");
+        assert_eq!(
+            frames.iter().filter(|f| f.ends_with(&name)).count(),
+            1,
+            "{name} in {frames:?}"
+        );
+    }
+    for (m, logged) in live.iter().zip(&contents.jitter) {
+        let payload = &m["payload"];
+        for field in common::jitter_fields() {
+            assert!(payload.get(field).is_some(), "live message lacks {field}");
+        }
+        // Same message: the client's JSON decodes to exactly the logged record (JavaScript
+        // prints 0.0 as 0, so compare decoded values, not text).
+        let decoded: sunjitter::FrameAlignment = serde_json::from_value(payload.clone()).unwrap();
+        assert_eq!(decoded, logged.record);
+        assert_eq!(m["logTime"], logged.log_time_ns.to_string());
+    }
+
+    // The final status agrees with the log.
+    let status = read_status(&out).unwrap();
+    assert_eq!(status["state"], "stopped");
+    let ch = &status["channels"]["SJI_1400"];
+    let count = |s: sunjitter::Status| {
+        contents
+            .jitter
+            .iter()
+            .filter(|m| m.record.align.status == s)
+            .count() as u64
+    };
+    assert_eq!(ch["frames"], indices.len() as u64);
+    assert_eq!(ch["ok"], count(sunjitter::Status::Ok));
+    assert_eq!(ch["degraded"], count(sunjitter::Status::Degraded));
+    assert_eq!(ch["failed"], count(sunjitter::Status::Failed));
+    assert_eq!(status["skipped"], 0);
+    assert_eq!(status["queue_depth"], 0);
+    let last = contents.jitter.last().unwrap();
+    assert_eq!(ch["last_frame"], last.record.align.frame.as_str());
+    assert!(ch["lag_s"].as_f64().is_some_and(|l| l >= 0.0), "{ch}");
+    assert_eq!(status["live"], url.as_str());
+    assert_eq!(status["live_dropped"], 0);
+
+    // `sunjitter status` prints it, for tools and for people.
+    let printed = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(["status", "--json"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(printed.status.success());
+    let printed: serde_json::Value = serde_json::from_slice(&printed.stdout).unwrap();
+    assert_eq!(printed, status);
+    let human = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("status")
+        .arg(out.join("status.json"))
+        .output()
+        .unwrap();
+    let human = String::from_utf8(human.stdout).unwrap();
+    assert!(
+        human.contains("stopped") && human.contains("SJI_1400"),
+        "{human}"
+    );
+}
+
+#[test]
+fn a_missing_status_file_is_bad_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("status")
+        .arg(tmp.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains("status.json"), "{err}");
+}
+
+#[test]
+fn a_live_port_in_use_is_a_usage_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("watch")
+        .arg(tmp.path())
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .args(["--live", &addr])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains(&format!("--live {addr}")), "{err}");
+}
