@@ -558,7 +558,7 @@ pub fn apply(
     let Some(grid) = CellGrid::new(sample_mask.view(), cfg.sample) else {
         return "intensity refinement skipped: empty sampling mask".into();
     };
-    let pixels = inlier_cell_pixels(sample_mask, &grid, inliers);
+    let pixels = thinned(inlier_cell_pixels(sample_mask, &grid, inliers), MAX_PIXELS);
     let settings = RefineSettings {
         smoothing_px: cfg.refine_smoothing_px,
         gradient_smoothing_px: cfg.refine_gradient_smoothing_px,
@@ -635,23 +635,104 @@ fn self_test_bias(
     settings: &RefineSettings,
 ) -> Option<[f64; 4]> {
     let (h, w) = reference.dim();
-    let synthetic = SplineImage::new(reference.view()).warp_similarity(&transform.inverse(), w, h);
+    // The synthetic frame is only needed where the refinement samples it: the pixels' box,
+    // grown by every filter's reach, mapped through `transform`. It is made on that window
+    // of the frame grid, and the test runs with the window's origin moved to (0, 0).
+    let (mut bx0, mut by0, mut bx1, mut by1) = (usize::MAX, usize::MAX, 0, 0);
+    for &(x, y, _) in pixels {
+        bx0 = bx0.min(x);
+        by0 = by0.min(y);
+        bx1 = bx1.max(x);
+        by1 = by1.max(y);
+    }
+    if bx0 > bx1 {
+        return None;
+    }
+    let margin = 8.0 * (settings.smoothing_px + settings.gradient_smoothing_px) + 16.0;
+    let corners = [
+        (bx0 as f64 - margin, by0 as f64 - margin),
+        (bx1 as f64 + margin, by0 as f64 - margin),
+        (bx0 as f64 - margin, by1 as f64 + margin),
+        (bx1 as f64 + margin, by1 as f64 + margin),
+    ]
+    .map(|(x, y)| transform.apply([x, y]));
+    let lo = |k: usize, n: usize| {
+        let v = corners.iter().map(|c| c[k]).fold(f64::INFINITY, f64::min);
+        (v.floor().max(0.0) as usize).min(n - 1)
+    };
+    let hi = |k: usize, n: usize| {
+        let v = corners
+            .iter()
+            .map(|c| c[k])
+            .fold(f64::NEG_INFINITY, f64::max);
+        (v.ceil().max(0.0) as usize).min(n - 1)
+    };
+    let (wx0, wy0, wx1, wy1) = (lo(0, w), lo(1, h), hi(0, w), hi(1, h));
+    let synthetic = SplineImage::new(reference).warp_similarity_window(
+        &transform.inverse(),
+        wx0,
+        wy0,
+        wx1 - wx0 + 1,
+        wy1 - wy0 + 1,
+    );
+    let on_window = Similarity {
+        dx: transform.dx - wx0 as f64,
+        dy: transform.dy - wy0 as f64,
+        ..*transform
+    };
     let test = refine(
         reference,
         &SplineImage::new(synthetic.view()),
         pixels,
         grid,
-        *transform,
+        on_window,
         &RefineSettings {
             frame_smoothing_px: 0.0,
             ..*settings
         },
     )
     .ok()?;
-    let (a, b) = (transform.params(), test.transform.params());
+    let (a, b) = (on_window.params(), test.transform.params());
     let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
     bias.iter().all(|v| v.is_finite()).then_some(bias)
 }
 
+/// Most pixels one refinement uses. Its precision grows as √pixels while its cost and memory
+/// grow linearly; beyond about a million pixels (a 1024² frame's disk) the other error terms
+/// (the measured floors) dominate, so larger frames are thinned on a regular lattice.
+const MAX_PIXELS: usize = 1 << 20;
+
+/// `pixels` thinned to at most `max` by keeping those on every `k`-th row and column.
+fn thinned(pixels: Vec<(usize, usize, usize)>, max: usize) -> Vec<(usize, usize, usize)> {
+    if pixels.len() <= max {
+        return pixels;
+    }
+    let k = ((pixels.len() as f64 / max as f64).sqrt().ceil() as usize).max(2);
+    pixels
+        .into_iter()
+        .filter(|&(x, y, _)| x % k == 0 && y % k == 0)
+        .collect()
+}
+
 /// Largest disagreement (in combined σ) between flow and refinement that keeps the refinement.
 const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thinning_keeps_a_regular_lattice_under_the_cap() {
+        let pixels: Vec<(usize, usize, usize)> = (0..100)
+            .flat_map(|y| (0..100).map(move |x| (x, y, 0)))
+            .collect();
+        // Under the cap: untouched.
+        assert_eq!(thinned(pixels.clone(), 10_000).len(), 10_000);
+        // 10 000 px, cap 2 500: every 2nd row and column, exactly 50 × 50.
+        let kept = thinned(pixels.clone(), 2_500);
+        assert_eq!(kept.len(), 2_500);
+        assert!(kept.iter().all(|&(x, y, _)| x % 2 == 0 && y % 2 == 0));
+        // Cap 1 000: k = ⌈√10⌉ = 4, 25 × 25.
+        assert_eq!(thinned(pixels, 1_000).len(), 625);
+    }
+}
