@@ -237,13 +237,9 @@ pub fn refine(
         + reach(settings.frame_smoothing_px)
         + reach(settings.gradient_smoothing_px)
         + 2;
-    let (mut bx0, mut by0, mut bx1, mut by1) = (usize::MAX, usize::MAX, 0, 0);
-    for &(x, y, _) in pixels {
-        bx0 = bx0.min(x);
-        by0 = by0.min(y);
-        bx1 = bx1.max(x);
-        by1 = by1.max(y);
-    }
+    let Some((bx0, by0, bx1, by1)) = pixel_box(pixels) else {
+        return Err("no pixels to refine".into());
+    };
     let bx0 = bx0.saturating_sub(margin);
     let by0 = by0.saturating_sub(margin);
     let bx1 = (bx1 + margin).min(w - 1);
@@ -638,16 +634,7 @@ fn self_test_bias(
     // The synthetic frame is only needed where the refinement samples it: the pixels' box,
     // grown by every filter's reach, mapped through `transform`. It is made on that window
     // of the frame grid, and the test runs with the window's origin moved to (0, 0).
-    let (mut bx0, mut by0, mut bx1, mut by1) = (usize::MAX, usize::MAX, 0, 0);
-    for &(x, y, _) in pixels {
-        bx0 = bx0.min(x);
-        by0 = by0.min(y);
-        bx1 = bx1.max(x);
-        by1 = by1.max(y);
-    }
-    if bx0 > bx1 {
-        return None;
-    }
+    let (bx0, by0, bx1, by1) = pixel_box(pixels)?;
     let margin = 8.0 * (settings.smoothing_px + settings.gradient_smoothing_px) + 16.0;
     let corners = [
         (bx0 as f64 - margin, by0 as f64 - margin),
@@ -695,6 +682,17 @@ fn self_test_bias(
     let (a, b) = (on_window.params(), test.transform.params());
     let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
     bias.iter().all(|v| v.is_finite()).then_some(bias)
+}
+
+/// Bounding box (x0, y0, x1, y1), inclusive, of `pixels`; `None` when there are none.
+fn pixel_box(pixels: &[(usize, usize, usize)]) -> Option<(usize, usize, usize, usize)> {
+    let (&(x, y, _), rest) = pixels.split_first()?;
+    Some(
+        rest.iter()
+            .fold((x, y, x, y), |(x0, y0, x1, y1), &(x, y, _)| {
+                (x0.min(x), y0.min(y), x1.max(x), y1.max(y))
+            }),
+    )
 }
 
 /// Most pixels one refinement uses. Its precision grows as √pixels while its cost and memory
