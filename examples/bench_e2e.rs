@@ -62,6 +62,13 @@ fn summary(name: &str, v: &[f64]) {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Stage timings: SUNJITTER_LOG=sunjitter=debug.
+    if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG") {
+        tracing_subscriber::fmt()
+            .with_writer(std::io::stderr)
+            .with_env_filter(filter)
+            .init();
+    }
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 2 {
         anyhow::bail!("usage: bench_e2e REFERENCE.fits FRAME.fits [FRAME.fits …]");

@@ -52,6 +52,7 @@ mod solve;
 use crate::error::{Error, Result};
 use ndarray::{Array2, ArrayView2};
 use pyramid::cv_round;
+use rayon::prelude::*;
 
 /// Farneback parameters (OpenCV's names and meanings).
 #[derive(Debug, Clone, PartialEq)]
@@ -685,16 +686,23 @@ impl Farneback {
             self.densify(d0, roi_rect, prev, out_u, out_v);
             return Ok(());
         }
-        for y in roi_rect.y0..roi_rect.y1 {
-            for x in roi_rect.x0..roi_rect.x1 {
-                if !prev[[y, x]].is_finite() {
-                    continue;
+        let (pu, pv) = (&self.prev_u, &self.prev_v);
+        out_u
+            .axis_iter_mut(ndarray::Axis(0))
+            .into_par_iter()
+            .zip(out_v.axis_iter_mut(ndarray::Axis(0)).into_par_iter())
+            .enumerate()
+            .skip(roi_rect.y0)
+            .take(roi_rect.y1 - roi_rect.y0)
+            .for_each(|(y, (mut ur, mut vr))| {
+                for x in roi_rect.x0..roi_rect.x1 {
+                    if prev[[y, x]].is_finite() {
+                        let i = (y - d0.y0) * dw + (x - d0.x0);
+                        ur[x] = pu[i];
+                        vr[x] = pv[i];
+                    }
                 }
-                let i = (y - d0.y0) * dw + (x - d0.x0);
-                out_u[[y, x]] = self.prev_u[i];
-                out_v[[y, x]] = self.prev_v[i];
-            }
-        }
+            });
         Ok(())
     }
 }
@@ -757,13 +765,12 @@ impl Farneback {
             self.u[0].resize(fw * fh, 0.0);
             self.v[0].clear();
             self.v[0].resize(fw * fh, 0.0);
-            for y in 0..fh {
-                let (ur, vr) = (
-                    &mut self.u[0][y * fw..][..fw],
-                    &mut self.v[0][y * fw..][..fw],
-                );
-                grid::flow_row(&gr, &self.prev_u, &self.prev_v, y, ur, vr);
-            }
+            let (pu, pv) = (&self.prev_u, &self.prev_v);
+            self.u[0]
+                .par_chunks_mut(fw)
+                .zip(self.v[0].par_chunks_mut(fw))
+                .enumerate()
+                .for_each(|(y, (ur, vr))| grid::flow_row(&gr, pu, pv, y, ur, vr));
             std::mem::swap(&mut self.prev_u, &mut self.u[0]);
             std::mem::swap(&mut self.prev_v, &mut self.v[0]);
         }
