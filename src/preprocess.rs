@@ -1157,7 +1157,10 @@ mod tests {
                 worst = worst.max((trend[[y, x]] as f64 - want).abs());
             }
         }
-        assert!(worst < 2e-3, "largest deviation {worst}");
+        // Linear interpolation between block centres f = 4 px apart misses at most
+        // f²/8 · |trend''| = f²k²/8 · damp (0.0031 here); the blur itself must be exact.
+        let bound = 16.0 * k * k / 8.0 * damp + 3e-4;
+        assert!(worst < bound, "largest deviation {worst}, bound {bound}");
         // NaN pixels stay NaN and do not spread.
         let mut holed = img.clone();
         holed[[150, 200]] = f32::NAN;

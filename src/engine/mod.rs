@@ -160,12 +160,32 @@ struct FineResult {
     converged: bool,
     /// `Some(level)` for a seed for the refinement: one pass finished on that pyramid level.
     seed_level: Option<usize>,
+    /// The frame's spline and resolution-matching blur, to warp it again.
+    spline: SplineImage,
+    frame_smoothing_px: f64,
     /// What the refinement needs: the sampling mask and the inliers.
     sample_mask: Array2<bool>,
     inliers: Vec<crate::sampling::Correspondence>,
 }
 
 impl FineResult {
+    /// Warp the frame again, on `crop` only, through the final transform (after the
+    /// refinement moved it: a seed's `warped` is the frame before its one pass).
+    fn rewarp(&mut self, crop: Crop) {
+        let mut warped = self.spline.warp_similarity_window(
+            &self.transform,
+            crop.cols.start,
+            crop.rows.start,
+            crop.cols.len(),
+            crop.rows.len(),
+        );
+        if self.frame_smoothing_px > 0.0 {
+            warped = preprocess::gaussian_smooth(warped.view(), self.frame_smoothing_px);
+        }
+        self.warped = warped;
+        self.crop = crop;
+    }
+
     /// `warped` at reference-grid rows and columns (which must lie inside the crop).
     fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> ArrayView2<'_, f32> {
         let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
@@ -430,7 +450,17 @@ fn align_inner(
             },
             cfg,
         ) {
-            Ok(note) => refine_note = Some(note),
+            Ok(note) => {
+                refine_note = Some(note);
+                // The quality checks below compare the frame as finally aligned.
+                let (rows, cols) = grown(mask_box, 0.0, w, h);
+                let q = &matched.quality_crop;
+                let crop = Crop {
+                    rows: rows.start.min(q.rows.start)..rows.end.max(q.rows.end),
+                    cols: cols.start.min(q.cols.start)..cols.end.max(q.cols.end),
+                };
+                fine.rewarp(crop);
+            }
             Err(note) => {
                 if fine.seed_level.is_some() {
                     fine = fine_stage(FlowDepth::Converged)?;
@@ -731,6 +761,8 @@ fn fine_alignment(
                 passes: pass,
                 converged,
                 seed_level: (depth == FlowDepth::Seed).then_some(seed_level),
+                spline,
+                frame_smoothing_px,
                 sample_mask: whole_sample_mask,
                 inliers,
             });
