@@ -659,7 +659,7 @@ struct FirstGuess {
 fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<FirstGuess> {
     let (h, w) = img.dim();
     let bin = h.max(w).div_ceil(COARSE_SIZE_PX).max(1);
-    let small = bin_mean(img, bin);
+    let small = bin_mean(img.view(), bin);
     let (sh, sw) = small.dim();
     let mut vals: Vec<f32> = small.iter().copied().filter(|v| v.is_finite()).collect();
     if vals.is_empty() {
@@ -738,28 +738,41 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
 }
 
 /// NaN-aware block mean by an integer factor.
-fn bin_mean(img: &ArrayView2<f32>, bin: usize) -> Array2<f32> {
-    if bin == 1 {
+/// Means of `bin × bin` blocks (the last ones partial), ignoring NaN; NaN for an all-NaN block.
+pub fn bin_mean(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
+    bin_mean_of(img, bin)
+}
+
+fn bin_mean_of(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
+    if bin <= 1 {
         return img.to_owned();
     }
     let (h, w) = img.dim();
-    Array2::from_shape_fn((h.div_ceil(bin), w.div_ceil(bin)), |(y, x)| {
-        let (mut s, mut n) = (0.0f64, 0u32);
-        for yy in y * bin..((y + 1) * bin).min(h) {
-            for xx in x * bin..((x + 1) * bin).min(w) {
-                let v = img[[yy, xx]];
-                if v.is_finite() {
-                    s += v as f64;
-                    n += 1;
+    let (bh, bw) = (h.div_ceil(bin), w.div_ceil(bin));
+    let mut out = Array2::<f32>::zeros((bh, bw));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(by, mut row)| {
+            let mut sum = vec![0f64; bw];
+            let mut n = vec![0u32; bw];
+            for y in by * bin..((by + 1) * bin).min(h) {
+                for (x, &v) in img.row(y).iter().enumerate() {
+                    if v.is_finite() {
+                        sum[x / bin] += v as f64;
+                        n[x / bin] += 1;
+                    }
                 }
             }
-        }
-        if n > 0 {
-            (s / n as f64) as f32
-        } else {
-            f32::NAN
-        }
-    })
+            for ((o, s), c) in row.iter_mut().zip(&sum).zip(&n) {
+                *o = if *c > 0 {
+                    (*s / *c as f64) as f32
+                } else {
+                    f32::NAN
+                };
+            }
+        });
+    out
 }
 
 struct LimbPoint {

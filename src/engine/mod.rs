@@ -96,6 +96,9 @@ pub struct EngineConfig {
     pub refine_smoothing_px: f64,
     /// Further Gaussian σ of the reference whose gradient weighs the refinement's residuals, px.
     pub refine_gradient_smoothing_px: f64,
+    /// When the refinement follows, the flow seeds it on copies binned to the pyramid level
+    /// where the mask spans at least this many pixels (full resolution below twice that).
+    pub seed_extent_px: usize,
 }
 
 impl Default for EngineConfig {
@@ -125,6 +128,7 @@ impl Default for EngineConfig {
             refine: RefineMode::default(),
             refine_smoothing_px: 0.7,
             refine_gradient_smoothing_px: 0.0,
+            seed_extent_px: SEED_EXTENT_PX,
         }
     }
 }
@@ -154,14 +158,16 @@ struct FineResult {
     points: usize,
     /// The frame resampled onto the reference grid through the final estimate, on `crop`
     /// only (the mask's box plus every later filter's reach).
-    warped: Array2<f32>,
+    /// `None` for a seed from binned images (warped again once the refinement is done).
+    warped: Option<Array2<f32>>,
     crop: Crop,
     passes: usize,
     converged: bool,
-    /// `Some(level)` for a seed for the refinement: one pass finished on that pyramid level.
+    /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
+    /// level.
     seed_level: Option<usize>,
-    /// The frame's spline and resolution-matching blur, to warp it again.
-    spline: SplineImage,
+    /// The frame's spline (made when first needed) and resolution-matching blur.
+    spline: Option<SplineImage>,
     frame_smoothing_px: f64,
     /// What the refinement needs: the sampling mask and the inliers.
     sample_mask: Array2<bool>,
@@ -171,8 +177,11 @@ struct FineResult {
 impl FineResult {
     /// Warp the frame again, on `crop` only, through the final transform (after the
     /// refinement moved it: a seed's `warped` is the frame before its one pass).
-    fn rewarp(&mut self, crop: Crop) {
-        let mut warped = self.spline.warp_similarity_window(
+    fn rewarp(&mut self, crop: Crop, frame: &Array2<f32>) {
+        let spline = self
+            .spline
+            .get_or_insert_with(|| SplineImage::new(frame.view()));
+        let mut warped = spline.warp_similarity_window(
             &self.transform,
             crop.cols.start,
             crop.rows.start,
@@ -182,17 +191,22 @@ impl FineResult {
         if self.frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), self.frame_smoothing_px);
         }
-        self.warped = warped;
+        self.warped = Some(warped);
         self.crop = crop;
     }
 
     /// `warped` at reference-grid rows and columns (which must lie inside the crop).
-    fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> ArrayView2<'_, f32> {
+    fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> Option<ArrayView2<'_, f32>> {
         let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
-        self.warped.slice(s![
+        let inside = rows.start >= y0
+            && cols.start >= x0
+            && rows.end <= self.crop.rows.end
+            && cols.end <= self.crop.cols.end;
+        let warped = self.warped.as_ref().filter(|_| inside)?;
+        Some(warped.slice(s![
             rows.start - y0..rows.end - y0,
             cols.start - x0..cols.end - x0
-        ])
+        ]))
     }
 }
 
@@ -240,6 +254,8 @@ struct Matched {
     quality_crop: Crop,
     /// The refinement's systematic floor on this reference (measured on first use).
     self_test: std::sync::OnceLock<Option<[f64; 4]>>,
+    /// Binned copies for seed flows on large frames (made on first use).
+    binned: std::sync::OnceLock<Binned>,
 }
 
 /// At most this many resolution-matched versions are kept per reference.
@@ -353,6 +369,7 @@ impl ReferenceWork {
             high_pass,
             quality_crop: Crop { rows, cols },
             self_test: std::sync::OnceLock::new(),
+            binned: std::sync::OnceLock::new(),
         });
         let mut cache = lock();
         if cache.len() >= MATCHED_CACHE {
@@ -411,7 +428,7 @@ fn align_inner(
     let ref_matched = matched.view(work);
 
     let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
-    let fine_stage = |depth: FlowDepth| {
+    let full_stage = || {
         fine_alignment(
             ref_matched,
             &frame_data,
@@ -420,17 +437,20 @@ fn align_inner(
             winsize,
             sig_frame,
             cfg,
-            depth,
         )
         .map_err(|e| e.to_string())
     };
-    // When the refinement follows, the flow only seeds it; should the refinement not be
-    // taken, the flow runs to convergence after all.
-    let mut fine = fine_stage(if refining {
-        FlowDepth::Seed
+    // When the refinement follows, the flow only seeds it, on binned copies of a large
+    // frame; should the refinement not be taken, the flow runs at full resolution after all.
+    let seed_level = if refining { seed_level(mask, cfg) } else { 0 };
+    let mut fine = if seed_level > 0 {
+        let binned = matched
+            .binned
+            .get_or_init(|| Binned::new(ref_matched, mask, seed_level));
+        seed_alignment(binned, &frame_data, coarse, winsize, sig_frame, cfg)?
     } else {
-        FlowDepth::Converged
-    })?;
+        full_stage()?
+    };
     let mut refine_note = None;
     if refining {
         let slack = fine.seed_level.map_or(0.0, seed_slack_px);
@@ -459,17 +479,17 @@ fn align_inner(
                     rows: rows.start.min(q.rows.start)..rows.end.max(q.rows.end),
                     cols: cols.start.min(q.cols.start)..cols.end.max(q.cols.end),
                 };
-                fine.rewarp(crop);
+                fine.rewarp(crop, &frame_data);
             }
             Err(note) => {
                 if fine.seed_level.is_some() {
-                    fine = fine_stage(FlowDepth::Converged)?;
+                    fine = full_stage()?;
                 }
                 refine_note = Some(note);
             }
         }
     }
-    if !fine.converged && fine.seed_level.is_none() {
+    if !fine.converged {
         notes.push(format!(
             "fine alignment did not converge to {} px in {} passes",
             cfg.convergence_px, fine.passes
@@ -479,26 +499,25 @@ fn align_inner(
     let fine_at = started.elapsed();
     // Quality of the final match.
     let (rows, cols) = grown(mask_box, 0.0, w, h);
-    let similarity = quality::bhattacharyya(
-        ref_data.slice(s![rows.clone(), cols.clone()]),
-        fine.warped_at(rows.clone(), cols.clone()),
-        mask.slice(s![rows, cols]),
-    );
-    let correlation = quality::rank_correlation(
-        matched.high_pass.view(),
-        quality::high_pass(
-            fine.warped_at(
-                matched.quality_crop.rows.clone(),
-                matched.quality_crop.cols.clone(),
-            ),
-            work.trend_px(),
-        )
-        .view(),
-        mask.slice(s![
-            matched.quality_crop.rows.clone(),
-            matched.quality_crop.cols.clone()
-        ]),
-    );
+    let similarity = fine
+        .warped_at(rows.clone(), cols.clone())
+        .and_then(|warped| {
+            quality::bhattacharyya(
+                ref_data.slice(s![rows.clone(), cols.clone()]),
+                warped,
+                mask.slice(s![rows, cols]),
+            )
+        });
+    let quality_crop = &matched.quality_crop;
+    let correlation = fine
+        .warped_at(quality_crop.rows.clone(), quality_crop.cols.clone())
+        .and_then(|warped| {
+            quality::rank_correlation(
+                matched.high_pass.view(),
+                quality::high_pass(warped, work.trend_px()).view(),
+                mask.slice(s![quality_crop.rows.clone(), quality_crop.cols.clone()]),
+            )
+        });
 
     tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
@@ -535,8 +554,11 @@ fn align_inner(
     }
     reasons.extend(notes);
     reasons.push(match fine.seed_level {
-        Some(level) => format!("window {winsize} px, flow seed on pyramid level {level}"),
-        None => format!("window {winsize} px, {} passes", fine.passes),
+        Some(level) if level > 0 => format!(
+            "window {winsize} px, {} passes finished on pyramid level {level}",
+            fine.passes
+        ),
+        _ => format!("window {winsize} px, {} passes", fine.passes),
     });
 
     let ps = work.meta.plate_scale_arcsec;
@@ -603,7 +625,6 @@ fn fine_alignment(
     winsize: usize,
     frame_smoothing_px: f64,
     cfg: &EngineConfig,
-    depth: FlowDepth,
 ) -> Result<FineResult, FineError> {
     let (h, w) = reference.dim();
     let center = Similarity::array_center(w, h);
@@ -619,10 +640,6 @@ fn fine_alignment(
         ..RansacParams::default()
     };
     let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
-    let seed_level = match depth {
-        FlowDepth::Converged => 0,
-        FlowDepth::Seed => seed_level(roi.width.min(roi.height), levels),
-    };
     let radius = mask_extent_px(mask, roi);
 
     // Every pass works on a crop of the reference grid: the mask's box plus what the flow's
@@ -683,7 +700,6 @@ fn fine_alignment(
             gaussian_window: false,
         };
         let options = FlowOptions {
-            finest_level: if first { seed_level } else { 0 },
             ..FlowOptions::affine_grid(winsize)
         };
         // The solver keeps its buffers between passes and frames.
@@ -738,7 +754,7 @@ fn fine_alignment(
         let moved = max_motion_px(&update, radius);
         let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
         let converged = moved < cfg.convergence_px.max(0.1 * noise);
-        if converged || pass >= cfg.max_passes.max(1) || depth == FlowDepth::Seed {
+        if converged || pass >= cfg.max_passes.max(1) {
             let inliers = fit.inlier_points(&points);
             let uabjm = fit.covariance;
             let mut calibrated = sigma::calibrated_covariance(cfg.sigma, &inliers, &fit, winsize);
@@ -756,12 +772,12 @@ fn fine_alignment(
                 uabjm_covariance: ucov,
                 points: points.len(),
                 fit,
-                warped,
+                warped: Some(warped),
                 crop,
                 passes: pass,
                 converged,
-                seed_level: (depth == FlowDepth::Seed).then_some(seed_level),
-                spline,
+                seed_level: None,
+                spline: Some(spline),
                 frame_smoothing_px,
                 sample_mask: whole_sample_mask,
                 inliers,
@@ -923,35 +939,142 @@ fn mask_roi(mask: &Array2<bool>) -> Roi {
     }
 }
 
-/// How far the flow stage goes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum FlowDepth {
-    /// Passes until the update is negligible: the flow's answer is final.
-    Converged,
-    /// One pass, finished on the pyramid level where the mask spans about
-    /// [`SEED_EXTENT_PX`]: a starting point for the intensity refinement, which measures
-    /// the motion at full resolution and converges from much further away.
-    Seed,
-}
-
-/// Mask extent, px, at the level a seed flow is finished on. The flow's cost and memory
-/// grow with the pixel count while the refinement only needs a start within a fraction of a
-/// pixel: on TRACE 1024² a level-1 finish still measured the translation to 0.016 px.
+/// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and memory
+/// grow with the pixel count while the refinement only needs a start near its answer: on a
+/// 4096² synthetic pair a seed on level 1 gave the same refined answer to 1e-6 px. A seed
+/// that converged on its level, not one pass: on undersampled images the refinement's answer
+/// depends on its start (AIA 171 128²: 40″ rotation RMSE from a one-pass seed, 9″ from the
+/// converged flow).
 const SEED_EXTENT_PX: usize = 768;
 
-/// How far a seed finished on `level` may be from the converged flow, px: the RMS flow error
-/// of a level-1 finish on TRACE 1024² warps was 0.05–0.06 px (in level pixels, 0.025).
+/// How far a seed on `level` may be from the full-resolution flow, px: the RMS flow error of
+/// a level-1 finish on TRACE 1024² warps was 0.05–0.06 px (0 at full resolution).
 fn seed_slack_px(level: usize) -> f64 {
-    0.05 * (1usize << level.min(16)) as f64
+    0.05 * ((1usize << level.min(16)) - 1) as f64
 }
 
-/// The pyramid level (at most `levels`) a seed flow is finished on.
-fn seed_level(extent_px: usize, levels: usize) -> usize {
+/// The pyramid level a seed flow works on: where the mask spans at least
+/// `cfg.seed_extent_px` (64 at the least), within the pyramid the flow would build.
+fn seed_level(mask: &Array2<bool>, cfg: &EngineConfig) -> usize {
+    let roi = mask_roi(mask);
+    let extent = roi.width.min(roi.height);
+    let levels = cfg.pyramid_levels.unwrap_or_else(|| auto_levels(extent));
     let mut level = 0;
-    while level < levels && (extent_px >> (level + 1)) >= SEED_EXTENT_PX {
+    while level < levels && (extent >> (level + 1)) >= cfg.seed_extent_px.max(64) {
         level += 1;
     }
     level
+}
+
+/// The reference and its mask binned `2^level`× for seed flows.
+struct Binned {
+    level: usize,
+    reference: Array2<f32>,
+    mask: Array2<bool>,
+}
+
+impl Binned {
+    fn new(reference: ArrayView2<f32>, mask: &Array2<bool>, level: usize) -> Binned {
+        let factor = 1usize << level;
+        let inside = preprocess::bin_mean(mask.mapv(|m| m as u8 as f32).view(), factor);
+        Binned {
+            level,
+            reference: preprocess::bin_mean(reference, factor),
+            // A binned pixel is in the mask when all its pixels are.
+            mask: inside.mapv(|v| v >= 1.0),
+        }
+    }
+}
+
+/// The flow stage on `binned` copies, as a seed for the refinement: the result in full-grid
+/// terms (transform, covariances, inliers, sampling mask), without a warped frame.
+fn seed_alignment(
+    binned: &Binned,
+    frame: &Array2<f32>,
+    coarse: Similarity,
+    winsize: usize,
+    frame_smoothing_px: f64,
+    cfg: &EngineConfig,
+) -> Result<FineResult, String> {
+    let factor = 1usize << binned.level;
+    let b = factor as f64;
+    let (h, w) = frame.dim();
+    let (sh, sw) = binned.reference.dim();
+    // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
+    let to_full = |q: f64| b * (q + 0.5) - 0.5;
+    let small_center = Similarity::array_center(sw, sh);
+    let full_center = Similarity::array_center(w, h);
+    // A similarity about centre C with shift d is, on the binned grid, the same scale and
+    // rotation about the binned C with shift d/b.
+    let about = [to_full(small_center[0]), to_full(small_center[1])];
+    let c = coarse.recentered(about);
+    let coarse_small = Similarity {
+        dx: c.dx / b,
+        dy: c.dy / b,
+        center: small_center,
+        ..c
+    };
+    let small_frame = preprocess::bin_mean(frame.view(), factor);
+    // Converged when the update is a tenth of the seed's own slack (in binned pixels).
+    let seed_cfg = EngineConfig {
+        convergence_px: cfg
+            .convergence_px
+            .max(0.1 * seed_slack_px(binned.level) / b),
+        ..cfg.clone()
+    };
+    let mut fine = fine_alignment(
+        binned.reference.view(),
+        &small_frame,
+        &binned.mask,
+        coarse_small,
+        winsize,
+        frame_smoothing_px / b,
+        &seed_cfg,
+    )
+    .map_err(|e| e.to_string())?;
+    let unbinned = |t: &Similarity, cov: &Covariance4| -> (Similarity, Covariance4) {
+        let t_about = Similarity {
+            dx: t.dx * b,
+            dy: t.dy * b,
+            center: [to_full(t.center[0]), to_full(t.center[1])],
+            ..*t
+        };
+        let d = [1.0, 1.0, b, b];
+        let cov_about: Covariance4 =
+            std::array::from_fn(|i| std::array::from_fn(|j| cov[i][j] * d[i] * d[j]));
+        let zero = [[0.0; 4]; 4];
+        compose_with_covariance(
+            &t_about,
+            &cov_about,
+            &Similarity::identity(full_center),
+            &zero,
+        )
+    };
+    let (transform, covariance) = unbinned(&fine.transform, &fine.covariance);
+    let (_, uabjm_covariance) = unbinned(&fine.transform, &fine.uabjm_covariance);
+    fine.transform = transform;
+    fine.covariance = covariance;
+    fine.uabjm_covariance = uabjm_covariance;
+    fine.fit.residual_rms_px *= b;
+    for p in &mut fine.inliers {
+        p.x = to_full(p.x);
+        p.y = to_full(p.y);
+        p.u *= b;
+        p.v *= b;
+    }
+    let small_mask = &fine.sample_mask;
+    fine.sample_mask = Array2::from_shape_fn((h, w), |(y, x)| {
+        small_mask[[(y / factor).min(sh - 1), (x / factor).min(sw - 1)]]
+    });
+    fine.warped = None;
+    fine.crop = Crop {
+        rows: 0..0,
+        cols: 0..0,
+    };
+    fine.spline = None;
+    fine.frame_smoothing_px = frame_smoothing_px;
+    fine.seed_level = Some(binned.level);
+    Ok(fine)
 }
 
 /// Pyramid levels that keep the coarsest level at least 64 px across (at most 4).

@@ -67,7 +67,7 @@ impl Default for RefineSettings {
             smoothing_px: 0.0,
             frame_smoothing_px: 0.0,
             gradient_smoothing_px: 0.0,
-            max_iterations: 8,
+            max_iterations: 12,
             tolerance_px: 1e-5,
         }
     }
@@ -230,8 +230,11 @@ struct Pixel {
     neighbours: f64,
 }
 
-/// Iterations that recompute the Tukey weights; later ones keep them.
-const REWEIGHTED_ITERATIONS: usize = 3;
+/// Iterations that recompute the Tukey weights; later ones keep them. Reweighting helps on
+/// undersampled images (AIA 171 128²: 9″ rotation RMSE after six, 16″ after three) but on
+/// real pairs with evolving structure it never settles (IRIS 1400, four minutes apart: the
+/// estimate wandered by its σ for as long as the weights changed).
+const REWEIGHTED_ITERATIONS: usize = 6;
 
 /// Tukey biweight tuning constant (95 % efficiency for Gaussian residuals).
 const TUKEY_C: f64 = 4.685;
