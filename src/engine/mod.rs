@@ -158,7 +158,7 @@ struct FineResult {
     points: usize,
     /// The frame resampled onto the reference grid through the final estimate, on `crop`
     /// only (the mask's box plus every later filter's reach).
-    /// `None` for a seed from binned images (warped again once the refinement is done).
+    /// For a seed on binned copies, on the binned grid (and `crop` too).
     warped: Option<Array2<f32>>,
     crop: Crop,
     passes: usize,
@@ -166,35 +166,12 @@ struct FineResult {
     /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
     /// level.
     seed_level: Option<usize>,
-    /// The frame's spline (made when first needed) and resolution-matching blur.
-    spline: Option<SplineImage>,
-    frame_smoothing_px: f64,
     /// What the refinement needs: the sampling mask and the inliers.
     sample_mask: Array2<bool>,
     inliers: Vec<crate::sampling::Correspondence>,
 }
 
 impl FineResult {
-    /// Warp the frame again, on `crop` only, through the final transform (after the
-    /// refinement moved it: a seed's `warped` is the frame before its one pass).
-    fn rewarp(&mut self, crop: Crop, frame: &Array2<f32>) {
-        let spline = self
-            .spline
-            .get_or_insert_with(|| SplineImage::new(frame.view()));
-        let mut warped = spline.warp_similarity_window(
-            &self.transform,
-            crop.cols.start,
-            crop.rows.start,
-            crop.cols.len(),
-            crop.rows.len(),
-        );
-        if self.frame_smoothing_px > 0.0 {
-            warped = preprocess::gaussian_smooth(warped.view(), self.frame_smoothing_px);
-        }
-        self.warped = Some(warped);
-        self.crop = crop;
-    }
-
     /// `warped` at reference-grid rows and columns (which must lie inside the crop).
     fn warped_at(&self, rows: Range<usize>, cols: Range<usize>) -> Option<ArrayView2<'_, f32>> {
         let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
@@ -396,7 +373,6 @@ fn align_inner(
     frame: &Image,
     cfg: &EngineConfig,
 ) -> Result<AlignOutcome, String> {
-    let (h, w) = work.cleaned.dim();
     check_usable("frame", &frame.data)?;
     let mut notes: Vec<String> = work.notes.clone();
 
@@ -446,7 +422,7 @@ fn align_inner(
     let mut fine = if seed_level > 0 {
         let binned = matched
             .binned
-            .get_or_init(|| Binned::new(ref_matched, mask, seed_level));
+            .get_or_init(|| Binned::new(ref_matched, mask, seed_level, work.trend_px()));
         seed_alignment(binned, &frame_data, coarse, winsize, sig_frame, cfg)?
     } else {
         full_stage()?
@@ -470,17 +446,7 @@ fn align_inner(
             },
             cfg,
         ) {
-            Ok(note) => {
-                refine_note = Some(note);
-                // The quality checks below compare the frame as finally aligned.
-                let (rows, cols) = grown(mask_box, 0.0, w, h);
-                let q = &matched.quality_crop;
-                let crop = Crop {
-                    rows: rows.start.min(q.rows.start)..rows.end.max(q.rows.end),
-                    cols: cols.start.min(q.cols.start)..cols.end.max(q.cols.end),
-                };
-                fine.rewarp(crop, &frame_data);
-            }
+            Ok(note) => refine_note = Some(note),
             Err(note) => {
                 if fine.seed_level.is_some() {
                     fine = full_stage()?;
@@ -497,27 +463,32 @@ fn align_inner(
     }
     notes.extend(refine_note);
     let fine_at = started.elapsed();
-    // Quality of the final match.
-    let (rows, cols) = grown(mask_box, 0.0, w, h);
-    let similarity = fine
-        .warped_at(rows.clone(), cols.clone())
-        .and_then(|warped| {
-            quality::bhattacharyya(
-                ref_data.slice(s![rows.clone(), cols.clone()]),
-                warped,
-                mask.slice(s![rows, cols]),
-            )
-        });
-    let quality_crop = &matched.quality_crop;
-    let correlation = fine
-        .warped_at(quality_crop.rows.clone(), quality_crop.cols.clone())
-        .and_then(|warped| {
-            quality::rank_correlation(
-                matched.high_pass.view(),
-                quality::high_pass(warped, work.trend_px()).view(),
-                mask.slice(s![quality_crop.rows.clone(), quality_crop.cols.clone()]),
-            )
-        });
+    // Quality of the final match: on the full grid, or for a seed on binned copies on theirs
+    // (the refinement moves the seed's answer by a small fraction of a binned pixel).
+    let (similarity, correlation) = match (fine.seed_level, matched.binned.get()) {
+        (Some(_), Some(binned)) => quality_of(
+            &QualityGrid {
+                reference: binned.reference.view(),
+                mask: &binned.mask,
+                mask_box: binned.mask_box,
+                high_pass: &binned.high_pass,
+                quality_crop: &binned.quality_crop,
+                trend_px: work.trend_px(),
+            },
+            &fine,
+        ),
+        _ => quality_of(
+            &QualityGrid {
+                reference: ref_data.view(),
+                mask,
+                mask_box,
+                high_pass: &matched.high_pass,
+                quality_crop: &matched.quality_crop,
+                trend_px: work.trend_px(),
+            },
+            &fine,
+        ),
+    };
 
     tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
@@ -601,6 +572,43 @@ fn align_inner(
         uabjm_covariance: Some(fine.uabjm_covariance),
         mask: Some(mask.clone()),
     })
+}
+
+/// The grid the quality checks compare on: the reference's, or binned copies of it.
+struct QualityGrid<'a> {
+    reference: ArrayView2<'a, f32>,
+    mask: &'a Array2<bool>,
+    mask_box: Roi,
+    high_pass: &'a Array2<f32>,
+    quality_crop: &'a Crop,
+    trend_px: f64,
+}
+
+/// Bhattacharyya similarity of the histograms and rank correlation of the structure between
+/// the reference and the frame as aligned (`fine.warped`, on the same grid).
+fn quality_of(q: &QualityGrid, fine: &FineResult) -> (Option<f64>, Option<f64>) {
+    let (h, w) = q.reference.dim();
+    let (rows, cols) = grown(q.mask_box, 0.0, w, h);
+    let similarity = fine
+        .warped_at(rows.clone(), cols.clone())
+        .and_then(|warped| {
+            quality::bhattacharyya(
+                q.reference.slice(s![rows.clone(), cols.clone()]),
+                warped,
+                q.mask.slice(s![rows, cols]),
+            )
+        });
+    let crop = q.quality_crop;
+    let correlation = fine
+        .warped_at(crop.rows.clone(), crop.cols.clone())
+        .and_then(|warped| {
+            quality::rank_correlation(
+                q.high_pass.view(),
+                quality::high_pass(warped, q.trend_px).view(),
+                q.mask.slice(s![crop.rows.clone(), crop.cols.clone()]),
+            )
+        });
+    (similarity, correlation)
 }
 
 /// Errors of the fine stage.
@@ -777,8 +785,6 @@ fn fine_alignment(
                 passes: pass,
                 converged,
                 seed_level: None,
-                spline: Some(spline),
-                frame_smoothing_px,
                 sample_mask: whole_sample_mask,
                 inliers,
             });
@@ -945,7 +951,7 @@ fn mask_roi(mask: &Array2<bool>) -> Roi {
 /// that converged on its level, not one pass: on undersampled images the refinement's answer
 /// depends on its start (AIA 171 128²: 40″ rotation RMSE from a one-pass seed, 9″ from the
 /// converged flow).
-const SEED_EXTENT_PX: usize = 768;
+const SEED_EXTENT_PX: usize = 512;
 
 /// How far a seed on `level` may be from the full-resolution flow, px: the RMS flow error of
 /// a level-1 finish on TRACE 1024² warps was 0.05–0.06 px (0 at full resolution).
@@ -971,17 +977,31 @@ struct Binned {
     level: usize,
     reference: Array2<f32>,
     mask: Array2<bool>,
+    mask_box: Roi,
+    /// High-pass of `reference` on `quality_crop`, as [`Matched`] has for the full grid.
+    high_pass: Array2<f32>,
+    quality_crop: Crop,
 }
 
 impl Binned {
-    fn new(reference: ArrayView2<f32>, mask: &Array2<bool>, level: usize) -> Binned {
+    fn new(reference: ArrayView2<f32>, mask: &Array2<bool>, level: usize, trend_px: f64) -> Binned {
         let factor = 1usize << level;
         let inside = preprocess::bin_mean(mask.mapv(|m| m as u8 as f32).view(), factor);
+        let reference = preprocess::bin_mean(reference, factor);
+        // A binned pixel is in the mask when all its pixels are.
+        let mask = inside.mapv(|v| v >= 1.0);
+        let mask_box = mask_roi(&mask);
+        let (h, w) = reference.dim();
+        let (rows, cols) = grown(mask_box, trend_px, w, h);
+        let high_pass =
+            quality::high_pass(reference.slice(s![rows.clone(), cols.clone()]), trend_px);
         Binned {
             level,
-            reference: preprocess::bin_mean(reference, factor),
-            // A binned pixel is in the mask when all its pixels are.
-            mask: inside.mapv(|v| v >= 1.0),
+            reference,
+            mask,
+            mask_box,
+            high_pass,
+            quality_crop: Crop { rows, cols },
         }
     }
 }
@@ -1066,13 +1086,6 @@ fn seed_alignment(
     fine.sample_mask = Array2::from_shape_fn((h, w), |(y, x)| {
         small_mask[[(y / factor).min(sh - 1), (x / factor).min(sw - 1)]]
     });
-    fine.warped = None;
-    fine.crop = Crop {
-        rows: 0..0,
-        cols: 0..0,
-    };
-    fine.spline = None;
-    fine.frame_smoothing_px = frame_smoothing_px;
     fine.seed_level = Some(binned.level);
     Ok(fine)
 }
