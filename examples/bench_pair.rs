@@ -4,7 +4,10 @@
 //!   the same computation as `cv2.calcOpticalFlowFarneback`;
 //! - `flow_engine`: the same parameters with `FlowOptions::affine_grid` inside the bounding box
 //!   of the engine's disk mask (0.9 R☉ from the header), as the engine's first pass runs it;
-//! - `align`: the whole engine (`align_images`, default configuration).
+//! - `align`: the whole engine (`align_images`, default configuration), cold: the reference
+//!   prepared and its self-test run inside the timing;
+//! - `align_per_frame`: one frame against a reference prepared (and self-tested) beforehand,
+//!   as the daemon aligns every frame after the first against a reference.
 //!
 //!     cargo run --release --example bench_pair -- PREV.fits NEXT.fits [REPEATS] [CASES]
 //!
@@ -40,7 +43,7 @@ fn main() -> anyhow::Result<()> {
     let cases = args
         .get(3)
         .cloned()
-        .unwrap_or_else(|| "flow_opencv_semantics,flow_engine,align".into());
+        .unwrap_or_else(|| "flow_opencv_semantics,flow_engine,align,align_per_frame".into());
     let (h, w) = prev.data.dim();
     let meta = &prev.meta;
     let plate = meta.plate_scale_arcsec[0].abs();
@@ -66,6 +69,11 @@ fn main() -> anyhow::Result<()> {
         }
     };
     let threads = rayon::current_num_threads();
+    let prepared = cases.contains("align_per_frame").then(|| {
+        let prepared = sunjitter::engine::PreparedReference::new(&prev, &EngineConfig::default());
+        std::hint::black_box(prepared.align(&next)); // the reference's one-off work
+        prepared
+    });
     for case in cases.split(',') {
         let mut walls = Vec::new();
         let mut cpus = Vec::new();
@@ -95,6 +103,11 @@ fn main() -> anyhow::Result<()> {
                 }
                 "align" => {
                     std::hint::black_box(align_images(&prev, &next, &EngineConfig::default()));
+                }
+                "align_per_frame" => {
+                    if let Some(p) = &prepared {
+                        std::hint::black_box(p.align(&next));
+                    }
                 }
                 other => anyhow::bail!("unknown case {other}"),
             }

@@ -12,7 +12,8 @@ poly_n 5, poly_sigma 1.1, flags 0 = box window) on the whole float32 frame, as t
 Ours (target/release/examples/bench_pair, same thread count through RAYON_NUM_THREADS):
 flow_opencv_semantics (the same algorithm, whole frame), flow_engine (affine-window grid inside
 the disk mask's bounding box, as the engine runs it) and align (the whole engine, default
-configuration). The two sides alternate repeat by repeat, so they see the same machine load.
+configuration, cold: reference preparation and self-test included) and align_per_frame (one
+frame against a reference prepared beforehand, as the daemon runs). The two sides alternate repeat by repeat, so they see the same machine load.
 Ratios are printed for the median wall time and for the median CPU time (all threads); on a
 shared machine the CPU ratio is the load-independent one.
 """
@@ -30,7 +31,7 @@ from astropy.io import fits
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OURS = ROOT / "target/release/examples/bench_pair"
-CASES = ["flow_opencv_semantics", "flow_engine", "align"]
+CASES = ["flow_opencv_semantics", "flow_engine", "align", "align_per_frame"]
 
 
 def opencv_once(prev, nxt):
