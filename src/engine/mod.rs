@@ -423,7 +423,15 @@ fn align_inner(
         let binned = matched
             .binned
             .get_or_init(|| Binned::new(ref_matched, mask, seed_level, work.trend_px()));
-        seed_alignment(binned, &frame_data, coarse, winsize, sig_frame, cfg)?
+        seed_alignment(
+            binned,
+            work.cleaned.dim(),
+            &frame_data,
+            coarse,
+            winsize,
+            sig_frame,
+            cfg,
+        )?
     } else {
         full_stage()?
     };
@@ -1008,8 +1016,10 @@ impl Binned {
 
 /// The flow stage on `binned` copies, as a seed for the refinement: the result in full-grid
 /// terms (transform, covariances, inliers, sampling mask), without a warped frame.
+#[allow(clippy::too_many_arguments)]
 fn seed_alignment(
     binned: &Binned,
+    grid: (usize, usize),
     frame: &Array2<f32>,
     coarse: Similarity,
     winsize: usize,
@@ -1018,7 +1028,8 @@ fn seed_alignment(
 ) -> Result<FineResult, String> {
     let factor = 1usize << binned.level;
     let b = factor as f64;
-    let (h, w) = frame.dim();
+    // The reference's grid (the frame may be of another size).
+    let (h, w) = grid;
     let (sh, sw) = binned.reference.dim();
     // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
     let to_full = |q: f64| b * (q + 0.5) - 0.5;
