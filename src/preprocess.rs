@@ -367,32 +367,8 @@ pub fn gaussian_trend(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     if f < 2 || h < 4 * f || w < 4 * f {
         return gaussian_smooth(img, sigma_px);
     }
-    let (bh, bw) = (h.div_ceil(f), w.div_ceil(f));
-    // NaN-aware block means.
-    let mut blocks = Array2::<f32>::zeros((bh, bw));
-    blocks
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(by, mut out)| {
-            let mut sum = vec![0f64; bw];
-            let mut n = vec![0u32; bw];
-            for y in by * f..((by + 1) * f).min(h) {
-                for (x, &v) in img.row(y).iter().enumerate() {
-                    if v.is_finite() {
-                        sum[x / f] += v as f64;
-                        n[x / f] += 1;
-                    }
-                }
-            }
-            for ((o, s), c) in out.iter_mut().zip(&sum).zip(&n) {
-                *o = if *c > 0 {
-                    (*s / *c as f64) as f32
-                } else {
-                    f32::NAN
-                };
-            }
-        });
+    let blocks = bin_mean(img, f);
+    let (bh, bw) = blocks.dim();
     let fb = f as f64;
     let sigma_blocks = (sigma_px * sigma_px - (fb * fb - 1.0) / 12.0)
         .max(0.0)
@@ -740,10 +716,6 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
 /// NaN-aware block mean by an integer factor.
 /// Means of `bin × bin` blocks (the last ones partial), ignoring NaN; NaN for an all-NaN block.
 pub fn bin_mean(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
-    bin_mean_of(img, bin)
-}
-
-fn bin_mean_of(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
     if bin <= 1 {
         return img.to_owned();
     }

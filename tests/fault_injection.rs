@@ -285,8 +285,16 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
         .collect();
     let split = split(&records);
     assert_each_once_and_true(&split, &frames);
-    assert_eq!(split.logs.len(), 1, "{:?}", split.logs);
-    let (level, _, message) = &split.logs[0];
+    // The backlog released when space returns may exceed the reorder window: such a frame is
+    // still logged once, with a note saying it was processed out of time order (the time
+    // order itself is tested in tests/daemon.rs). Besides those, exactly the outage note.
+    let outage: Vec<_> = split
+        .logs
+        .iter()
+        .filter(|(_, _, m)| !m.contains("processed out of time order"))
+        .collect();
+    assert_eq!(outage.len(), 1, "{:?}", split.logs);
+    let (level, _, message) = outage[0];
     assert_eq!(*level, LogLevel::Warning);
     assert!(
         message.contains("unwritable") && message.contains("nothing was lost"),

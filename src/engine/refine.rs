@@ -19,10 +19,11 @@
 //!
 //! Covariance: the pixels' residuals are correlated (interpolation and smoothing over a few
 //! pixels, real structure differences over whole features), so `σ²(JᵀWJ)⁻¹` is too small.
-//! The reported covariance is the cluster-robust sandwich `H⁻¹(Σ_b s_b s_bᵀ)H⁻¹·G/(G−1)` with
-//! the score `s_b = Σ_{i∈b} w_i J_i r_i` of each block `b` (grid cells, and 2 × 2 groups of
-//! them — the larger is kept): it measures the residuals' correlation instead of modelling it,
-//! as long as it is shorter than a block. The plain `σ²H⁻¹` is kept as well.
+//! The reported covariance is cluster-robust in its jackknife form over blocks (grid cells,
+//! and 2 × 2 groups of them — the larger is kept; see `cluster_covariance`): it measures the
+//! residuals' correlation instead of modelling it, as long as it is shorter than a block. The
+//! method's systematic floor ([`self_test_floor`], once per reference) is added to it; the
+//! plain `σ²H⁻¹` is kept as well.
 
 use super::gaussian_reach;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
@@ -832,7 +833,7 @@ pub fn apply(
 }
 
 /// The method's systematic floor for a reference: the RMS, per parameter, of the
-/// [self-test](self_test_bias) errors over [`self_test_case`]s, on the lattice of the whole
+/// self-test errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
 /// `mask`. The error depends on the sub-pixel positions the pixels land on, so the cases
 /// spread the shift over the unit square and rotate and scale the lever arm by a fraction of a
 /// pixel (which varies the positions across the image); their RMS is the typical error of a
