@@ -431,7 +431,9 @@ fn align_inner(
             winsize,
             sig_frame,
             cfg,
-        )?
+        )
+        // Binned copies can lack what the full frame has (too few vectors, say).
+        .or_else(|_| full_stage())?
     } else {
         full_stage()?
     };
