@@ -240,20 +240,7 @@ fn intensity_refinement_beats_the_flow_under_noise_with_honest_sigma() {
         let f = contract_units(&flow.transform.unwrap());
         let e = contract_units(&refined.transform.unwrap());
         let r = &refined.result;
-        let sig = [
-            r.sigma_scale.unwrap(),
-            r.sigma_rotation_arcsec.unwrap(),
-            r.sigma_dx_px.unwrap(),
-            r.sigma_dy_px.unwrap(),
-        ];
-        for k in 0..4 {
-            let res = e[k] - t[k];
-            assert!(
-                res.abs() <= 4.0 * sig[k],
-                "param {k}: residual {res:e}, σ {:e}",
-                sig[k]
-            );
-        }
+        assert_within_4_sigma(r, &e, &t);
         sq_flow += (f[2] - t[2]).powi(2) + (f[3] - t[3]).powi(2);
         sq_refined += (e[2] - t[2]).powi(2) + (e[3] - t[3]).powi(2);
     }
@@ -279,6 +266,24 @@ fn synthetic_full_disk() -> Image {
     read_frame(&FrameSpec::file(dir.path().join("synth_0000.fits"))).expect("synth frame reads")
 }
 
+/// Every parameter of `estimate` within 4 reported σ of `truth` (contract units).
+fn assert_within_4_sigma(r: &sunjitter::AlignResult, estimate: &[f64; 4], truth: &[f64; 4]) {
+    let sig = [
+        r.sigma_scale.unwrap(),
+        r.sigma_rotation_arcsec.unwrap(),
+        r.sigma_dx_px.unwrap(),
+        r.sigma_dy_px.unwrap(),
+    ];
+    for k in 0..4 {
+        let res = estimate[k] - truth[k];
+        assert!(
+            res.abs() <= 4.0 * sig[k],
+            "param {k}: residual {res:e}, σ {:e}",
+            sig[k]
+        );
+    }
+}
+
 /// Align transformed copies of `reference` (`n` truths drawn with `seed`) against it,
 /// prepared with `cfg`: each must be `ok`, within 4σ of the truth in every parameter, and within
 /// 1e-3 px in translation (the 5e-4 px target at this size's 2× allowance). `check`
@@ -300,20 +305,7 @@ fn assert_recovers_injected_similarities(
         check(&r.message);
         let est = contract_units(&out.transform.unwrap());
         let t = contract_units(truth);
-        let sig = [
-            r.sigma_scale.unwrap(),
-            r.sigma_rotation_arcsec.unwrap(),
-            r.sigma_dx_px.unwrap(),
-            r.sigma_dy_px.unwrap(),
-        ];
-        for k in 0..4 {
-            let res = est[k] - t[k];
-            assert!(
-                res.abs() <= 4.0 * sig[k],
-                "param {k}: residual {res:e}, σ {:e}",
-                sig[k]
-            );
-        }
+        assert_within_4_sigma(r, &est, &t);
         assert!((est[2] - t[2]).abs() < 1e-3 && (est[3] - t[3]).abs() < 1e-3);
     }
 }
