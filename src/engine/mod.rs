@@ -233,6 +233,8 @@ struct Matched {
     self_test: std::sync::OnceLock<Option<[f64; 4]>>,
     /// Binned copies for seed flows on large frames (made on first use).
     binned: std::sync::OnceLock<Binned>,
+    /// The reference as the refinement reads it (made on the first refinement).
+    refine_reference: std::sync::OnceLock<refine::RefineReference>,
 }
 
 /// At most this many resolution-matched versions are kept per reference.
@@ -347,6 +349,7 @@ impl ReferenceWork {
             quality_crop: Crop { rows, cols },
             self_test: std::sync::OnceLock::new(),
             binned: std::sync::OnceLock::new(),
+            refine_reference: std::sync::OnceLock::new(),
         });
         let mut cache = lock();
         if cache.len() >= MATCHED_CACHE {
@@ -440,18 +443,23 @@ fn align_inner(
     let mut refine_note = None;
     if refining {
         let slack = fine.seed_level.map_or(0.0, seed_slack_px);
+        let prepared = matched
+            .refine_reference
+            .get_or_init(|| refine::RefineReference::new(ref_matched, &refine::settings(cfg, 0.0)));
         match refine::apply(
             &mut fine.transform,
             &mut fine.covariance,
             ref_matched,
+            prepared,
             frame_data.view(),
+            mask,
             &fine.sample_mask,
             &fine.inliers,
             sig_frame,
             slack,
             |settings| {
                 *matched.self_test.get_or_init(|| {
-                    refine::self_test_floor(ref_matched, mask, cfg.sample, settings)
+                    refine::self_test_floor(ref_matched, prepared, mask, cfg.sample, settings)
                 })
             },
             cfg,

@@ -238,11 +238,15 @@ struct Pixel {
 /// wandered by its σ for as long as the weights changed); from then on Gauss–Newton converges.
 const REWEIGHTED_ITERATIONS: usize = 10;
 
+/// Least `Σψ′/Σw` the covariance uses (0.83 for Gaussian residuals; lower with heavy tails):
+/// a floor that keeps a nearly flat ψ′ from inflating the variance without bound.
+const MIN_PSI_RATIO: f64 = 0.5;
+
 /// Tukey biweight tuning constant (95 % efficiency for Gaussian residuals).
 const TUKEY_C: f64 = 4.685;
 
 /// Central-difference gradient of `img` at `(x, y)` (interior points only).
-fn gradient(img: &Array2<f32>, x: usize, y: usize) -> (f64, f64) {
+fn gradient(img: &ArrayView2<f32>, x: usize, y: usize) -> (f64, f64) {
     (
         (img[[y, x + 1]] as f64 - img[[y, x - 1]] as f64) / 2.0,
         (img[[y + 1, x]] as f64 - img[[y - 1, x]] as f64) / 2.0,
@@ -262,7 +266,7 @@ fn gradient(img: &Array2<f32>, x: usize, y: usize) -> (f64, f64) {
 /// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (measured: by 2×
 /// at 3× TRACE's background noise), which would halve the σ and slow convergence.
 pub fn refine(
-    reference: ArrayView2<f32>,
+    reference: &RefineReference,
     frame: &FrameWindow,
     pixels: &[(usize, usize, usize)],
     grid: &CellGrid,
@@ -275,44 +279,25 @@ pub fn refine(
             pixels.len()
         ));
     }
-    let (h, w) = reference.dim();
+    let (h, w) = reference.smoothed.dim();
     let center = start.center;
-    // Working box: the pixels plus the smoothing's reach and a pixel for the gradient.
-    let margin = 2 * gaussian_reach(settings.smoothing_px)
-        + gaussian_reach(settings.gradient_smoothing_px)
-        + 2;
-    let Some((bx0, by0, bx1, by1)) = pixel_box(pixels) else {
-        return Err("no pixels to refine".into());
-    };
-    let bx0 = bx0.saturating_sub(margin);
-    let by0 = by0.saturating_sub(margin);
-    let bx1 = (bx1 + margin).min(w - 1);
-    let by1 = (by1 + margin).min(h - 1);
-    let (bw, bh) = (bx1 - bx0 + 1, by1 - by0 + 1);
-    let ref_box = crate::preprocess::gaussian_smooth(
-        reference.slice(s![by0..=by1, bx0..=bx1]),
-        settings.smoothing_px,
-    );
-    let ref_weighting =
-        crate::preprocess::gaussian_smooth(ref_box.view(), settings.gradient_smoothing_px);
     // The gain's instrument: the reference at four points far enough for the smoothed noise
     // to be uncorrelated with this pixel's (ρ = e^{−d²/4σ²} < 2 % at d = 4σ).
-    let reach_gain = ((4.0 * settings.smoothing_px).ceil() as usize).max(1);
+    let reach_gain = ((4.0 * reference.smoothing_px).ceil() as usize).max(1);
+    let (smoothed, weighting) = (reference.smoothed.view(), reference.weighting());
     let ref_pixels: Vec<Pixel> = pixels
         .iter()
         .filter_map(|&(x, y, cell)| {
-            let (lx, ly) = (x - bx0, y - by0);
-            if lx < reach_gain || ly < reach_gain || lx + reach_gain >= bw || ly + reach_gain >= bh
-            {
+            if x < reach_gain || y < reach_gain || x + reach_gain >= w || y + reach_gain >= h {
                 return None;
             }
-            let value = ref_box[[ly, lx]] as f64;
-            let (gx, gy) = gradient(&ref_weighting, lx, ly);
+            let value = smoothed[[y, x]] as f64;
+            let (gx, gy) = gradient(&weighting, x, y);
             let d = reach_gain;
-            let neighbours = (ref_box[[ly, lx - d]] as f64
-                + ref_box[[ly, lx + d]] as f64
-                + ref_box[[ly - d, lx]] as f64
-                + ref_box[[ly + d, lx]] as f64)
+            let neighbours = (smoothed[[y, x - d]] as f64
+                + smoothed[[y, x + d]] as f64
+                + smoothed[[y - d, x]] as f64
+                + smoothed[[y + d, x]] as f64)
                 / 4.0;
             let finite = [value, gx, gy, neighbours].iter().all(|v| v.is_finite());
             finite.then_some(Pixel {
@@ -326,7 +311,6 @@ pub fn refine(
             })
         })
         .collect();
-    drop((ref_box, ref_weighting));
     if ref_pixels.len() < 64 {
         return Err("too few finite reference pixels to refine".into());
     }
@@ -456,12 +440,35 @@ pub fn refine(
                 let [v, fx, fy] = sampled[k];
                 rows(gain * fx, gain * fy, qx, qy, v)
             };
-            let by_cell = cluster_covariance(&jac, frame_row, &residuals, &weights, &slope, |k| {
-                ref_pixels[k].cell
-            });
-            let by_group = cluster_covariance(&jac, frame_row, &residuals, &weights, &slope, |k| {
-                grid.group_of(ref_pixels[k].cell)
-            });
+            // The estimate's sensitivity to the data is that of the M-estimator `Σ ψ(r)·J = 0`
+            // (the weights were set by these residuals): the slope weighs by ψ′, not by w.
+            // Huber's scalar form, `w · Σψ′/Σw`, because per pixel ψ′ turns negative beyond
+            // 0.45 c and made the slope of small images nearly singular (EIT 128²: a few
+            // trials' σ 30× too large).
+            let (sum_psi, sum_w) = residuals
+                .iter()
+                .zip(&weights)
+                .filter(|(_, w)| **w > 0.0)
+                .fold((0.0, 0.0), |(p, s), (r, w)| {
+                    (p + tukey_psi_slope(*r, TUKEY_C * scale), s + w)
+                });
+            let psi_ratio = (sum_psi / sum_w).clamp(MIN_PSI_RATIO, 1.0);
+            let slopes: Vec<f64> = weights.iter().map(|w| w * psi_ratio).collect();
+            let fits = ClusterFit {
+                jac: &jac,
+                residuals: &residuals,
+                weights: &weights,
+                slopes: &slopes,
+            };
+            let cells = block_sums(&fits, frame_row, |k| ref_pixels[k].cell);
+            let mut groups: std::collections::BTreeMap<usize, BlockSums> = Default::default();
+            for (&cell, sums) in &cells {
+                let g = groups.entry(grid.group_of(cell)).or_default();
+                g.0 += sums.0;
+                g.1 += sums.1;
+            }
+            let by_cell = cluster_covariance(&cells);
+            let by_group = cluster_covariance(&groups);
             let (robust, blocks) = match (by_cell, by_group) {
                 (Some(a), Some(b)) => {
                     if geometric_trace_ratio(&b.0, &a.0) > 1.0 {
@@ -520,6 +527,34 @@ fn sum_in_chunks<T: Send>(
     let mut parts = parts.into_iter();
     let first = parts.next().expect("at least one chunk");
     parts.fold(first, add)
+}
+
+/// The reference as every refinement against it reads it, made once per reference: smoothed
+/// by the refinement's `smoothing_px`, and the copy smoothed further whose gradient weighs
+/// the residuals.
+pub struct RefineReference {
+    smoothed: Array2<f32>,
+    /// `None` when no further smoothing is configured (the gradient is `smoothed`'s).
+    weighting: Option<Array2<f32>>,
+    smoothing_px: f64,
+}
+
+impl RefineReference {
+    pub fn new(reference: ArrayView2<f32>, settings: &RefineSettings) -> RefineReference {
+        let smoothed = crate::preprocess::gaussian_smooth(reference, settings.smoothing_px);
+        let weighting = (settings.gradient_smoothing_px > 0.0).then(|| {
+            crate::preprocess::gaussian_smooth(smoothed.view(), settings.gradient_smoothing_px)
+        });
+        RefineReference {
+            smoothed,
+            weighting,
+            smoothing_px: settings.smoothing_px.max(0.0),
+        }
+    }
+
+    fn weighting(&self) -> ArrayView2<'_, f32> {
+        self.weighting.as_ref().unwrap_or(&self.smoothed).view()
+    }
 }
 
 /// The frame as the refinement compares it: smoothed, prefiltered for spline sampling, on
@@ -628,37 +663,34 @@ fn initial_photometry(pixels: &[Pixel], sampled: &[[f64; 3]]) -> (f64, f64) {
     (gain, sy / n - gain * sx / n)
 }
 
+/// What the cluster-robust covariance needs of a converged fit, per pixel: the instruments
+/// `J`, residuals `r`, weights `w` (the score is `Σ w·r·J`) and the slopes of the weighted
+/// residual (the estimate's sensitivity is `Σ slope·J·Fᵀ`).
+struct ClusterFit<'a> {
+    jac: &'a [[f64; 6]],
+    residuals: &'a [f64],
+    weights: &'a [f64],
+    slopes: &'a [f64],
+}
+
 /// Cluster-robust covariance, jackknife form (CR3): `(G−1)/G · Σ_b d_b d_bᵀ` with
 /// `d_b = (A − A_b)⁻¹ s_b`, the change of the estimate when block `b` is left out, where
-/// `s_b = Σ_{i∈b} w_i J_i r_i` is the block's score and `A_b = Σ_{i∈b} w_i J_i F_iᵀ` its share
-/// of the slope. On solar images a few blocks (active regions) hold most of the structure;
-/// the plain sandwich `A⁻¹ Σ s_b s_bᵀ A⁻ᵀ` then understates the variance (on the noisy TRACE
-/// Monte Carlo by 1.3–1.4× in σ), because each dominant block pulls the fit towards itself and
-/// its residuals look smaller than its errors. `None` with fewer than 8 blocks.
+/// `s_b = Σ_{i∈b} w_i r_i J_i` is the block's score, `A = Σ ψ′_i J_i F_iᵀ` the M-estimator's
+/// slope and `A_b` the block's share of it. On solar images a few blocks (active regions)
+/// hold most of the structure; the plain sandwich `A⁻¹ Σ s_b s_bᵀ A⁻ᵀ` then understates the
+/// variance (on the noisy TRACE Monte Carlo by 1.3–1.4× in σ), because each dominant block
+/// pulls the fit towards itself and its residuals look smaller than its errors. The slope
+/// must follow ψ′ = (1 − u²)(1 − 5u²), not the weight w = (1 − u²)²: the weights follow the
+/// residuals, and for Gaussian residuals E[w]/E[ψ′] = 1.21, the σ deficit the noisy Monte
+/// Carlo showed with `w` (RMS of error/σ 1.20–1.25). `None` with fewer than 8 blocks.
 fn cluster_covariance(
-    jac: &[[f64; 6]],
-    frame_row: impl Fn(usize) -> Vector6<f64>,
-    residuals: &[f64],
-    weights: &[f64],
-    slope: &Matrix6<f64>,
-    block_of: impl Fn(usize) -> usize,
+    blocks: &std::collections::BTreeMap<usize, BlockSums>,
 ) -> Option<(Matrix6<f64>, usize)> {
-    let mut blocks: std::collections::BTreeMap<usize, (Vector6<f64>, Matrix6<f64>)> =
-        Default::default();
-    for (k, ((j, r), w)) in jac.iter().zip(residuals).zip(weights).enumerate() {
-        if *w > 0.0 && r.is_finite() {
-            let jv = Vector6::from(*j);
-            let e = blocks
-                .entry(block_of(k))
-                .or_insert_with(|| (Vector6::zeros(), Matrix6::zeros()));
-            e.0 += jv * (w * r);
-            e.1 += jv * frame_row(k).transpose() * *w;
-        }
-    }
     let g = blocks.len();
     if g < 8 {
         return None;
     }
+    let slope: Matrix6<f64> = blocks.values().map(|(_, share)| share).sum();
     let mut sum = Matrix6::<f64>::zeros();
     for (score, share) in blocks.values() {
         let d = (slope - share).lu().solve(score)?;
@@ -668,6 +700,58 @@ fn cluster_covariance(
     Some((sum * factor, g))
 }
 
+/// A block's score `Σ w·r·J` and its share `Σ ψ′·J·Fᵀ` of the slope.
+type BlockSums = (Vector6<f64>, Matrix6<f64>);
+
+/// The score and slope share of every block (`block_of` each pixel), summed over pixels in
+/// parallel chunks, in order.
+fn block_sums(
+    fit: &ClusterFit,
+    frame_row: impl Fn(usize) -> Vector6<f64> + Sync,
+    block_of: impl Fn(usize) -> usize + Sync,
+) -> std::collections::BTreeMap<usize, BlockSums> {
+    type Blocks = std::collections::BTreeMap<usize, BlockSums>;
+    sum_in_chunks(
+        fit.jac.len(),
+        |range| {
+            let mut blocks = Blocks::new();
+            // Pixels come in runs of the same block: add each run's sum once.
+            let mut current: Option<(usize, BlockSums)> = None;
+            for k in range {
+                let (r, w) = (fit.residuals[k], fit.weights[k]);
+                if !(w > 0.0 && r.is_finite()) {
+                    continue;
+                }
+                let b = block_of(k);
+                if current.as_ref().is_some_and(|(cb, _)| *cb != b) {
+                    let (cb, sums) = current.take().expect("checked");
+                    let e = blocks.entry(cb).or_default();
+                    e.0 += sums.0;
+                    e.1 += sums.1;
+                }
+                let (_, sums) = current.get_or_insert_with(|| (b, Default::default()));
+                let jv = Vector6::from(fit.jac[k]);
+                sums.0 += jv * (w * r);
+                sums.1 += jv * frame_row(k).transpose() * fit.slopes[k];
+            }
+            if let Some((cb, sums)) = current {
+                let e = blocks.entry(cb).or_default();
+                e.0 += sums.0;
+                e.1 += sums.1;
+            }
+            blocks
+        },
+        |mut a, b| {
+            for (k, (s, m)) in b {
+                let e = a.entry(k).or_default();
+                e.0 += s;
+                e.1 += m;
+            }
+            a
+        },
+    )
+}
+
 /// Geometric mean of the ratios of the four geometric variances, `b` over `a`.
 fn geometric_trace_ratio(b: &Matrix6<f64>, a: &Matrix6<f64>) -> f64 {
     ((0..4)
@@ -675,6 +759,16 @@ fn geometric_trace_ratio(b: &Matrix6<f64>, a: &Matrix6<f64>) -> f64 {
         .sum::<f64>()
         / 4.0)
         .exp()
+}
+
+/// Slope of Tukey's ψ(r) = r·w(r): (1 − u²)(1 − 5u²) with u = r/c, zero beyond c.
+fn tukey_psi_slope(r: f64, c: f64) -> f64 {
+    let u2 = (r / c).powi(2);
+    if !u2.is_finite() || u2 >= 1.0 {
+        0.0
+    } else {
+        (1.0 - u2) * (1.0 - 5.0 * u2)
+    }
 }
 
 fn tukey_weight(r: f64, c: f64) -> f64 {
@@ -702,6 +796,17 @@ fn robust_sigma(values: &[f64]) -> Option<f64> {
     Some(1.482_602_218_505_602 * mad)
 }
 
+/// The refinement's settings under `cfg`, for a frame smoothed by `frame_smoothing_px` to
+/// match the reference's resolution.
+pub fn settings(cfg: &super::EngineConfig, frame_smoothing_px: f64) -> RefineSettings {
+    RefineSettings {
+        smoothing_px: cfg.refine_smoothing_px,
+        gradient_smoothing_px: cfg.refine_gradient_smoothing_px,
+        frame_smoothing_px,
+        ..RefineSettings::default()
+    }
+}
+
 /// Whether the refinement runs for this pair.
 pub fn wanted(
     mode: RefineMode,
@@ -725,7 +830,9 @@ pub fn apply(
     transform: &mut Similarity,
     covariance: &mut Covariance4,
     reference: ArrayView2<f32>,
+    prepared: &RefineReference,
     frame: ArrayView2<f32>,
+    mask: &Array2<bool>,
     sample_mask: &Array2<bool>,
     inliers: &[Correspondence],
     frame_smoothing_px: f64,
@@ -736,23 +843,21 @@ pub fn apply(
     let Some(grid) = CellGrid::new(sample_mask.view(), cfg.sample) else {
         return Err("intensity refinement skipped: empty sampling mask".into());
     };
-    let pixels = inlier_cell_pixels(sample_mask, &grid, inliers, MAX_PIXELS);
-    let settings = RefineSettings {
-        smoothing_px: cfg.refine_smoothing_px,
-        gradient_smoothing_px: cfg.refine_gradient_smoothing_px,
-        frame_smoothing_px,
-        ..RefineSettings::default()
-    };
+    let settings = settings(cfg, frame_smoothing_px);
+    let frame_sigma = settings.smoothing_px.hypot(frame_smoothing_px);
+    let margin = gaussian_reach(frame_sigma.max(settings.smoothing_px)) + 3;
+    let region = refinement_region(mask, reference, frame, transform, margin);
+    let pixels = inlier_cell_pixels(&region, &grid, inliers, MAX_PIXELS);
+    drop(region);
     let Some(bbox) = pixel_box(&pixels) else {
         return Err("intensity refinement skipped: no pixels in the inlier cells".into());
     };
     let started = std::time::Instant::now();
-    let frame_sigma = settings.smoothing_px.hypot(frame_smoothing_px);
     let Some(window) = FrameWindow::new(frame, bbox, transform, frame_sigma) else {
         return Err("intensity refinement skipped: the pixels map outside the frame".into());
     };
     let window_at = started.elapsed();
-    let refined = match refine(reference, &window, &pixels, &grid, *transform, &settings) {
+    let refined = match refine(prepared, &window, &pixels, &grid, *transform, &settings) {
         Ok(r) => r,
         Err(e) => return Err(format!("intensity refinement skipped: {e}")),
     };
@@ -832,14 +937,62 @@ pub fn apply(
     ))
 }
 
-/// The method's systematic floor for a reference: the RMS, per parameter, of the
-/// self-test errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
-/// `mask`. The error depends on the sub-pixel positions the pixels land on, so the cases
+/// Reference pixels the refinement may use: inside `mask`, with a finite reference, and at
+/// least `margin` px (the smoothing's and the spline's reach) from the edges of both images
+/// (the frame's through `t`) and from the frame's blanks. This is wider than the flow's
+/// sample mask, which keeps half a window (60 px and more) from every edge: scale and
+/// rotation are measured best at the largest lever arm (on TRACE 1024², the pixels of that
+/// border hold about 40 % of the scale information).
+fn refinement_region(
+    mask: &Array2<bool>,
+    reference: ArrayView2<f32>,
+    frame: ArrayView2<f32>,
+    t: &Similarity,
+    margin: usize,
+) -> Array2<bool> {
+    let (h, w) = reference.dim();
+    let (fh, fw) = frame.dim();
+    let frame_blank_free = if frame.iter().all(|v| v.is_finite()) {
+        None
+    } else {
+        Some(super::erode(&frame.mapv(f32::is_finite), margin))
+    };
+    let map = crate::resample::similarity_map(t);
+    let m = margin as f64;
+    let inside = |v: f64, n: usize| v >= m && v <= n as f64 - 1.0 - m;
+    let mut region = Array2::from_elem((h, w), false);
+    region
+        .axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut row)| {
+            if !inside(y as f64, h) {
+                return;
+            }
+            for (x, r) in row.iter_mut().enumerate() {
+                if !(mask[[y, x]] && inside(x as f64, w) && reference[[y, x]].is_finite()) {
+                    continue;
+                }
+                let (fx, fy) = map(x as f64, y as f64);
+                *r = inside(fx, fw)
+                    && inside(fy, fh)
+                    && frame_blank_free
+                        .as_ref()
+                        .is_none_or(|ok| ok[[fy.round() as usize, fx.round() as usize]]);
+            }
+        });
+    region
+}
+
+/// The method's systematic floor for a reference: per parameter, the RMS of the self-test
+/// errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
+/// `mask`, beyond the σ those refinements reported themselves (quadratic excess). The error depends on the sub-pixel positions the pixels land on, so the cases
 /// spread the shift over the unit square and rotate and scale the lever arm by a fraction of a
 /// pixel (which varies the positions across the image); their RMS is the typical error of a
 /// frame, whatever its own transform. `None` when a case fails.
 pub fn self_test_floor(
     reference: ArrayView2<f32>,
+    prepared: &RefineReference,
     mask: &Array2<bool>,
     sample: usize,
     settings: &RefineSettings,
@@ -870,7 +1023,7 @@ pub fn self_test_floor(
     // More cases where they are cheap: the RMS of four is uncertain by about ±35 %, and on
     // small undersampled images the error varies strongly with the sub-pixel position.
     let cases = (SELF_TEST_PIXEL_BUDGET / pixels.len().max(1)).clamp(4, 16);
-    let mut sum = [0.0; 4];
+    let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
     for case in 0..cases {
         let (dx, dy, turn_px, stretch_px) = self_test_case(case);
         let t = Similarity {
@@ -880,13 +1033,19 @@ pub fn self_test_floor(
             dy,
             center,
         };
-        let bias = self_test_bias(reference, &pixels, &grid, &t, &settings)?;
-        tracing::trace!(case, ?bias, "self-test case");
+        let test = self_test_bias(reference, prepared, &pixels, &grid, &t, &settings)?;
+        tracing::trace!(case, bias = ?test.bias, "self-test case");
         for k in 0..4 {
-            sum[k] += bias[k] * bias[k];
+            sum[k] += test.bias[k] * test.bias[k];
+            seen[k] += test.variance[k];
         }
     }
-    Some(sum.map(|s| (s / cases as f64).sqrt()))
+    // Only the error the residuals do not already show: without noise the cluster covariance
+    // is made of these same interpolation residuals, and counting both overstated the σ
+    // (TRACE 1024², no noise: 86–95 % of trials within 1σ).
+    Some(std::array::from_fn(|k| {
+        ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()
+    }))
 }
 
 /// Pixels (summed over the cases) the self-test may refine: 4 cases at 2²⁰ pixels, up to 16
@@ -910,14 +1069,15 @@ fn self_test_case(k: usize) -> (f64, f64, f64, f64) {
 /// The method's systematic error for this image and transform, measured: a frame made from
 /// the reference itself through `transform` (cubic spline, as a real frame would be resampled)
 /// is refined from the exact answer, and what the refinement reports instead is its bias
-/// (interpolation of sharp or undersampled structure, mostly). Added in quadrature to the σ.
+/// (interpolation of sharp or undersampled structure, mostly), with the variance it reported.
 fn self_test_bias(
     reference: ArrayView2<f32>,
+    prepared: &RefineReference,
     pixels: &[(usize, usize, usize)],
     grid: &CellGrid,
     transform: &Similarity,
     settings: &RefineSettings,
-) -> Option<[f64; 4]> {
+) -> Option<SelfTestCase> {
     let (h, w) = reference.dim();
     // The synthetic frame is only needed on the window the refinement reads; it is made
     // there from the spline of the part of the reference that the window maps back to.
@@ -947,10 +1107,17 @@ fn self_test_bias(
         ),
         origin: [wx0 as f64, wy0 as f64],
     };
-    let test = refine(reference, &window, pixels, grid, *transform, settings).ok()?;
+    let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
     let (a, b) = (transform.params(), test.transform.params());
     let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
-    bias.iter().all(|v| v.is_finite()).then_some(bias)
+    let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);
+    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase { bias, variance })
+}
+
+/// One self-test case: the error it made, and the (cluster-robust) variance it reported.
+struct SelfTestCase {
+    bias: [f64; 4],
+    variance: [f64; 4],
 }
 
 /// Bounding box (x0, y0, x1, y1), inclusive, of `pixels`; `None` when there are none.
@@ -975,6 +1142,55 @@ const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_psi_slope_is_the_derivative_of_the_weighted_residual() {
+        let c = 4.685;
+        let psi = |r: f64| r * tukey_weight(r, c);
+        for r in [-4.0, -2.5, -1.0, -0.2, 0.0, 0.7, 2.1, 3.3, 4.6] {
+            let h = 1e-6;
+            let numeric = (psi(r + h) - psi(r - h)) / (2.0 * h);
+            assert!(
+                (tukey_psi_slope(r, c) - numeric).abs() < 1e-6,
+                "r {r}: {} vs {numeric}",
+                tukey_psi_slope(r, c)
+            );
+        }
+        assert_eq!(tukey_psi_slope(5.0, c), 0.0);
+        assert_eq!(tukey_psi_slope(f64::NAN, c), 0.0);
+    }
+
+    #[test]
+    fn the_region_keeps_the_margin_from_both_images_edges() {
+        // 40 × 30 reference, the same frame shifted by +3.4 px in x: pixel x maps to x + 3.4,
+        // so with a 4 px margin x must satisfy 4 ≤ x and x + 3.4 ≤ 39 − 4 (x ≤ 31), 4 ≤ y ≤ 25.
+        let (h, w) = (30, 40);
+        let reference = Array2::from_elem((h, w), 1.0f32);
+        let mut frame = Array2::from_elem((h, w), 1.0f32);
+        let mask = Array2::from_elem((h, w), true);
+        let t = Similarity {
+            dx: 3.4,
+            ..Similarity::identity(Similarity::array_center(w, h))
+        };
+        let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
+        for ((y, x), &r) in region.indexed_iter() {
+            assert_eq!(
+                r,
+                (4..=31).contains(&x) && (4..=25).contains(&y),
+                "({x}, {y})"
+            );
+        }
+        // A blank in the frame at (20, 15) removes the pixels mapping within 4 px of it.
+        frame[[15, 20]] = f32::NAN;
+        let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
+        // Pixel (x, y) maps to round(x + 3.4) = x + 3: excluded when |x + 3 − 20| ≤ 4 and
+        // |y − 15| ≤ 4.
+        for ((y, x), &r) in region.indexed_iter() {
+            let inside = (4..=31).contains(&x) && (4..=25).contains(&y);
+            let near_blank = (x + 3).abs_diff(20) <= 4 && y.abs_diff(15) <= 4;
+            assert_eq!(r, inside && !near_blank, "({x}, {y})");
+        }
+    }
 
     #[test]
     fn the_lattice_keeps_every_kth_row_and_column_under_the_cap() {
