@@ -166,8 +166,9 @@ struct FineResult {
     /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
     /// level.
     seed_level: Option<usize>,
-    /// What the refinement needs: the sampling mask and the inliers.
-    sample_mask: Array2<bool>,
+    /// What the refinement needs: the bounding box (x0, y0, x1, y1, inclusive, reference
+    /// grid) of the sampling mask, over which the sampling grid's cells lie, and the inliers.
+    sample_box: Option<(usize, usize, usize, usize)>,
     inliers: Vec<crate::sampling::Correspondence>,
 }
 
@@ -453,7 +454,7 @@ fn align_inner(
             prepared,
             frame_data.view(),
             mask,
-            &fine.sample_mask,
+            fine.sample_box,
             &fine.inliers,
             sig_frame,
             slack,
@@ -791,7 +792,8 @@ fn fine_alignment(
             let zero = [[0.0; 4]; 4];
             let (_, cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
             let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
-            let whole_sample_mask = uncropped(&sample_mask, &crop, h, w);
+            let sample_box = crate::sampling::mask_bounding_box(sample_mask.view())
+                .map(|(a, b, c, d)| (a + x0, b + y0, c + x0, d + y0));
             return Ok(FineResult {
                 transform: estimate,
                 covariance: cov,
@@ -803,20 +805,11 @@ fn fine_alignment(
                 passes: pass,
                 converged,
                 seed_level: None,
-                sample_mask: whole_sample_mask,
+                sample_box,
                 inliers,
             });
         }
     }
-}
-
-/// A crop's mask placed on the whole `h × w` grid (false outside the crop).
-fn uncropped(mask: &Array2<bool>, crop: &Crop, h: usize, w: usize) -> Array2<bool> {
-    let mut whole = Array2::from_elem((h, w), false);
-    whole
-        .slice_mut(s![crop.rows.clone(), crop.cols.clone()])
-        .assign(mask);
-    whole
 }
 
 /// Outermost pixels of a level that OpenCV's border taper weighs down.
@@ -1105,9 +1098,14 @@ fn seed_alignment(
         p.u *= b;
         p.v *= b;
     }
-    let small_mask = &fine.sample_mask;
-    fine.sample_mask = Array2::from_shape_fn((h, w), |(y, x)| {
-        small_mask[[(y / factor).min(sh - 1), (x / factor).min(sw - 1)]]
+    // Binned pixel q covers full pixels b·q … b·q + b − 1.
+    fine.sample_box = fine.sample_box.map(|(x0, y0, x1, y1)| {
+        (
+            x0 * factor,
+            y0 * factor,
+            (x1 * factor + factor - 1).min(w - 1),
+            (y1 * factor + factor - 1).min(h - 1),
+        )
     });
     fine.seed_level = Some(binned.level);
     Ok(fine)

@@ -108,7 +108,15 @@ pub struct CellGrid {
 impl CellGrid {
     /// The grid over the bounding box of `mask`, `sample × sample` cells.
     pub fn new(mask: ArrayView2<bool>, sample: usize) -> Option<CellGrid> {
-        let (x0, y0, x1, y1) = crate::sampling::mask_bounding_box(mask)?;
+        Some(CellGrid::over_box(
+            crate::sampling::mask_bounding_box(mask)?,
+            sample,
+        ))
+    }
+
+    /// The grid over the box (x0, y0, x1, y1, inclusive), `sample × sample` cells.
+    pub fn over_box(bbox: (usize, usize, usize, usize), sample: usize) -> CellGrid {
+        let (x0, y0, x1, y1) = bbox;
         let sample = sample.max(1);
         let split = |lo: usize, hi: usize| -> Vec<usize> {
             let n = hi - lo + 1;
@@ -120,13 +128,13 @@ impl CellGrid {
             }
             of
         };
-        Some(CellGrid {
+        CellGrid {
             x0,
             y0,
-            col_of: split(x0, x1),
-            row_of: split(y0, y1),
+            col_of: split(x0, x1.max(x0)),
+            row_of: split(y0, y1.max(y0)),
             sample,
-        })
+        }
     }
 
     /// Cell index (row-major) of a pixel; pixels outside the grid belong to the nearest cell.
@@ -155,10 +163,12 @@ impl CellGrid {
     }
 }
 
-/// Pixels of `region` inside the cells that hold at least one of `inliers`, with their cell,
-/// on a regular lattice (every `k`-th row and column) that keeps them to about `max`.
+/// Pixels of an `h × w` grid that are `usable`, inside the cells that hold at least one of
+/// `inliers`, with their cell, on a regular lattice (every `k`-th row and column) that keeps
+/// them to about `max`.
 pub fn inlier_cell_pixels(
-    region: &Array2<bool>,
+    (h, w): (usize, usize),
+    usable: impl Fn(usize, usize) -> bool + Sync,
     grid: &CellGrid,
     inliers: &[Correspondence],
     max: usize,
@@ -169,42 +179,52 @@ pub fn inlier_cell_pixels(
             keep[c] = true;
         }
     }
-    lattice_pixels(region, grid, max, |c| keep[c])
+    lattice_pixels((h, w), usable, grid, max, |c| keep[c])
 }
 
-/// Pixels of `region` in the cells `wanted`, thinned to a lattice of about `max` of them.
-/// The lattice step is chosen from the count first, so that a large frame never holds every
-/// pixel's entry at once.
+/// Usable pixels of an `h × w` grid in the cells `wanted`, thinned to a lattice of about `max`
+/// of them. The lattice step is chosen from their count first (estimated on every second row
+/// and column of a large grid), so that no full-size array is made.
 fn lattice_pixels(
-    region: &Array2<bool>,
+    (h, w): (usize, usize),
+    usable: impl Fn(usize, usize) -> bool + Sync,
     grid: &CellGrid,
     max: usize,
     wanted: impl Fn(usize) -> bool + Sync,
 ) -> Vec<(usize, usize, usize)> {
-    let in_cell = |x: usize, y: usize| grid.cell_of(x, y).filter(|&c| wanted(c));
-    let count: usize = region
-        .axis_iter(ndarray::Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .map(|(y, row)| {
-            row.iter()
-                .enumerate()
-                .filter(|(x, m)| **m && in_cell(*x, y).is_some())
-                .count()
-        })
-        .sum();
+    let take = |x: usize, y: usize| {
+        if usable(x, y) {
+            grid.cell_of(x, y).filter(|&c| wanted(c))
+        } else {
+            None
+        }
+    };
+    let count_every = |step: usize| -> usize {
+        (0..h)
+            .into_par_iter()
+            .step_by(step)
+            .map(|y| {
+                (0..w)
+                    .step_by(step)
+                    .filter(|&x| take(x, y).is_some())
+                    .count()
+            })
+            .sum()
+    };
+    let count = if h * w <= 4 * max {
+        count_every(1)
+    } else {
+        4 * count_every(2)
+    };
     let k = lattice_step(count, max);
-    region
-        .axis_iter(ndarray::Axis(0))
+    (0..h)
         .into_par_iter()
-        .enumerate()
-        .filter(|(y, _)| y % k == 0)
-        .flat_map_iter(|(y, row)| {
-            row.into_iter()
-                .enumerate()
+        .step_by(k)
+        .flat_map_iter(|y| {
+            let take = &take;
+            (0..w)
                 .step_by(k)
-                .filter(|(_, m)| **m)
-                .filter_map(move |(x, _)| in_cell(x, y).map(|c| (x, y, c)))
+                .filter_map(move |x| take(x, y).map(|c| (x, y, c)))
                 .collect::<Vec<_>>()
         })
         .collect()
@@ -833,21 +853,28 @@ pub fn apply(
     prepared: &RefineReference,
     frame: ArrayView2<f32>,
     mask: &Array2<bool>,
-    sample_mask: &Array2<bool>,
+    sample_box: Option<(usize, usize, usize, usize)>,
     inliers: &[Correspondence],
     frame_smoothing_px: f64,
     flow_slack_px: f64,
     self_test: impl FnOnce(&RefineSettings) -> Option<[f64; 4]>,
     cfg: &super::EngineConfig,
 ) -> Result<String, String> {
-    let Some(grid) = CellGrid::new(sample_mask.view(), cfg.sample) else {
+    let Some(sample_box) = sample_box else {
         return Err("intensity refinement skipped: empty sampling mask".into());
     };
+    let grid = CellGrid::over_box(sample_box, cfg.sample);
     let settings = settings(cfg, frame_smoothing_px);
     let frame_sigma = settings.smoothing_px.hypot(frame_smoothing_px);
     let margin = gaussian_reach(frame_sigma.max(settings.smoothing_px)) + 3;
     let region = refinement_region(mask, reference, frame, transform, margin);
-    let pixels = inlier_cell_pixels(&region, &grid, inliers, MAX_PIXELS);
+    let pixels = inlier_cell_pixels(
+        reference.dim(),
+        |x, y| region.usable(x, y),
+        &grid,
+        inliers,
+        MAX_PIXELS,
+    );
     drop(region);
     let Some(bbox) = pixel_box(&pixels) else {
         return Err("intensity refinement skipped: no pixels in the inlier cells".into());
@@ -941,47 +968,62 @@ pub fn apply(
 /// least `margin` px (the smoothing's and the spline's reach) from the edges of both images
 /// (the frame's through `t`) and from the frame's blanks. This is wider than the flow's
 /// sample mask, which keeps half a window (60 px and more) from every edge: scale and
-/// rotation are measured best at the largest lever arm (on TRACE 1024², the pixels of that
-/// border hold about 40 % of the scale information).
-fn refinement_region(
-    mask: &Array2<bool>,
-    reference: ArrayView2<f32>,
+/// rotation are measured best at the largest lever arm.
+struct RefinementRegion<'a, M: Fn(f64, f64) -> (f64, f64)> {
+    mask: &'a Array2<bool>,
+    reference: ArrayView2<'a, f32>,
+    frame_dim: (usize, usize),
+    /// Frame pixels at least `margin` from any blank (`None`: the frame has none).
+    frame_blank_free: Option<Array2<bool>>,
+    map: M,
+    margin: f64,
+}
+
+fn refinement_region<'a>(
+    mask: &'a Array2<bool>,
+    reference: ArrayView2<'a, f32>,
     frame: ArrayView2<f32>,
     t: &Similarity,
     margin: usize,
-) -> Array2<bool> {
-    let (h, w) = reference.dim();
-    let (fh, fw) = frame.dim();
+) -> RefinementRegion<'a, impl Fn(f64, f64) -> (f64, f64)> {
     let frame_blank_free = if frame.iter().all(|v| v.is_finite()) {
         None
     } else {
         Some(super::erode(&frame.mapv(f32::is_finite), margin))
     };
-    let map = crate::resample::similarity_map(t);
-    let m = margin as f64;
-    let inside = |v: f64, n: usize| v >= m && v <= n as f64 - 1.0 - m;
-    let mut region = Array2::from_elem((h, w), false);
-    region
-        .axis_iter_mut(ndarray::Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            if !inside(y as f64, h) {
-                return;
-            }
-            for (x, r) in row.iter_mut().enumerate() {
-                if !(mask[[y, x]] && inside(x as f64, w) && reference[[y, x]].is_finite()) {
-                    continue;
-                }
-                let (fx, fy) = map(x as f64, y as f64);
-                *r = inside(fx, fw)
-                    && inside(fy, fh)
-                    && frame_blank_free
-                        .as_ref()
-                        .is_none_or(|ok| ok[[fy.round() as usize, fx.round() as usize]]);
-            }
-        });
-    region
+    RefinementRegion {
+        mask,
+        reference,
+        frame_dim: frame.dim(),
+        frame_blank_free,
+        map: crate::resample::similarity_map(t),
+        margin: margin as f64,
+    }
+}
+
+impl<M: Fn(f64, f64) -> (f64, f64)> RefinementRegion<'_, M> {
+    fn inside(&self, v: f64, n: usize) -> bool {
+        v >= self.margin && v <= n as f64 - 1.0 - self.margin
+    }
+
+    fn usable(&self, x: usize, y: usize) -> bool {
+        let (h, w) = self.reference.dim();
+        let (fh, fw) = self.frame_dim;
+        if !(self.inside(x as f64, w)
+            && self.inside(y as f64, h)
+            && self.mask[[y, x]]
+            && self.reference[[y, x]].is_finite())
+        {
+            return false;
+        }
+        let (fx, fy) = (self.map)(x as f64, y as f64);
+        self.inside(fx, fw)
+            && self.inside(fy, fh)
+            && self
+                .frame_blank_free
+                .as_ref()
+                .is_none_or(|ok| ok[[fy.round() as usize, fx.round() as usize]])
+    }
 }
 
 /// The method's systematic floor for a reference: per parameter, the RMS of the self-test
@@ -999,12 +1041,13 @@ pub fn self_test_floor(
 ) -> Option<[f64; 4]> {
     let (h, w) = reference.dim();
     let grid = CellGrid::new(mask.view(), sample)?;
-    let finite = {
-        let mut m = mask.clone();
-        m.zip_mut_with(&reference, |m, v| *m = *m && v.is_finite());
-        m
-    };
-    let pixels = lattice_pixels(&finite, &grid, MAX_PIXELS, |_| true);
+    let pixels = lattice_pixels(
+        (h, w),
+        |x, y| mask[[y, x]] && reference[[y, x]].is_finite(),
+        &grid,
+        MAX_PIXELS,
+        |_| true,
+    );
     if pixels.is_empty() {
         return None;
     }
@@ -1173,9 +1216,9 @@ mod tests {
             ..Similarity::identity(Similarity::array_center(w, h))
         };
         let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
-        for ((y, x), &r) in region.indexed_iter() {
+        for ((y, x), _) in mask.indexed_iter() {
             assert_eq!(
-                r,
+                region.usable(x, y),
                 (4..=31).contains(&x) && (4..=25).contains(&y),
                 "({x}, {y})"
             );
@@ -1185,7 +1228,8 @@ mod tests {
         let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
         // Pixel (x, y) maps to round(x + 3.4) = x + 3: excluded when |x + 3 − 20| ≤ 4 and
         // |y − 15| ≤ 4.
-        for ((y, x), &r) in region.indexed_iter() {
+        for ((y, x), _) in mask.indexed_iter() {
+            let r = region.usable(x, y);
             let inside = (4..=31).contains(&x) && (4..=25).contains(&y);
             let near_blank = (x + 3).abs_diff(20) <= 4 && y.abs_diff(15) <= 4;
             assert_eq!(r, inside && !near_blank, "({x}, {y})");
@@ -1198,17 +1242,20 @@ mod tests {
         let grid = CellGrid::new(region.view(), 4).expect("grid");
         // Under the cap: all 10 000.
         assert_eq!(
-            lattice_pixels(&region, &grid, 10_000, |_| true).len(),
+            lattice_pixels((100, 100), |_, _| true, &grid, 10_000, |_| true).len(),
             10_000
         );
         // Cap 2 500: every 2nd row and column, exactly 50 × 50.
-        let kept = lattice_pixels(&region, &grid, 2_500, |_| true);
+        let kept = lattice_pixels((100, 100), |_, _| true, &grid, 2_500, |_| true);
         assert_eq!(kept.len(), 2_500);
         assert!(kept.iter().all(|&(x, y, _)| x % 2 == 0 && y % 2 == 0));
         // Cap 1 000: k = ⌈√10⌉ = 4, 25 × 25.
-        assert_eq!(lattice_pixels(&region, &grid, 1_000, |_| true).len(), 625);
+        assert_eq!(
+            lattice_pixels((100, 100), |_, _| true, &grid, 1_000, |_| true).len(),
+            625
+        );
         // Only the wanted cells: one of 16 (25 × 25 px), all of it under the cap.
-        let one = lattice_pixels(&region, &grid, 10_000, |c| c == 5);
+        let one = lattice_pixels((100, 100), |_, _| true, &grid, 10_000, |c| c == 5);
         assert_eq!(one.len(), 625);
         assert!(one
             .iter()
