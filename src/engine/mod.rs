@@ -243,6 +243,7 @@ const MATCHED_CACHE: usize = 4;
 
 impl PreparedReference {
     pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
+        crate::keep_freed_memory();
         PreparedReference {
             cfg: cfg.clone(),
             file: reference.meta.file.display().to_string(),
