@@ -423,7 +423,11 @@ fn align_inner(
     };
     // When the refinement follows, the flow only seeds it, on binned copies of a large
     // frame; should the refinement not be taken, the flow runs at full resolution after all.
-    let seed_level = if refining { seed_level(mask, cfg) } else { 0 };
+    let seed_level = if refining {
+        seed_level(mask_box, cfg)
+    } else {
+        0
+    };
     let mut fine = if seed_level > 0 {
         let binned = matched
             .binned
@@ -975,8 +979,7 @@ fn seed_slack_px(level: usize) -> f64 {
 
 /// The pyramid level a seed flow works on: where the mask spans at least
 /// `cfg.seed_extent_px` (64 at the least), within the pyramid the flow would build.
-fn seed_level(mask: &Array2<bool>, cfg: &EngineConfig) -> usize {
-    let roi = mask_roi(mask);
+fn seed_level(roi: Roi, cfg: &EngineConfig) -> usize {
     let extent = roi.width.min(roi.height);
     let levels = cfg.pyramid_levels.unwrap_or_else(|| auto_levels(extent));
     let mut level = 0;
@@ -1200,19 +1203,27 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
     if h < 16 || w < 16 {
         return Err(format!("{which} image is {w}×{h} px; too small to align"));
     }
-    let finite: Vec<f32> = data.iter().copied().filter(|v| v.is_finite()).collect();
-    if finite.len() < (h * w) / 10 {
+    use rayon::prelude::*;
+    // Count and range of the finite pixels, row by row in parallel (no copy of the frame).
+    let (n_finite, lo, hi) = data
+        .axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .map(|row| {
+            row.iter().filter(|v| v.is_finite()).fold(
+                (0usize, f32::INFINITY, f32::NEG_INFINITY),
+                |(n, a, b), &v| (n + 1, a.min(v), b.max(v)),
+            )
+        })
+        .reduce(
+            || (0, f32::INFINITY, f32::NEG_INFINITY),
+            |x, y| (x.0 + y.0, x.1.min(y.1), x.2.max(y.2)),
+        );
+    if n_finite < (h * w) / 10 {
         return Err(format!(
-            "{which} image has {} finite pixels of {}; nothing to align",
-            finite.len(),
+            "{which} image has {n_finite} finite pixels of {}; nothing to align",
             h * w
         ));
     }
-    let (lo, hi) = finite
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
-            (a.min(v), b.max(v))
-        });
     if hi <= lo {
         return Err(format!(
             "{which} image is constant ({lo}); no structure to align"

@@ -986,7 +986,11 @@ fn refinement_region<'a>(
     t: &Similarity,
     margin: usize,
 ) -> RefinementRegion<'a, impl Fn(f64, f64) -> (f64, f64)> {
-    let frame_blank_free = if frame.iter().all(|v| v.is_finite()) {
+    let no_blanks = frame
+        .axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .all(|row| row.iter().all(|v| v.is_finite()));
+    let frame_blank_free = if no_blanks {
         None
     } else {
         Some(super::erode(&frame.mapv(f32::is_finite), margin))
