@@ -473,12 +473,11 @@ pub fn refine(
                     (p + tukey_psi_slope(*r, TUKEY_C * scale), s + w)
                 });
             let psi_ratio = (sum_psi / sum_w).clamp(MIN_PSI_RATIO, 1.0);
-            let slopes: Vec<f64> = weights.iter().map(|w| w * psi_ratio).collect();
             let fits = ClusterFit {
                 jac: &jac,
                 residuals: &residuals,
                 weights: &weights,
-                slopes: &slopes,
+                slope_per_weight: psi_ratio,
             };
             let cells = block_sums(&fits, frame_row, |k| ref_pixels[k].cell);
             let mut groups: std::collections::BTreeMap<usize, BlockSums> = Default::default();
@@ -683,14 +682,14 @@ fn initial_photometry(pixels: &[Pixel], sampled: &[[f64; 3]]) -> (f64, f64) {
     (gain, sy / n - gain * sx / n)
 }
 
-/// What the cluster-robust covariance needs of a converged fit, per pixel: the instruments
-/// `J`, residuals `r`, weights `w` (the score is `Σ w·r·J`) and the slopes of the weighted
-/// residual (the estimate's sensitivity is `Σ slope·J·Fᵀ`).
+/// What the cluster-robust covariance needs of a converged fit: per pixel the instruments
+/// `J`, residuals `r` and weights `w` (the score is `Σ w·r·J`), and the factor that turns a
+/// weight into the slope of the weighted residual (the sensitivity is `Σ factor·w·J·Fᵀ`).
 struct ClusterFit<'a> {
     jac: &'a [[f64; 6]],
     residuals: &'a [f64],
     weights: &'a [f64],
-    slopes: &'a [f64],
+    slope_per_weight: f64,
 }
 
 /// Cluster-robust covariance, jackknife form (CR3): `(G−1)/G · Σ_b d_b d_bᵀ` with
@@ -752,7 +751,7 @@ fn block_sums(
                 let (_, sums) = current.get_or_insert_with(|| (b, Default::default()));
                 let jv = Vector6::from(fit.jac[k]);
                 sums.0 += jv * (w * r);
-                sums.1 += jv * frame_row(k).transpose() * fit.slopes[k];
+                sums.1 += jv * frame_row(k).transpose() * (w * fit.slope_per_weight);
             }
             if let Some((cb, sums)) = current {
                 let e = blocks.entry(cb).or_default();
