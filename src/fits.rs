@@ -19,6 +19,7 @@ use crate::header::{self, HduKind, Header, HeaderValue, ImageGeometry, BLOCK};
 use crate::meta::{self, FrameMeta, ImagePlace};
 use crate::{Error, Result};
 use ndarray::{Array2, ArrayView2};
+use rayon::prelude::*;
 use std::ffi::CString;
 use std::fmt;
 use std::fs::File;
@@ -437,10 +438,20 @@ fn read_uncompressed(path: &Path, hdu: &Hdu, frame: usize) -> Result<Vec<f32>> {
     let mut bytes = vec![0u8; frame_bytes as usize];
     file.read_exact(&mut bytes)
         .map_err(|e| Error::bad_input(path, format!("truncated while reading pixels: {e}")))?;
-    let mut out = Vec::with_capacity(g.pixels_per_frame());
-    decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| {
-        out.push(v as f32)
-    });
+    // Decoded in parallel chunks: at 4096² this is tens of ms that would otherwise be serial.
+    const CHUNK: usize = 1 << 16;
+    let scaling = Scaling::of(&hdu.header, g.bitpix);
+    let mut out = vec![0f32; g.pixels_per_frame()];
+    out.par_chunks_mut(CHUNK)
+        .zip(bytes.par_chunks(CHUNK * g.bytes_per_pixel()))
+        .for_each(|(out, bytes)| {
+            let mut slots = out.iter_mut();
+            decode_samples(bytes, g.bitpix, scaling, |v| {
+                if let Some(slot) = slots.next() {
+                    *slot = v as f32;
+                }
+            });
+        });
     Ok(out)
 }
 

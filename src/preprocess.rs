@@ -301,6 +301,13 @@ pub fn resolution_matching_sigmas(
     )
 }
 
+/// Whether every pixel is finite, checked row by row in parallel.
+pub fn all_finite(img: ArrayView2<f32>) -> bool {
+    img.axis_iter(Axis(0))
+        .into_par_iter()
+        .all(|row| row.iter().all(|v| v.is_finite()))
+}
+
 /// Separable Gaussian smoothing with σ in pixels, NaN-aware (normalised convolution:
 /// non-finite pixels and the outside of the image carry no weight; they stay NaN).
 /// The kernel is truncated at `round(4σ)` like `scipy.ndimage.gaussian_filter`, whose
@@ -319,8 +326,8 @@ pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     let total: f32 = kernel.iter().sum();
     kernel.iter_mut().for_each(|k| *k /= total);
     let (h, w) = img.dim();
-    let has_nan = img.iter().any(|v| !v.is_finite());
-    let values = img.mapv(|v| if v.is_finite() { v } else { 0.0 });
+    let has_nan = !all_finite(img);
+    let values = Zip::from(&img).par_map_collect(|&v| if v.is_finite() { v } else { 0.0 });
     let mut out = convolve_columns(&convolve_rows(&values, &kernel), &kernel);
     if has_nan {
         let weights = img.mapv(|v| if v.is_finite() { 1.0f32 } else { 0.0 });

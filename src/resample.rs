@@ -149,7 +149,7 @@ impl SplineImage {
     /// Prefilter `src` (NaN-safe). Cost: two recursive passes over the image.
     pub fn new(src: ArrayView2<f32>) -> Self {
         let bad = non_finite_mask(&src);
-        let mut coeffs = src.to_owned();
+        let mut coeffs = Zip::from(&src).par_map_collect(|&v| v);
         if let Some(b) = &bad {
             fill_non_finite(&mut coeffs, b);
         }
@@ -455,10 +455,10 @@ where
 }
 
 fn non_finite_mask(src: &ArrayView2<f32>) -> Option<Array2<bool>> {
-    if src.iter().all(|v| v.is_finite()) {
+    if crate::preprocess::all_finite(src.view()) {
         None
     } else {
-        Some(src.mapv(|v| !v.is_finite()))
+        Some(Zip::from(src).par_map_collect(|v| !v.is_finite()))
     }
 }
 

@@ -98,9 +98,109 @@ pub fn mad_sigma(values: &[f64]) -> Option<f64> {
     Some(1.482_602_218_505_602 * median(&dev)?)
 }
 
+/// The `k`-th smallest (0-based) of `values`, which must all be finite: the value
+/// `select_nth_unstable` finds, but by parallel histogram passes that narrow the candidates
+/// to one bin each time, so that the refinement's robust scale is not a serial step.
+pub fn par_select(values: &[f64], k: usize) -> f64 {
+    use rayon::prelude::*;
+    const SERIAL_BELOW: usize = 1 << 16;
+    const BINS: usize = 4096;
+    const CHUNK: usize = 1 << 14;
+    assert!(k < values.len(), "par_select: k out of range");
+    let mut owned: Option<Vec<f64>> = None;
+    let mut k = k;
+    // Each pass keeps one bin of a histogram over (lo, hi); eight passes reduce any finite
+    // range below one ulp, so the loop ends with a small set (or a single value).
+    for _ in 0..8 {
+        let candidates: &[f64] = owned.as_deref().unwrap_or(values);
+        if candidates.len() < SERIAL_BELOW {
+            break;
+        }
+        let (lo, hi) = candidates
+            .par_chunks(CHUNK)
+            .map(|c| {
+                c.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                        (a.min(v), b.max(v))
+                    })
+            })
+            .reduce(
+                || (f64::INFINITY, f64::NEG_INFINITY),
+                |x, y| (x.0.min(y.0), x.1.max(y.1)),
+            );
+        if lo >= hi {
+            return lo;
+        }
+        let scale = BINS as f64 / (hi - lo);
+        let bin = move |v: f64| (((v - lo) * scale) as usize).min(BINS - 1);
+        let counts = candidates
+            .par_chunks(CHUNK)
+            .map(|c| {
+                let mut h = vec![0usize; BINS];
+                c.iter().for_each(|&v| h[bin(v)] += 1);
+                h
+            })
+            .reduce(
+                || vec![0usize; BINS],
+                |mut a, b| {
+                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        let mut below = 0;
+        let mut target = BINS - 1;
+        for (i, &c) in counts.iter().enumerate() {
+            if below + c > k {
+                target = i;
+                break;
+            }
+            below += c;
+        }
+        let kept: Vec<f64> = candidates
+            .par_iter()
+            .copied()
+            .filter(|&v| bin(v) == target)
+            .collect();
+        k -= below;
+        owned = Some(kept);
+    }
+    let mut rest = owned.unwrap_or_else(|| values.to_vec());
+    *rest.select_nth_unstable_by(k, f64::total_cmp).1
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn par_select_finds_the_same_order_statistic_as_a_full_sort() {
+        // Heavy-tailed values with ties and a far outlier: most values share a few bins.
+        let mut rng = SplitMix64::new(9);
+        let mut values: Vec<f64> = (0..300_000)
+            .map(|i| match i % 7 {
+                0 => 1e9,
+                1 => 0.25,
+                _ => rng.gaussian() * (1.0 + (i % 3) as f64),
+            })
+            .collect();
+        values.push(-1e12);
+        let mut sorted = values.clone();
+        sorted.sort_by(f64::total_cmp);
+        for k in [
+            0,
+            1,
+            1000,
+            values.len() / 2,
+            values.len() - 2,
+            values.len() - 1,
+        ] {
+            assert_eq!(par_select(&values, k), sorted[k], "k = {k}");
+        }
+        let small = [3.0, 1.0, 2.0];
+        assert_eq!(par_select(&small, 1), 2.0);
+        let same = vec![4.5; 100_000];
+        assert_eq!(par_select(&same, 77_777), 4.5);
+    }
 
     #[test]
     fn splitmix64_matches_reference_sequence() {

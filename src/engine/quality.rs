@@ -3,6 +3,7 @@
 //! that histograms cannot give — a flipped copy has identical histograms.
 
 use ndarray::{Array2, ArrayView2};
+use rayon::prelude::*;
 
 /// Bhattacharyya coefficient of the intensity histograms of `a` and `b` inside `mask`.
 ///
@@ -22,20 +23,16 @@ pub fn bhattacharyya(
     }
     let na = normalise_by_mean(va)?;
     let nb = normalise_by_mean(vb)?;
-    let mut pooled: Vec<f64> = na.iter().chain(nb.iter()).copied().collect();
+    let pooled: Vec<f64> = na.iter().chain(nb.iter()).copied().collect();
     // The two order statistics by selection (same values as after a full sort).
     let (k_lo, k_hi) = (
         (pooled.len() as f64 * 0.005) as usize,
         ((pooled.len() as f64 * 0.995) as usize).min(pooled.len() - 1),
     );
-    let (_, &mut lo, above) = pooled.select_nth_unstable_by(k_lo, f64::total_cmp);
-    let hi = if k_hi > k_lo {
-        *above
-            .select_nth_unstable_by(k_hi - k_lo - 1, f64::total_cmp)
-            .1
-    } else {
-        lo
-    };
+    let (lo, hi) = rayon::join(
+        || crate::stats::par_select(&pooled, k_lo),
+        || crate::stats::par_select(&pooled, k_hi),
+    );
     if hi <= lo {
         // Both constant and equal after normalisation: identical histograms.
         return Some(1.0);
@@ -111,8 +108,10 @@ pub fn rank_correlation(
     if pairs.len() < 16 {
         return None;
     }
-    let ra = ranks(pairs.iter().map(|p| p.0).collect());
-    let rb = ranks(pairs.iter().map(|p| p.1).collect());
+    let (ra, rb) = rayon::join(
+        || ranks(pairs.iter().map(|p| p.0).collect()),
+        || ranks(pairs.iter().map(|p| p.1).collect()),
+    );
     let n = ra.len() as f64;
     let mean = (n - 1.0) / 2.0;
     let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
@@ -131,7 +130,7 @@ const MAX_RANK_PAIRS: usize = 1 << 18;
 /// 0-based ranks, ties given their mean rank.
 fn ranks(values: Vec<f32>) -> Vec<f64> {
     let mut order: Vec<usize> = (0..values.len()).collect();
-    order.sort_by(|&i, &j| values[i].total_cmp(&values[j]));
+    order.par_sort_by(|&i, &j| values[i].total_cmp(&values[j]));
     let mut out = vec![0.0; values.len()];
     let mut start = 0;
     while start < order.len() {

@@ -306,7 +306,7 @@ pub fn refine(
     let reach_gain = ((4.0 * reference.smoothing_px).ceil() as usize).max(1);
     let (smoothed, weighting) = (reference.smoothed.view(), reference.weighting());
     let ref_pixels: Vec<Pixel> = pixels
-        .iter()
+        .par_iter()
         .filter_map(|&(x, y, cell)| {
             if x < reach_gain || y < reach_gain || x + reach_gain >= w || y + reach_gain >= h {
                 return None;
@@ -335,11 +335,16 @@ pub fn refine(
         return Err("too few finite reference pixels to refine".into());
     }
     // Lever arm for conditioning: the scale/rotation columns are q/R.
-    let lever = (ref_pixels
-        .iter()
-        .map(|p| (p.x as f64 - center[0]).powi(2) + (p.y as f64 - center[1]).powi(2))
-        .sum::<f64>()
-        / ref_pixels.len() as f64)
+    let lever = (sum_in_chunks(
+        ref_pixels.len(),
+        |range| {
+            ref_pixels[range]
+                .iter()
+                .map(|p| (p.x as f64 - center[0]).powi(2) + (p.y as f64 - center[1]).powi(2))
+                .sum::<f64>()
+        },
+        |a, b| a + b,
+    ) / ref_pixels.len() as f64)
         .sqrt()
         .max(1.0);
     let rows = |gx: f64, gy: f64, qx: f64, qy: f64, v: f64| -> Vector6<f64> {
@@ -353,7 +358,7 @@ pub fn refine(
     };
     // The instruments do not change between iterations.
     let jac: Vec<[f64; 6]> = ref_pixels
-        .iter()
+        .par_iter()
         .map(|p| {
             let (qx, qy) = lever_arm(p);
             rows(p.gx, p.gy, qx, qy, p.neighbours).into()
@@ -372,9 +377,11 @@ pub fn refine(
         if iterations > 1 {
             sampled = frame.sample(&ref_pixels, &estimate);
         }
-        for ((r, p), s) in residuals.iter_mut().zip(&ref_pixels).zip(&sampled) {
-            *r = p.value - gain * s[0] - offset;
-        }
+        residuals
+            .par_iter_mut()
+            .zip(&ref_pixels)
+            .zip(&sampled)
+            .for_each(|((r, p), s)| *r = p.value - gain * s[0] - offset);
         // Iteratively reweighted for the first iterations, then with the weights frozen: on
         // real pairs (IRIS 1400 frames four minutes apart) reweighting every step kept the
         // estimate wandering by about its σ, while with fixed weights Gauss–Newton converges.
@@ -383,19 +390,23 @@ pub fn refine(
             if scale.is_nan() || scale <= 0.0 {
                 return Err("the refinement's residuals vanish exactly; nothing to weigh".into());
             }
-            for ((w, r), s) in weights.iter_mut().zip(&residuals).zip(&sampled) {
-                *w = if s.iter().all(|v| v.is_finite()) {
-                    tukey_weight(*r, TUKEY_C * scale)
-                } else {
-                    0.0
-                };
-            }
+            weights
+                .par_iter_mut()
+                .zip(&residuals)
+                .zip(&sampled)
+                .for_each(|((w, r), s)| {
+                    *w = if s.iter().all(|v| v.is_finite()) {
+                        tukey_weight(*r, TUKEY_C * scale)
+                    } else {
+                        0.0
+                    };
+                });
         } else {
-            for (w, s) in weights.iter_mut().zip(&sampled) {
+            weights.par_iter_mut().zip(&sampled).for_each(|(w, s)| {
                 if !s.iter().all(|v| v.is_finite()) {
                     *w = 0.0;
                 }
-            }
+            });
         }
         // Its slope, `Σ w·J_ref·J_frameᵀ`, in fixed chunks summed in order (deterministic).
         let (slope, score) = sum_in_chunks(
@@ -442,17 +453,26 @@ pub fn refine(
             let ainv = lu
                 .try_inverse()
                 .ok_or("the refinement's equations are singular (no structure)")?;
-            let used = weights.iter().filter(|w| **w > 0.0).count();
-            let sum_w: f64 = weights.iter().sum();
-            let mut white = Matrix6::<f64>::zeros();
-            let mut s2 = 0.0;
-            for ((j, r), wt) in jac.iter().zip(&residuals).zip(&weights) {
-                if *wt > 0.0 {
-                    let jv = Vector6::from(*j);
-                    white += jv * jv.transpose() * (wt * wt);
-                    s2 += wt * r * r;
-                }
-            }
+            // Per chunk: (used, Σw, Σψ′, Σw²JJᵀ, Σw·r²), summed in order.
+            let (used, sum_w, sum_psi, white, s2) = sum_in_chunks(
+                ref_pixels.len(),
+                |range| {
+                    let mut acc = (0usize, 0.0, 0.0, Matrix6::<f64>::zeros(), 0.0);
+                    for k in range {
+                        let (wt, r) = (weights[k], residuals[k]);
+                        if wt > 0.0 {
+                            let jv = Vector6::from(jac[k]);
+                            acc.0 += 1;
+                            acc.1 += wt;
+                            acc.2 += tukey_psi_slope(r, TUKEY_C * scale);
+                            acc.3 += jv * jv.transpose() * (wt * wt);
+                            acc.4 += wt * r * r;
+                        }
+                    }
+                    acc
+                },
+                |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3, a.4 + b.4),
+            );
             let s2 = s2 / (sum_w - 6.0).max(1.0);
             let plain = ainv * white * ainv.transpose() * s2;
             let frame_row = |k: usize| {
@@ -465,13 +485,6 @@ pub fn refine(
             // Huber's scalar form, `w · Σψ′/Σw`, because per pixel ψ′ turns negative beyond
             // 0.45 c and made the slope of small images nearly singular (EIT 128²: a few
             // trials' σ 30× too large).
-            let (sum_psi, sum_w) = residuals
-                .iter()
-                .zip(&weights)
-                .filter(|(_, w)| **w > 0.0)
-                .fold((0.0, 0.0), |(p, s), (r, w)| {
-                    (p + tukey_psi_slope(*r, TUKEY_C * scale), s + w)
-                });
             let psi_ratio = (sum_psi / sum_w).clamp(MIN_PSI_RATIO, 1.0);
             let fits = ClusterFit {
                 jac: &jac,
@@ -804,14 +817,18 @@ fn tukey_weight(r: f64, c: f64) -> f64 {
 
 /// 1.4826 × median absolute deviation about the median, over the finite values.
 fn robust_sigma(values: &[f64]) -> Option<f64> {
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    let mut v: Vec<f64> = values
+        .par_iter()
+        .copied()
+        .filter(|x| x.is_finite())
+        .collect();
     if v.is_empty() {
         return None;
     }
     let mid = v.len() / 2;
-    let median = *v.select_nth_unstable_by(mid, f64::total_cmp).1;
-    v.iter_mut().for_each(|x| *x = (*x - median).abs());
-    let mad = *v.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let median = crate::stats::par_select(&v, mid);
+    v.par_iter_mut().for_each(|x| *x = (*x - median).abs());
+    let mad = crate::stats::par_select(&v, mid);
     Some(1.482_602_218_505_602 * mad)
 }
 
