@@ -613,26 +613,29 @@ struct QualityGrid<'a> {
 fn quality_of(q: &QualityGrid, fine: &FineResult) -> (Option<f64>, Option<f64>) {
     let (h, w) = q.reference.dim();
     let (rows, cols) = grown(q.mask_box, 0.0, w, h);
-    let similarity = fine
-        .warped_at(rows.clone(), cols.clone())
-        .and_then(|warped| {
-            quality::bhattacharyya(
-                q.reference.slice(s![rows.clone(), cols.clone()]),
-                warped,
-                q.mask.slice(s![rows, cols]),
-            )
-        });
-    let crop = q.quality_crop;
-    let correlation = fine
-        .warped_at(crop.rows.clone(), crop.cols.clone())
-        .and_then(|warped| {
-            quality::rank_correlation(
-                q.high_pass.view(),
-                quality::high_pass(warped, q.trend_px).view(),
-                q.mask.slice(s![crop.rows.clone(), crop.cols.clone()]),
-            )
-        });
-    (similarity, correlation)
+    let similarity = || {
+        fine.warped_at(rows.clone(), cols.clone())
+            .and_then(|warped| {
+                quality::bhattacharyya(
+                    q.reference.slice(s![rows.clone(), cols.clone()]),
+                    warped,
+                    q.mask.slice(s![rows.clone(), cols.clone()]),
+                )
+            })
+    };
+    let crop = &q.quality_crop;
+    let correlation = || {
+        fine.warped_at(crop.rows.clone(), crop.cols.clone())
+            .and_then(|warped| {
+                quality::rank_correlation(
+                    q.high_pass.view(),
+                    quality::high_pass(warped, q.trend_px).view(),
+                    q.mask.slice(s![crop.rows.clone(), crop.cols.clone()]),
+                )
+            })
+    };
+    // Independent, and each partly serial: side by side.
+    rayon::join(similarity, correlation)
 }
 
 /// Errors of the fine stage.
