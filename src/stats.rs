@@ -109,8 +109,9 @@ pub fn par_select(values: &[f64], k: usize) -> f64 {
     assert!(k < values.len(), "par_select: k out of range");
     let mut owned: Option<Vec<f64>> = None;
     let mut k = k;
-    // Each pass keeps one bin of a histogram over (lo, hi); eight passes reduce any finite
-    // range below one ulp, so the loop ends with a small set (or a single value).
+    // Each pass keeps the bin that holds the k-th value. Bins are monotone in the value, so
+    // the rank inside the kept bin is known. Whatever is left after eight passes (only for
+    // pathological spreads) goes to one serial selection, so the result is exact either way.
     for _ in 0..8 {
         let candidates: &[f64] = owned.as_deref().unwrap_or(values);
         if candidates.len() < SERIAL_BELOW {
