@@ -1002,11 +1002,7 @@ fn refinement_region<'a>(
     t: &Similarity,
     margin: usize,
 ) -> RefinementRegion<'a, impl Fn(f64, f64) -> (f64, f64)> {
-    let no_blanks = frame
-        .axis_iter(ndarray::Axis(0))
-        .into_par_iter()
-        .all(|row| row.iter().all(|v| v.is_finite()));
-    let frame_blank_free = if no_blanks {
+    let frame_blank_free = if crate::preprocess::all_finite(frame) {
         None
     } else {
         Some(super::erode(&frame.mapv(f32::is_finite), margin))
