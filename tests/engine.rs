@@ -184,7 +184,7 @@ fn a_different_real_frame_with_an_injected_roll_is_measured_through_evolution() 
     );
 }
 
-/// Gaussian noise of 3 counts (3× the TRACE image's background σ of 1.05, as `simulate
+/// Gaussian noise of 3 counts (2.7× the TRACE image's background σ of 1.13, near `simulate
 /// --noise 3`) on both images: the intensity refinement must beat the flow stage alone against
 /// the injected truths, and its σ must cover its residuals.
 #[test]

@@ -49,7 +49,8 @@ struct Report {
     width: usize,
     height: usize,
     noise_k: Option<f64>,
-    background_sigma: f64,
+    /// The image's background noise per pixel (`simulate::background_noise`), the unit of K.
+    background_sigma: Option<f64>,
     ranges: TrialRanges,
     similarity_trials: MonteCarloSummary,
     /// Translation-only trials: optical flow against the cross-correlation baseline.
@@ -71,7 +72,21 @@ pub fn run(args: &Args) -> Result<i32> {
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
     let spline = SplineImage::new(reference.data.view());
-    let background_sigma = background_noise(&reference.data);
+    let background_sigma = crate::simulate::background_noise(reference.data.view());
+    let noise_sigma = match (args.noise, background_sigma) {
+        (None, _) => None,
+        (Some(k), Some(background)) => Some(k * background),
+        (Some(_), None) => {
+            return Err(Error::BadInput {
+                path: PathBuf::from(&args.image),
+                reason: format!(
+                    "no {0}×{0} block of finite, varying pixels to measure the background \
+                     noise in, so --noise has no unit",
+                    crate::simulate::NOISE_BLOCK_PX
+                ),
+            })
+        }
+    };
     let mut noise_rng = SplitMix64::new(args.seed ^ 0x05EE_D0F0_015E);
 
     let ranges = TrialRanges::default();
@@ -82,9 +97,9 @@ pub fn run(args: &Args) -> Result<i32> {
     let mut run_trial = |truth: &Similarity, with_cc: bool, rng: &mut SplitMix64| -> TrialOutcome {
         let mut frame_data = spline.warp_similarity(&truth.inverse(), w, h);
         let mut ref_data = reference.data.clone();
-        if let Some(k) = args.noise {
-            add_noise(&mut ref_data, k * background_sigma, rng);
-            add_noise(&mut frame_data, k * background_sigma, rng);
+        if let Some(sigma) = noise_sigma {
+            add_noise(&mut ref_data, sigma, rng);
+            add_noise(&mut frame_data, sigma, rng);
         }
         let r = Image {
             data: ref_data,
@@ -188,28 +203,6 @@ pub fn run(args: &Args) -> Result<i32> {
     )
 }
 
-/// Robust background noise: MAD of horizontal neighbour differences / √2 (structure cancels
-/// to first order, noise adds in quadrature).
-fn background_noise(img: &Array2<f32>) -> f64 {
-    let mut d: Vec<f64> = img
-        .rows()
-        .into_iter()
-        .flat_map(|row| {
-            row.windows(2)
-                .into_iter()
-                .map(|p| (p[1] - p[0]) as f64)
-                .filter(|v| v.is_finite())
-                .collect::<Vec<_>>()
-        })
-        .collect();
-    if d.is_empty() {
-        return 0.0;
-    }
-    let m = crate::stats::median(&d).unwrap_or(0.0);
-    d.iter_mut().for_each(|v| *v = (*v - m).abs());
-    1.4826 * crate::stats::median(&d).unwrap_or(0.0) / std::f64::consts::SQRT_2
-}
-
 fn add_noise(img: &mut Array2<f32>, sigma: f64, rng: &mut SplitMix64) {
     img.iter_mut()
         .for_each(|v| *v += (sigma * rng.gaussian()) as f32);
@@ -225,7 +218,8 @@ fn print_table(r: &Report) {
         s.trials,
         s.succeeded,
         r.noise_k
-            .map(|k| format!(", noise {k}× background σ {:.3}", r.background_sigma))
+            .zip(r.background_sigma)
+            .map(|(k, b)| format!(", noise {k}× background σ {b:.4} = {:.4}", k * b))
             .unwrap_or_default()
     );
     println!(

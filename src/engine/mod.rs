@@ -210,7 +210,7 @@ pub struct PreparedReference {
 struct ReferenceWork {
     /// The header's metadata, and as checked against the image.
     meta: FrameMeta,
-    checked: FrameMeta,
+    reference_check: geometry_check::Checked,
     notes: Vec<String>,
     cleaned: Array2<f32>,
     mask: Array2<bool>,
@@ -277,7 +277,8 @@ impl ReferenceWork {
         check_usable("reference", &reference.data)?;
         let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
         let mut notes = Vec::new();
-        let (checked, disk_px) = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+        let reference_check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+        let (checked, disk_px) = (&reference_check.meta, reference_check.disk_px);
 
         // Mask on the reference grid: the disk without its limb, or the whole valid field.
         let mut mask = match disk_px {
@@ -312,7 +313,7 @@ impl ReferenceWork {
         tracing::debug!(?structure, winsize, plate, "window chosen");
         Ok(ReferenceWork {
             meta: reference.meta.clone(),
-            checked,
+            reference_check,
             notes,
             cleaned,
             mask,
@@ -386,9 +387,15 @@ fn align_inner(
     let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
-    let (frame_meta, _) = geometry_check::checked(&frame.meta, &frame_data, &mut notes);
+    let frame_meta = geometry_check::checked_frame(
+        &frame.meta,
+        &frame_data,
+        &work.meta,
+        &work.reference_check,
+        &mut notes,
+    );
     tracing::debug!(?cleaned_at, checked_at = ?started.elapsed(), "frame prepared");
-    let coarse = crate::coarse::coarse_transform(&work.checked, &frame_meta)
+    let coarse = crate::coarse::coarse_transform(&work.reference_check.meta, &frame_meta)
         .map_err(|e| format!("coarse alignment: {e}"))?;
     if let Some(e) = &work.mask_error {
         return Err(e.clone());
@@ -397,7 +404,7 @@ fn align_inner(
     let ref_data = &work.cleaned;
 
     // Resolution matching: degrade the sharper image to the other's resolution.
-    let plate = work.checked.plate_scale_arcsec[0].abs();
+    let plate = work.reference_check.meta.plate_scale_arcsec[0].abs();
     let grid_plate = plate;
     let frame_plate_on_grid = frame_meta.plate_scale_arcsec[0].abs();
     let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
