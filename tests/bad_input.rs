@@ -248,3 +248,48 @@ fn non_utf8_path() {
     .unwrap();
     expect_bad(&path, "the path is not valid UTF-8");
 }
+
+/// `simulate --noise K` on an image with no varying 16×16 block (a constant frame): the noise
+/// has no unit, which is the input's fault: exit 2, one line naming the file.
+#[test]
+fn noise_without_a_measurable_background_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                    8",
+        "NAXIS   =                    2",
+        "NAXIS1  =                   64",
+        "NAXIS2  =                   64",
+        "CRPIX1  =                 32.5",
+        "CRPIX2  =                 32.5",
+        "CDELT1  =                  0.6",
+        "CDELT2  =                  0.6",
+        "CRVAL1  =                  0.0",
+        "CRVAL2  =                  0.0",
+        "CUNIT1  = 'arcsec  '",
+        "CUNIT2  = 'arcsec  '",
+    ];
+    let mut data = vec![7u8; 64 * 64];
+    data.resize(2 * 2880, 0); // the data unit padded to whole 2880-byte records
+    let file = temp_file(&dir, "flat.fits", &fits_bytes(&cards, &data));
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args([
+            "simulate",
+            "--trials",
+            "1",
+            "--cc-trials",
+            "0",
+            "--noise",
+            "3",
+        ])
+        .arg(&file)
+        .output()
+        .expect("run sunjitter");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "one line expected: {stderr:?}");
+    assert!(
+        stderr.starts_with(&format!("sunjitter: {}: no 16×16 block", file.display())),
+        "{stderr}"
+    );
+}
