@@ -160,6 +160,8 @@ pub const NOISE_BLOCK_PX: usize = 16;
 /// The quantile of block noise levels taken as the background's: the quietest tenth of the
 /// image (the sky beside a full disk, the darkest corona or quiet Sun in a partial field).
 const BACKGROUND_QUANTILE: f64 = 0.10;
+/// z of the standard normal at [`BACKGROUND_QUANTILE`].
+const BACKGROUND_QUANTILE_Z: f64 = -1.281_551_565_545;
 
 /// The image's background noise σ per pixel, the unit of `simulate --noise K`.
 ///
@@ -223,9 +225,6 @@ pub fn background_noise(img: ArrayView2<f32>) -> Option<f64> {
     let (_, quantile, _) = sigmas.select_nth_unstable_by(k, f64::total_cmp);
     Some(*quantile / chi_quantile_ratio(dof, BACKGROUND_QUANTILE_Z))
 }
-
-/// z of the standard normal at [`BACKGROUND_QUANTILE`].
-const BACKGROUND_QUANTILE_Z: f64 = -1.281_551_565_545;
 
 /// √(χ²_ν quantile / ν) at standard-normal z, by Wilson–Hilferty: where the sample σ of ν
 /// degrees of freedom falls, relative to the true σ, at that quantile.

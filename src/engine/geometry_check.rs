@@ -60,6 +60,8 @@ pub(super) struct Checked {
     pub disk_px: Option<([f64; 2], f64)>,
     /// Whether a disk was seen in the image at all.
     pub seen: bool,
+    /// Whether the header was corrected from it.
+    pub corrected: bool,
 }
 
 /// One image's header against its disk: the metadata to use, the disk for the mask.
@@ -71,6 +73,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
             meta: meta.clone(),
             disk_px: header_disk,
             seen: false,
+            corrected: false,
         };
     };
     let check = check_header(meta, &seen);
@@ -84,6 +87,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
             meta: meta.clone(),
             disk_px: header_disk,
             seen: true,
+            corrected: false,
         };
     }
     let mut fixed = meta.clone();
@@ -100,6 +104,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
         meta: fixed,
         disk_px: Some((seen.center_px, seen.radius_px)),
         seen: true,
+        corrected: true,
     }
 }
 
@@ -122,10 +127,7 @@ pub(super) fn checked_frame(
 ) -> FrameMeta {
     let mut own_notes = Vec::new();
     let own = checked(frame, frame_data, &mut own_notes);
-    let reference_corrected = reference.meta.plate_scale_arcsec
-        != reference_header.plate_scale_arcsec
-        || reference.meta.sun_center_px != reference_header.sun_center_px;
-    let frame_corrected = !own_notes.is_empty();
+    let (reference_corrected, frame_corrected) = (reference.corrected, own.corrected);
     let name = frame
         .file
         .file_name()
