@@ -2,54 +2,15 @@
 //! image shows (rebinned files whose CDELT/SOLAR_R were never updated, wrong CRPIX), say
 //! so and trust the image.
 
-use super::Image;
 use crate::coarse::{check_header, header_radius_px};
 use crate::meta::FrameMeta;
 use crate::preprocess::{detect_disk, DiskFit};
 use ndarray::Array2;
 
-/// The metadata the coarse stage should use, after checking it against the images.
-#[derive(Debug, Clone)]
-pub struct EffectiveGeometry {
-    pub reference: FrameMeta,
-    pub frame: FrameMeta,
-    /// The reference disk (centre, radius in px) for the mask, when known.
-    pub reference_disk_px: Option<([f64; 2], f64)>,
-    pub notes: Vec<String>,
-}
-
 /// A header radius off by more than this fraction of the measured one is wrong.
 const RADIUS_TOLERANCE: f64 = 0.1;
 /// A header centre off by more than this fraction of the measured radius (and 3 px) is wrong.
 const CENTER_TOLERANCE: f64 = 0.1;
-
-pub fn effective_geometry(
-    reference: &Image,
-    reference_data: &Array2<f32>,
-    frame: &Image,
-    frame_data: &Array2<f32>,
-) -> EffectiveGeometry {
-    let mut notes = Vec::new();
-    let reference_check = checked(&reference.meta, reference_data, &mut notes);
-    let frame_meta = checked_frame(
-        &frame.meta,
-        frame_data,
-        &reference.meta,
-        &reference_check,
-        &mut notes,
-    );
-    let Checked {
-        meta: ref_meta,
-        disk_px: ref_disk,
-        ..
-    } = reference_check;
-    EffectiveGeometry {
-        reference: ref_meta,
-        frame: frame_meta,
-        reference_disk_px: ref_disk,
-        notes,
-    }
-}
 
 /// One image's header as checked against the disk its image shows.
 #[derive(Debug, Clone)]

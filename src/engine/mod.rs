@@ -26,7 +26,6 @@ use serde::{Deserialize, Serialize};
 use std::ops::Range;
 use std::time::Instant;
 
-pub use geometry_check::{effective_geometry, EffectiveGeometry};
 pub use refine::RefineMode;
 pub use sigma::SigmaMethod;
 
