@@ -314,7 +314,22 @@ fn open(path: &Path) -> Result<File> {
     if path.is_dir() {
         return Err(Error::bad_input(path, "is a directory, not a FITS file"));
     }
-    File::open(path).map_err(|e| Error::bad_input(path, format!("cannot open: {e}")))
+    File::open(path).map_err(|e| {
+        let reason = match bad_frame_suffix(path) {
+            Some(inner) if e.kind() == std::io::ErrorKind::NotFound => format!(
+                "no such file, and '[{inner}]' is not a frame index (FILE[N] takes N = 0, 1, 2, …)"
+            ),
+            _ => format!("cannot open: {e}"),
+        };
+        Error::bad_input(path, reason)
+    })
+}
+
+/// The text inside a trailing `[…]` that [`FrameSpec::parse`] did not take as a frame index.
+fn bad_frame_suffix(path: &Path) -> Option<&str> {
+    let name = path.file_name()?.to_str()?;
+    let inner = name.strip_suffix(']')?;
+    Some(&inner[inner.rfind('[')? + 1..])
 }
 
 /// Read one header starting at `offset`. `None` when an extension area holds no header
@@ -371,8 +386,21 @@ fn starts_like_a_header(bytes: &[u8], is_primary: bool) -> bool {
     bytes.len() >= key.len() && &bytes[..key.len()] == key
 }
 
-/// `not a FITS file (it starts with '<!DOCTYPE HTML…', not 'SIMPLE =')`.
+/// `not a FITS file (it starts with '<!DOCTYPE HTML…', not 'SIMPLE =')`; compressed files
+/// are named as such.
 fn not_fits_reason(bytes: &[u8]) -> String {
+    let compressions: [(&[u8], &str, &str); 4] = [
+        (&[0x1f, 0x8b], "gzip", "gunzip"),
+        (b"BZh", "bzip2", "bunzip2"),
+        (&[0x28, 0xb5, 0x2f, 0xfd], "zstd", "unzstd"),
+        (&[0xfd, b'7', b'z', b'X', b'Z', 0x00], "xz", "unxz"),
+    ];
+    if let Some((_, name, tool)) = compressions.iter().find(|(m, _, _)| bytes.starts_with(m)) {
+        return format!(
+            "a {name}-compressed file, not FITS; decompress it first ({tool}), or use FITS tile \
+             compression (fpack), which is read directly"
+        );
+    }
     let start: String = bytes
         .iter()
         .take(24)

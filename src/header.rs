@@ -175,6 +175,14 @@ impl Header {
         });
     }
 
+    pub fn push_with_comment(&mut self, key: &str, value: HeaderValue, comment: &str) {
+        self.cards.push(Card {
+            key: key.to_string(),
+            value: Some(value),
+            comment: comment.to_string(),
+        });
+    }
+
     pub fn cards(&self) -> &[Card] {
         &self.cards
     }
@@ -190,6 +198,14 @@ impl Header {
             .iter()
             .find(|c| c.key == key)
             .and_then(|c| c.value.as_ref())
+    }
+
+    /// The comment of the first card with this keyword.
+    pub fn comment(&self, key: &str) -> Option<&str> {
+        self.cards
+            .iter()
+            .find(|c| c.key == key)
+            .map(|c| c.comment.trim())
     }
 
     pub fn contains(&self, key: &str) -> bool {

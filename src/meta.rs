@@ -109,8 +109,81 @@ pub struct CelestialWcs {
     pub matrix: [[f64; 2]; 2],
     /// Roll in degrees, `CROTA2` sense.
     pub rotation_deg: f64,
-    /// Gnomonic (`-TAN`) projection; otherwise the axes are treated as linear.
-    pub tan: bool,
+    /// The zenithal projection of the axes (`-TAN`, `-ARC`, …); `None`: treated as linear.
+    pub projection: Option<Zenithal>,
+    /// Native longitude of the celestial pole, degrees (`LONPOLE`; 180° for zenithal).
+    pub lonpole_deg: f64,
+}
+
+/// Zenithal projections (Calabretta & Greisen 2002, §5.1): `R_θ` as a function of the native
+/// latitude θ, in radians of the intermediate plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Zenithal {
+    /// Gnomonic: `R = cot θ`.
+    Tan,
+    /// Zenithal equidistant: `R = π/2 − θ`.
+    Arc,
+    /// Orthographic (no slant): `R = cos θ`.
+    Sin,
+    /// Zenithal equal-area: `R = √(2(1 − sin θ))`.
+    Zea,
+    /// Stereographic: `R = 2 cos θ / (1 + sin θ)`.
+    Stg,
+    /// Zenithal perspective with `μ = PV2_1` (no tilt): `R = (μ + 1) cos θ / (μ + sin θ)`.
+    Azp { mu: f64 },
+}
+
+impl Zenithal {
+    /// The projection named by `CTYPE1`/`CTYPE2` (both must agree), `Ok(None)` for linear axes
+    /// (no code, as in old `SOLAR-X` headers), `Err` for a projection not handled here.
+    fn from_header(h: &Header) -> Result<Option<Zenithal>, String> {
+        let code = |k: &str| {
+            h.str(k).and_then(|t| {
+                let t = t.to_ascii_uppercase();
+                (t.len() == 8 && t.as_bytes()[4] == b'-').then(|| t[5..].to_string())
+            })
+        };
+        let (c1, c2) = (code("CTYPE1"), code("CTYPE2"));
+        if c1 != c2 {
+            return Ok(None);
+        }
+        let Some(c) = c1 else { return Ok(None) };
+        Ok(Some(match c.as_str() {
+            "TAN" => Zenithal::Tan,
+            "ARC" => Zenithal::Arc,
+            "SIN"
+                if h.f64("PV2_1").unwrap_or(0.0) == 0.0 && h.f64("PV2_2").unwrap_or(0.0) == 0.0 =>
+            {
+                Zenithal::Sin
+            }
+            "ZEA" => Zenithal::Zea,
+            "STG" => Zenithal::Stg,
+            "AZP" if h.f64("PV2_2").unwrap_or(0.0) == 0.0 => Zenithal::Azp {
+                mu: h.f64("PV2_1").unwrap_or(0.0),
+            },
+            other => {
+                return Err(format!(
+                    "the '{other}' projection (CTYPE1 = '{}') is not supported: only TAN, ARC, \
+                     SIN, ZEA, STG and untilted AZP are",
+                    h.str("CTYPE1").unwrap_or("")
+                ))
+            }
+        }))
+    }
+
+    /// `R_θ` for native latitude `theta` (radians); `None` where the projection diverges.
+    fn radius(self, theta: f64) -> Option<f64> {
+        let (s, c) = theta.sin_cos();
+        let r = match self {
+            Zenithal::Tan => (s > 0.0).then(|| c / s)?,
+            Zenithal::Arc => std::f64::consts::FRAC_PI_2 - theta,
+            Zenithal::Sin => (s >= 0.0).then_some(c)?,
+            Zenithal::Zea => (2.0 * (1.0 - s)).max(0.0).sqrt(),
+            Zenithal::Stg => (1.0 + s > 0.0).then(|| 2.0 * c / (1.0 + s))?,
+            Zenithal::Azp { mu } => (mu + s > 0.0).then(|| (mu + 1.0) * c / (mu + s))?,
+        };
+        r.is_finite().then_some(r)
+    }
 }
 
 impl CelestialWcs {
@@ -132,10 +205,8 @@ impl CelestialWcs {
             h.f64("CRVAL1").unwrap_or(0.0) * unit[0],
             h.f64("CRVAL2").unwrap_or(0.0) * unit[1],
         ];
-        let tan = ["CTYPE1", "CTYPE2"].iter().all(|k| {
-            h.str(k)
-                .is_some_and(|t| t.to_ascii_uppercase().ends_with("-TAN"))
-        });
+        refuse_heliographic(h)?;
+        let projection = Zenithal::from_header(h)?;
         let (cdelt_arcsec, matrix, rotation_deg) = match cd_matrix(h) {
             Some(cd) => from_cd(cd, unit)?,
             None => from_cdelt_and_rotation(h, unit)?,
@@ -146,7 +217,8 @@ impl CelestialWcs {
             cdelt_arcsec,
             matrix,
             rotation_deg,
-            tan,
+            projection,
+            lonpole_deg: h.f64("LONPOLE").unwrap_or(180.0),
         })
     }
 
@@ -156,7 +228,7 @@ impl CelestialWcs {
     }
 
     /// 0-based pixel of helioprojective (0″, 0″): project it to intermediate coordinates
-    /// around the reference point (gnomonic for `-TAN`), then invert `M`.
+    /// around the reference point (the zenithal projection of `CTYPE`), then invert `M`.
     pub fn sun_center_px(&self) -> Result<[f64; 2], String> {
         let [x, y] = self.intermediate_of_sun_centre()?;
         let [[a, b], [c, d]] = self.matrix;
@@ -172,20 +244,39 @@ impl CelestialWcs {
     /// Intermediate world coordinates (arcsec) of (0″, 0″) relative to the reference point.
     fn intermediate_of_sun_centre(&self) -> Result<[f64; 2], String> {
         let [lon0, lat0] = self.crval_arcsec;
-        if !self.tan {
+        let Some(projection) = self.projection else {
             return Ok([-lon0, -lat0]);
-        }
+        };
         let rad = std::f64::consts::PI / (180.0 * 3600.0);
         let (a0, d0) = (lon0 * rad, lat0 * rad);
-        let cos_c = d0.cos() * a0.cos();
-        if cos_c <= 0.0 {
-            return Err("disk centre is more than 90° from the reference point".into());
-        }
-        // Gnomonic projection of (α, δ) = (0, 0) about (α0, δ0) (Calabretta & Greisen 2002).
-        let x = -a0.sin() / cos_c;
-        let y = -d0.sin() * a0.cos() / cos_c;
-        Ok([x / rad, y / rad])
+        // Native coordinates of (α, δ) = (0, 0) with the reference point at the native pole
+        // (Calabretta & Greisen 2002, eq. 5).
+        let theta = (d0.cos() * a0.cos()).clamp(-1.0, 1.0).asin();
+        let phi = self.lonpole_deg.to_radians() + a0.sin().atan2(-d0.sin() * a0.cos());
+        let r = projection
+            .radius(theta)
+            .ok_or("the disk centre falls outside the projection (too far from CRVAL)")?;
+        Ok([r * phi.sin() / rad, -r * phi.cos() / rad])
     }
+}
+
+/// Heliographic maps (Carrington or Stonyhurst longitude, synoptic maps) are not images of the
+/// sky: their axes are degrees on the Sun, and there is no disk or pointing to align.
+fn refuse_heliographic(h: &Header) -> Result<(), String> {
+    for key in ["CTYPE1", "CTYPE2"] {
+        let Some(t) = h.str(key) else { continue };
+        let upper = t.to_ascii_uppercase();
+        if ["CRLN", "CRLT", "HGLN", "HGLT", "LON", "LAT"]
+            .iter()
+            .any(|p| upper.starts_with(p))
+        {
+            return Err(format!(
+                "{key} = '{t}' is a heliographic (longitude/latitude) map, not a helioprojective \
+                 image of the Sun"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// `CDi_j` if present (already in CUNIT per pixel).
@@ -297,19 +388,25 @@ pub fn obs_time_ns(h: &Header) -> Option<i64> {
         Some("TAI") => TimeScale::Tai,
         _ => TimeScale::Utc,
     };
+    let time_of_day = h.str("TIME-OBS").or_else(|| h.str("TIME_OBS"));
+    // A date without a time of day is midnight; a later keyword may hold the full time (the
+    // Nançay files give `DATE-OBS = '2012-07-01'` and `DATE_OBS = '…T09:10:58.200Z'`).
+    let mut date_only = None;
     for key in ["T_OBS", "DATE-OBS", "DATE_OBS"] {
         let Some(text) = h.str(key) else { continue };
-        let time_of_day = h.str("TIME-OBS").or_else(|| h.str("TIME_OBS"));
         let parsed = match time_of_day {
             Some(tod) if is_date_only(text) => time::parse_date_and_time(text, tod, scale),
             _ => time::parse_fits_time(text, scale),
         };
         match parsed {
+            Ok(ns) if time_of_day.is_none() && is_date_only(text) => {
+                date_only = date_only.or(Some(ns))
+            }
             Ok(ns) => return Some(ns),
             Err(e) => tracing::warn!("{key}: {e}; trying the next time keyword"),
         }
     }
-    None
+    date_only
 }
 
 fn is_date_only(text: &str) -> bool {
@@ -356,47 +453,98 @@ pub fn time_axis_seconds(h: &Header, frame: usize) -> Option<f64> {
     })
 }
 
-/// Exposure time in seconds: `EXPTIME`, `EXPOSURE`, else TRACE's measured `SHT_MDUR`.
+/// Exposure time in seconds: the standard `XPOSURE` (FITS 4.0; EUI, EIT level 1), `EXPTIME`,
+/// `EXPOSURE`, else TRACE's measured `SHT_MDUR`.
 pub fn exptime_s(h: &Header) -> Option<f64> {
-    ["EXPTIME", "EXPOSURE", "SHT_MDUR"]
+    ["XPOSURE", "EXPTIME", "EXPOSURE", "SHT_MDUR"]
         .iter()
         .find_map(|k| h.f64(k))
 }
 
-/// Apparent solar radius in arcsec: `RSUN_OBS`; else `SOLAR_R`·|CDELT1| (SOLAR_R is in pixels,
-/// as in EIT files); else `asin(RSUN_REF / DSUN_OBS)` (the sphere's apparent radius, as sunpy
-/// computes it); else unknown.
+/// Apparent solar radius in arcsec: `RSUN_OBS`, `RSUN_ARC` (PROBA2, PUNCH) or `RSUN` (STEREO,
+/// LASCO, K-Cor), all in arcsec; else `SOLAR_R`, in pixels in EIT files (×|CDELT1|) but in
+/// arcsec in Yohkoh's, told apart by its comment or, without one, by which reading gives a
+/// radius the Sun can have; else `asin(RSUN_REF / DSUN_OBS)` (the sphere's apparent radius,
+/// as sunpy computes it); else unknown.
 pub fn rsun_arcsec(h: &Header, cdelt1_arcsec: f64) -> Option<f64> {
-    if let Some(r) = h.f64("RSUN_OBS").filter(|r| *r > 0.0) {
+    if let Some(r) = ["RSUN_OBS", "RSUN_ARC", "RSUN"]
+        .iter()
+        .find_map(|k| h.f64(k).filter(|r| *r > 0.0))
+    {
         return Some(r);
     }
     if let Some(r) = h.f64("SOLAR_R").filter(|r| *r > 0.0) {
-        return Some(r * cdelt1_arcsec.abs());
+        let comment = h.comment("SOLAR_R").unwrap_or("").to_ascii_lowercase();
+        let in_pixels = r * cdelt1_arcsec.abs();
+        return Some(if comment.contains("arcsec") {
+            r
+        } else if comment.contains("pix") || APPARENT_RSUN_ARCSEC.contains(&in_pixels) {
+            in_pixels
+        } else if APPARENT_RSUN_ARCSEC.contains(&r) {
+            r
+        } else {
+            in_pixels
+        });
     }
     let (rsun_m, dsun_m) = (h.f64("RSUN_REF")?, h.f64("DSUN_OBS")?);
     (rsun_m > 0.0 && dsun_m > rsun_m).then(|| (rsun_m / dsun_m).asin().to_degrees() * 3600.0)
 }
 
-/// Short instrument name: first token of `INSTRUME` (`AIA_3` → `AIA`, `HMI_FRONT2` → `HMI`),
-/// else the last part of `TELESCOP` (`SDO/AIA` → `AIA`).
+/// Angular radii (arcsec) the Sun can have as seen by a solar observatory: from beyond Jupiter's
+/// orbit (5.5 AU, 175″) to Solar Orbiter's perihelion (0.28 AU, 3430″) and a little closer.
+const APPARENT_RSUN_ARCSEC: std::ops::RangeInclusive<f64> = 150.0..=4000.0;
+
+/// Short instrument name: an abbreviation in parentheses (`Extreme-ultraviolet Imaging
+/// Telescope (EIT)` → `EIT`), else the first token of `INSTRUME` (`AIA_3` → `AIA`,
+/// `HMI_FRONT2` → `HMI`), else the last part of `TELESCOP` (`SDO/AIA` → `AIA`).
 pub fn instrument(h: &Header) -> Option<String> {
+    let abbreviation = |text: &str| {
+        let inner = text.rsplit_once('(')?.1.split_once(')')?.0.trim();
+        (!inner.is_empty() && !inner.contains(' ')).then(|| sanitise(inner))
+    };
     if let Some(i) = h.str("INSTRUME") {
+        if let Some(a) = abbreviation(i) {
+            return Some(a);
+        }
         let token = i.split(['_', ' ']).find(|t| !t.is_empty())?;
         return Some(sanitise(token));
     }
     let t = h.str("TELESCOP")?;
+    if let Some(a) = abbreviation(t) {
+        return Some(a);
+    }
     t.rsplit('/').find(|t| !t.trim().is_empty()).map(sanitise)
 }
 
-/// Wavelength in the header's unit: `WAVELNTH`, IRIS's `TWAVE1`, TRACE's `WAVE_LEN`.
+/// Wavelength in the header's unit: `WAVELNTH`, IRIS's `TWAVE1`, TRACE's `WAVE_LEN`. Zero is
+/// not a wavelength (white-light coronagraphs and heliospheric imagers write `WAVELNTH = 0`).
 pub fn wavelength(h: &Header) -> Option<f64> {
     ["WAVELNTH", "TWAVE1", "WAVE_LEN"]
         .iter()
-        .find_map(|k| h.f64(k))
+        .find_map(|k| h.f64(k).filter(|w| *w > 0.0))
+}
+
+/// The telescope within a multi-telescope instrument, when the header names one that is not
+/// the instrument itself: `DETECTOR` (SECCHI's `EUVI`, `COR1`, `HI2`; LASCO's `C2`, `C3`;
+/// EUI's `FSI`, `HRI_EUV`), with STEREO's spacecraft letter (`EUVI-A`), whose two copies of
+/// each telescope must not share a channel.
+fn telescope_within(h: &Header, instrument: Option<&str>) -> Option<String> {
+    let detector = sanitise(h.str("DETECTOR")?);
+    if instrument.is_some_and(|i| i == detector || detector.contains(i) || i.contains(&detector)) {
+        return None;
+    }
+    let spacecraft = match h.str("OBSRVTRY").map(sanitise).as_deref() {
+        Some("STEREO_A") => "-A",
+        Some("STEREO_B") => "-B",
+        _ => "",
+    };
+    Some(format!("{detector}{spacecraft}"))
 }
 
 /// Channel name: IRIS's `TDESC1` (`SJI_1400`), else instrument + wavelength (`AIA_171`),
-/// else instrument + a non-numeric wavelength label (`TRACE_WL`), else what is known.
+/// else instrument + a non-numeric wavelength label (`TRACE_WL`), else what is known. The
+/// instrument part names the telescope within a multi-telescope instrument
+/// (`SECCHI-EUVI-A_171`, `LASCO-C2`, `EUI-FSI_174`).
 pub fn channel(h: &Header, instrument: Option<&str>, wavelength: Option<f64>) -> String {
     if let Some(desc) = h.str("TDESC1") {
         return sanitise(desc);
@@ -408,6 +556,12 @@ pub fn channel(h: &Header, instrument: Option<&str>, wavelength: Option<f64>) ->
             .find_map(|k| h.str(k))
             .map(sanitise),
     };
+    let qualified = match (instrument, telescope_within(h, instrument)) {
+        (Some(i), Some(t)) => Some(format!("{i}-{t}")),
+        (None, Some(t)) => Some(t),
+        (i, None) => i.map(str::to_string),
+    };
+    let instrument = qualified.as_deref();
     match (instrument, label) {
         (Some(i), Some(l)) => format!("{i}_{l}"),
         (Some(i), None) => i.to_string(),
@@ -527,6 +681,99 @@ mod tests {
     }
 
     #[test]
+    fn zenithal_projections_match_astropy_far_from_the_reference() {
+        // astropy.wcs.WCS(header).wcs_world2pix([[0, 0]], 0) for the same cards.
+        let truths = [
+            ("ARC", None, [-33008.414173, -14466.239226]),
+            ("SIN", None, [-33006.732782, -14465.501574]),
+            ("ZEA", None, [-33007.993820, -14466.054811]),
+            ("STG", None, [-33009.254907, -14466.608069]),
+            ("AZP", Some(0.82), [-33009.504369, -14466.717512]),
+        ];
+        for (code, mu, truth) in truths {
+            let mut h = header(&[
+                ("CTYPE1", s(&format!("HPLN-{code}"))),
+                ("CTYPE2", s(&format!("HPLT-{code}"))),
+                ("CRVAL1", f(3000.0)),
+                ("CRVAL2", f(2000.0)),
+                ("CDELT1", f(0.1)),
+                ("CDELT2", f(0.1)),
+                ("CRPIX1", f(10.0)),
+                ("CRPIX2", f(20.0)),
+                ("CROTA2", f(10.0)),
+            ]);
+            if let Some(mu) = mu {
+                h.push("PV2_1", f(mu));
+            }
+            let c = CelestialWcs::from_header(&h)
+                .unwrap()
+                .sun_center_px()
+                .unwrap();
+            assert!((c[0] - truth[0]).abs() < 1e-4, "{code}: {c:?}");
+            assert!((c[1] - truth[1]).abs() < 1e-4, "{code}: {c:?}");
+        }
+    }
+
+    #[test]
+    fn stereo_hi2_perspective_projection_matches_astropy() {
+        // sunpy's test header hi_20110910_114721_s7h2A: the Sun is 53° from the reference
+        // point, where a linear reading of the axes is 20 px off. Truth: astropy.wcs.
+        let h = header(&[
+            ("CRPIX1", f(128.5)),
+            ("CRPIX2", f(128.5)),
+            ("CTYPE1", s("HPLN-AZP")),
+            ("CTYPE2", s("HPLT-AZP")),
+            ("CRVAL1", f(-53.4739394881)),
+            ("CRVAL2", f(5.62052403739)),
+            ("PC1_1", f(0.997349787778)),
+            ("PC1_2", f(0.0727557614094)),
+            ("PC2_1", f(-0.0727557614094)),
+            ("PC2_2", f(0.997349787778)),
+            ("CUNIT1", s("deg")),
+            ("CUNIT2", s("deg")),
+            ("CDELT1", f(0.288381416267)),
+            ("CDELT2", f(0.288381416267)),
+            ("PV2_1", f(0.819999992847)),
+            ("LONPOLE", f(180.0)),
+        ]);
+        let c = CelestialWcs::from_header(&h)
+            .unwrap()
+            .sun_center_px()
+            .unwrap();
+        assert!((c[0] - 333.783085).abs() < 1e-4, "{c:?}");
+        assert!((c[1] - 127.583883).abs() < 1e-4, "{c:?}");
+    }
+
+    #[test]
+    fn unsupported_projections_and_heliographic_maps_are_refused() {
+        let mut h = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CDELT1", f(1.0)),
+            ("CDELT2", f(1.0)),
+            ("CTYPE1", s("HPLN-AIT")),
+            ("CTYPE2", s("HPLT-AIT")),
+        ]);
+        assert!(CelestialWcs::from_header(&h).unwrap_err().contains("'AIT'"));
+        for (x, y) in [
+            ("CRLN-CEA", "CRLT-CEA"),
+            ("HGLN-CAR", "HGLT-CAR"),
+            ("Long", "Lat"),
+        ] {
+            h = header(&[
+                ("CRPIX1", f(1.0)),
+                ("CRPIX2", f(1.0)),
+                ("CDELT1", f(1.0)),
+                ("CDELT2", f(1.0)),
+                ("CTYPE1", s(x)),
+                ("CTYPE2", s(y)),
+            ]);
+            let e = CelestialWcs::from_header(&h).unwrap_err();
+            assert!(e.contains("heliographic"), "{x}: {e}");
+        }
+    }
+
+    #[test]
     fn sc_roll_is_used_only_without_crota_or_pc() {
         let base = [
             ("CRPIX1", f(64.5)),
@@ -587,6 +834,100 @@ mod tests {
             Some(372.27 * 2.63)
         );
         assert_eq!(rsun_arcsec(&header(&[("DSUN_OBS", f(1.5e11))]), 1.0), None);
+    }
+
+    #[test]
+    fn radius_keywords_of_other_instruments() {
+        let c = |k: &str, v: f64, comment: &str| {
+            let mut h = Header::new();
+            h.push_with_comment(k, f(v), comment);
+            h
+        };
+        // PROBA2/SWAP, PUNCH: RSUN_ARC; STEREO, LASCO, K-Cor: RSUN; both in arcsec.
+        assert_eq!(
+            rsun_arcsec(&c("RSUN_ARC", 945.771838956, ""), 3.16),
+            Some(945.771838956)
+        );
+        assert_eq!(
+            rsun_arcsec(&c("RSUN", 978.572578766, ""), 11.9),
+            Some(978.572578766)
+        );
+        // Yohkoh SXT: "Solar radius in arcsec (geocentric)"; EIT: "Solar radius, EIT pixels".
+        let sxt = c(
+            "SOLAR_R",
+            967.151,
+            "ssw: Solar radius in arcsec (geocentric)",
+        );
+        assert_eq!(rsun_arcsec(&sxt, 9.82), Some(967.151));
+        let eit = c("SOLAR_R", 188.11, "Solar radius, EIT pixels");
+        assert!((rsun_arcsec(&eit, 5.26).unwrap() - 989.4586).abs() < 1e-9);
+        // No comment: the reading the Sun's size allows.
+        assert_eq!(rsun_arcsec(&c("SOLAR_R", 967.151, ""), 9.82), Some(967.151));
+        assert!((rsun_arcsec(&c("SOLAR_R", 372.27, ""), 2.63).unwrap() - 979.0701).abs() < 1e-9);
+    }
+
+    #[test]
+    fn exposure_and_time_keywords_of_other_instruments() {
+        // FITS 4.0's XPOSURE (EUI, EIT level 1) before the older EXPTIME.
+        let h = header(&[("XPOSURE", f(6.0)), ("EXPTIME", f(5.0))]);
+        assert_eq!(exptime_s(&h), Some(6.0));
+        // Nançay: a date-only DATE-OBS, the full time in DATE_OBS.
+        let nrh = header(&[
+            ("DATE-OBS", s("2012-07-01")),
+            ("DATE_OBS", s("2012-07-01T09:10:58.200Z")),
+        ]);
+        assert_eq!(
+            obs_time_ns(&nrh).map(time::format_iso_utc).as_deref(),
+            Some("2012-07-01T09:10:58.200Z")
+        );
+        // A date alone is still midnight when nothing better is given.
+        let date = header(&[("DATE-OBS", s("2012-07-01"))]);
+        assert_eq!(
+            obs_time_ns(&date).map(time::format_iso_utc).as_deref(),
+            Some("2012-07-01T00:00:00.000Z")
+        );
+    }
+
+    #[test]
+    fn channels_of_multi_telescope_instruments() {
+        let name = |cards: &[(&str, HeaderValue)]| {
+            let h = header(cards);
+            let i = instrument(&h);
+            channel(&h, i.as_deref(), wavelength(&h))
+        };
+        let euvi = name(&[
+            ("INSTRUME", s("SECCHI")),
+            ("DETECTOR", s("EUVI")),
+            ("OBSRVTRY", s("STEREO_A")),
+            ("WAVELNTH", HeaderValue::Int(171)),
+        ]);
+        assert_eq!(euvi, "SECCHI-EUVI-A_171");
+        let cor1 = name(&[
+            ("INSTRUME", s("SECCHI")),
+            ("DETECTOR", s("COR1")),
+            ("OBSRVTRY", s("STEREO_B")),
+            ("WAVELNTH", HeaderValue::Int(0)),
+        ]);
+        assert_eq!(cor1, "SECCHI-COR1-B");
+        let c2 = name(&[("INSTRUME", s("LASCO")), ("DETECTOR", s("C2"))]);
+        assert_eq!(c2, "LASCO-C2");
+        let fsi = name(&[
+            ("INSTRUME", s("EUI")),
+            ("DETECTOR", s("FSI")),
+            ("WAVELNTH", HeaderValue::Int(304)),
+        ]);
+        assert_eq!(fsi, "EUI-FSI_304");
+        let aia = name(&[
+            ("INSTRUME", s("AIA_3")),
+            ("DETECTOR", s("AIA")),
+            ("WAVELNTH", HeaderValue::Int(171)),
+        ]);
+        assert_eq!(aia, "AIA_171");
+        let eit_l1 = name(&[
+            ("TELESCOP", s("Extreme-ultraviolet Imaging Telescope (EIT)")),
+            ("WAVELNTH", HeaderValue::Int(171)),
+        ]);
+        assert_eq!(eit_l1, "EIT_171");
     }
 
     #[test]

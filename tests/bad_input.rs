@@ -224,6 +224,62 @@ fn missing_file_and_directory() {
 }
 
 #[test]
+fn heliographic_map_is_a_bad_header() {
+    // A Carrington synoptic map (CTYPE CRLN-CEA, as HMI and GONG write them): degrees on the
+    // Sun, not an image of the sky (WCS Paper IV, Thompson 2006).
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                    8",
+        "NAXIS   =                    2",
+        "NAXIS1  =                    4",
+        "NAXIS2  =                    4",
+        "CTYPE1  = 'CRLN-CEA'",
+        "CTYPE2  = 'CRLT-CEA'",
+        "CRPIX1  =                  2.5",
+        "CRPIX2  =                  2.5",
+        "CDELT1  =                  1.0",
+        "CDELT2  =                  0.1",
+    ];
+    expect_bad(
+        &temp_file(&dir, "synoptic.fits", &fits_bytes(&cards, &[7u8; 16])),
+        "CTYPE1 = 'CRLN-CEA' is a heliographic",
+    );
+}
+
+#[test]
+fn compressed_files_are_named_as_such() {
+    // Magic numbers: gzip 1f 8b (RFC 1952), bzip2 "BZh", zstd 28 b5 2f fd (RFC 8878).
+    let dir = tempfile::tempdir().unwrap();
+    for (name, magic, kind) in [
+        (
+            "a.fits.gz",
+            &[0x1f, 0x8b, 0x08, 0x00][..],
+            "gzip-compressed",
+        ),
+        ("a.fits.bz2", &b"BZh91AY&SY"[..], "bzip2-compressed"),
+        (
+            "a.fits.zst",
+            &[0x28, 0xb5, 0x2f, 0xfd, 0x00][..],
+            "zstd-compressed",
+        ),
+    ] {
+        let mut bytes = magic.to_vec();
+        bytes.resize(4000, 0);
+        expect_bad(&temp_file(&dir, name, &bytes), kind);
+    }
+}
+
+#[test]
+fn a_suffix_that_is_not_a_frame_index_is_explained() {
+    let file = PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits");
+    for suffix in ["[-1]", "[abc]"] {
+        let arg = format!("{}{suffix}", file.display());
+        expect_bad_arg(OsStr::new(&arg), &arg, "is not a frame index");
+    }
+}
+
+#[test]
 fn frame_out_of_range() {
     let file = PathBuf::from(REAL).join("iris_l2_20140329_140938_3860258481_SJI_2832_t000.fits");
     let arg = format!("{}[18]", file.display());
