@@ -95,6 +95,18 @@ fn split_frame_suffix(arg: &str) -> Option<(&str, usize)> {
 
 /// Read one image (or one frame of a cube) as f32, with its metadata.
 pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
+    let plain = PlainFile::of(&spec.path)?;
+    let mut image = plain.read(|path| {
+        read_plain_frame(&FrameSpec {
+            path: path.to_path_buf(),
+            frame: spec.frame,
+        })
+    })?;
+    image.meta.file = spec.path.clone();
+    Ok(image)
+}
+
+fn read_plain_frame(spec: &FrameSpec) -> Result<Image> {
     let path = spec.path.as_path();
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
@@ -112,6 +124,13 @@ pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
 
 /// Metadata of every image (every frame of a cube) in a file.
 pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
+    let plain = PlainFile::of(path)?;
+    let mut metas = plain.read(read_plain_meta)?;
+    metas.iter_mut().for_each(|m| m.file = path.to_path_buf());
+    Ok(metas)
+}
+
+fn read_plain_meta(path: &Path) -> Result<Vec<FrameMeta>> {
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
@@ -135,6 +154,10 @@ pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
 /// The header of the HDU holding the image (with primary cards merged in when `INHERIT = T`),
 /// and that HDU's index. For tools that copy a file's header (e.g. splitting a cube).
 pub fn read_image_header(path: &Path) -> Result<(usize, Header)> {
+    PlainFile::of(path)?.read(read_plain_image_header)
+}
+
+fn read_plain_image_header(path: &Path) -> Result<(usize, Header)> {
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     Ok((hdu.index, layout.merged_header(hdu)))
@@ -308,6 +331,104 @@ fn scan(path: &Path) -> Result<Layout> {
         offset = data_offset + data_len.div_ceil(BLOCK as u64) * BLOCK as u64;
     }
     Ok(Layout { hdus })
+}
+
+/// Largest image a gzip-compressed file may expand to: beyond it, a decompression bomb or not
+/// an observation (a 4096² × 64-frame f64 cube is 8 GiB).
+const MAX_GUNZIPPED_BYTES: u64 = 16 << 30;
+
+/// A file as the readers see it: the file itself, or for a gzip-compressed one (`.fits.gz`,
+/// as archives ship them) a private decompressed copy in the temporary directory, removed
+/// when this is dropped. Errors about the copy name the original file.
+struct PlainFile {
+    original: PathBuf,
+    copy: Option<PathBuf>,
+}
+
+impl PlainFile {
+    fn of(path: &Path) -> Result<PlainFile> {
+        let mut magic = [0u8; 2];
+        let gzip = File::open(path)
+            .and_then(|mut f| f.read_exact(&mut magic))
+            .is_ok()
+            && magic == [0x1f, 0x8b];
+        if !gzip {
+            return Ok(PlainFile {
+                original: path.to_path_buf(),
+                copy: None,
+            });
+        }
+        static COPIES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = COPIES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // Named after the original, so that warnings about the copy are recognisable.
+        let name = path
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into());
+        let copy = std::env::temp_dir().join(format!(
+            "sunjitter-{}-{n}-{}",
+            std::process::id(),
+            name.strip_suffix(".gz").unwrap_or(&name)
+        ));
+        let plain = PlainFile {
+            original: path.to_path_buf(),
+            copy: Some(copy.clone()),
+        };
+        let source = open(path)?;
+        let mut decoder = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(source))
+            .take(MAX_GUNZIPPED_BYTES + 1);
+        let unwritable = |e: std::io::Error| {
+            Error::bad_input(
+                path,
+                format!(
+                    "gzip-compressed; cannot write its decompressed copy {}: {e}",
+                    copy.display()
+                ),
+            )
+        };
+        let mut out = std::io::BufWriter::new(File::create(&copy).map_err(unwritable)?);
+        let written = std::io::copy(&mut decoder, &mut out).map_err(|e| {
+            Error::bad_input(
+                path,
+                format!("gzip-compressed, and cannot be decompressed: {e}"),
+            )
+        })?;
+        std::io::Write::flush(&mut out).map_err(unwritable)?;
+        if written > MAX_GUNZIPPED_BYTES {
+            return Err(Error::bad_input(
+                path,
+                format!(
+                    "gzip-compressed, and expands to more than {} GiB",
+                    MAX_GUNZIPPED_BYTES >> 30
+                ),
+            ));
+        }
+        Ok(plain)
+    }
+
+    /// Run a reader on the plain file, naming the original in its errors.
+    fn read<T>(&self, reader: impl FnOnce(&Path) -> Result<T>) -> Result<T> {
+        let Some(copy) = &self.copy else {
+            return reader(&self.original);
+        };
+        reader(copy).map_err(|e| match e {
+            Error::BadInput { path, reason } if &path == copy => {
+                Error::bad_input(&self.original, reason)
+            }
+            Error::BadHeader { path, reason } if &path == copy => {
+                Error::bad_header(&self.original, reason)
+            }
+            Error::Io { path, source } if &path == copy => Error::io(&self.original, source),
+            other => other,
+        })
+    }
+}
+
+impl Drop for PlainFile {
+    fn drop(&mut self) {
+        if let Some(copy) = &self.copy {
+            let _ = std::fs::remove_file(copy);
+        }
+    }
 }
 
 fn open(path: &Path) -> Result<File> {

@@ -93,8 +93,9 @@ pub fn summarise(outcomes: &[TrialOutcome]) -> MonteCarloSummary {
         .iter()
         .filter(|o| o.estimate.is_some() && o.sigma.is_some())
         .collect();
+    // With no aligned trial every figure is 0/0: NaN, `null` in JSON, never a perfect 0.
     let param = |k: usize| -> ParameterSummary {
-        let n = ok.len().max(1) as f64;
+        let n = ok.len() as f64;
         let mut s = ParameterSummary {
             rmse: 0.0,
             bias: 0.0,
@@ -256,6 +257,20 @@ mod tests {
         assert!((s.dx_px.uabjm_within_1sigma - 0.0).abs() < 1e-12);
         assert!(s.dx_px.bias.abs() < 1e-12);
         assert!((s.cc_rmse_px.unwrap()[0] - 2.0 * expected_rmse).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_run_without_aligned_trials_reports_no_figures() {
+        let failed = TrialOutcome {
+            truth: [1.0, 0.0, 0.0, 0.0],
+            estimate: None,
+            sigma: None,
+            uabjm_sigma: None,
+            cc: None,
+        };
+        let s = summarise(&[failed, failed]);
+        assert_eq!(s.succeeded, 0);
+        assert!(s.dx_px.rmse.is_nan() && s.scale.within_1sigma.is_nan());
     }
 
     #[test]

@@ -467,6 +467,56 @@ fn paths_with_spaces_and_brackets() {
 }
 
 #[test]
+fn gzip_compressed_files_are_read_as_the_files_they_hold() {
+    // `.fits.gz` as archives ship them (RFC 1952; the daemon's default extensions take them):
+    // the same sunpy truths as the plain file, under the compressed file's name, and frames of
+    // a compressed cube by suffix.
+    let dir = tempfile::tempdir().unwrap();
+    let gzip = |name: &str| {
+        let path = dir.path().join(format!("{name}.gz"));
+        let mut encoder = flate2::write::GzEncoder::new(
+            std::fs::File::create(&path).unwrap(),
+            flate2::Compression::default(),
+        );
+        std::io::copy(&mut std::fs::File::open(real(name)).unwrap(), &mut encoder).unwrap();
+        encoder.finish().unwrap();
+        path
+    };
+    let aia = gzip(AIA);
+    let cube = gzip(SJI_2832);
+    let frame_arg = PathBuf::from(format!("{}[5]", cube.display()));
+    let (records, out) = info_json(&[aia, frame_arg]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    check(
+        &records[0],
+        &Truth {
+            file: "aia_171_20110215T000000_128.fits.gz",
+            ..TRUTH[0]
+        },
+    );
+    assert_eq!(records[1]["frame"], 5);
+    assert_eq!(records[1]["channel"], "SJI_2832");
+    // A truncated stream is bad input naming the file.
+    let truncated = dir.path().join("truncated.fits.gz");
+    let bytes = std::fs::read(gzip(EIT_195)).unwrap();
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let (_, out) = info_json(std::slice::from_ref(&truncated));
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.starts_with(&format!(
+            "sunjitter: {}: gzip-compressed",
+            truncated.display()
+        )),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn human_table_lists_each_image() {
     let out = sunjitter(&[
         "info".as_ref(),

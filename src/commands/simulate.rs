@@ -237,7 +237,10 @@ fn print_table(r: &Report) {
         ("UABJM within 1σ", |p| p.uabjm_within_1sigma),
         ("UABJM within 3σ", |p| p.uabjm_within_3sigma),
     ];
-    for (name, f) in rows {
+    if s.succeeded == 0 {
+        println!("no trial aligned, so there is nothing to summarise (the warnings say why)");
+    }
+    for (name, f) in rows.into_iter().filter(|_| s.succeeded > 0) {
         println!(
             "{:<26}{:>14.3e}{:>14.4}{:>14.5}{:>14.5}",
             name,

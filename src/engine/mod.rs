@@ -162,6 +162,9 @@ struct FineResult {
     crop: Crop,
     passes: usize,
     converged: bool,
+    /// The last pass's motion (px at the mask's radius) when the passes ran out before it
+    /// became negligible and it exceeded the answer's σ: the estimate was still moving.
+    unsettled_px: Option<f64>,
     /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
     /// level.
     seed_level: Option<usize>,
@@ -453,6 +456,7 @@ fn align_inner(
         full_stage()?
     };
     let mut refine_note = None;
+    let mut methods_disagree = false;
     if refining {
         let slack = fine.seed_level.map_or(0.0, seed_slack_px);
         let prepared = matched
@@ -476,12 +480,25 @@ fn align_inner(
             },
             cfg,
         ) {
-            Ok(note) => refine_note = Some(note),
-            Err(note) => {
+            Ok(note) => {
+                refine_note = Some(note);
+                fine.unsettled_px = None;
+            }
+            Err(rejected) => {
                 if fine.seed_level.is_some() {
                     fine = full_stage()?;
                 }
-                refine_note = Some(note);
+                refine_note = Some(rejected.note);
+                // Two measurements of one motion that disagree beyond their σ: the flow's
+                // answer stays, and its σ grow to cover the refinement's (LASCO C3 with noise:
+                // the flow 8σ off, the rejected refinement right).
+                if let Some(refined) = rejected.disagreeing {
+                    let (a, b) = (fine.transform.params(), refined.params());
+                    for k in 0..4 {
+                        fine.covariance[k][k] += (a[k] - b[k]).powi(2);
+                    }
+                    methods_disagree = true;
+                }
             }
         }
     }
@@ -545,6 +562,19 @@ fn align_inner(
             status = Status::Degraded;
             reasons.push(format!("low histogram similarity {s:.3}"));
         }
+    }
+    if let Some(moved) = fine.unsettled_px {
+        status = Status::Degraded;
+        reasons.push(format!(
+            "the fine alignment was still moving ({moved:.3} px in its last pass); σ include \
+             that step"
+        ));
+    }
+    if methods_disagree {
+        status = Status::Degraded;
+        reasons.push(
+            "the flow and the intensity refinement disagree; σ include their difference".into(),
+        );
     }
     if inlier_fraction < cfg.min_inlier_fraction {
         status = Status::Degraded;
@@ -804,7 +834,20 @@ fn fine_alignment(
             }
             spare_solver(solver.take());
             let zero = [[0.0; 4]; 4];
-            let (_, cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
+            let (_, mut cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
+            // Still moving when the passes ran out: the last step is a measure of how far
+            // from settled the answer is (HMI 100² with a zero-filled sky wandered by pixels).
+            let sigma_xy = sigmas(&cov)[2].hypot(sigmas(&cov)[3]);
+            let unsettled_px = (!converged && moved > sigma_xy).then_some(moved);
+            if !converged {
+                let step = update.params();
+                for (k, d) in [step[0] - 1.0, step[1], step[2], step[3]]
+                    .iter()
+                    .enumerate()
+                {
+                    cov[k][k] += d * d;
+                }
+            }
             let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
             let sample_box = crate::sampling::mask_bounding_box(sample_mask.view())
                 .map(|(a, b, c, d)| (a + x0, b + y0, c + x0, d + y0));
@@ -818,6 +861,7 @@ fn fine_alignment(
                 crop,
                 passes: pass,
                 converged,
+                unsettled_px,
                 seed_level: None,
                 sample_box,
                 inliers,

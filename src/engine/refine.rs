@@ -875,9 +875,11 @@ pub fn apply(
     flow_slack_px: f64,
     self_test: impl FnOnce(&RefineSettings) -> Option<[f64; 4]>,
     cfg: &super::EngineConfig,
-) -> Result<String, String> {
+) -> Result<String, Rejected> {
     let Some(sample_box) = sample_box else {
-        return Err("intensity refinement skipped: empty sampling mask".into());
+        return Err(Rejected::skipped(
+            "intensity refinement skipped: empty sampling mask",
+        ));
     };
     let grid = CellGrid::over_box(sample_box, cfg.sample);
     let settings = settings(cfg, frame_smoothing_px);
@@ -893,16 +895,24 @@ pub fn apply(
     );
     drop(region);
     let Some(bbox) = pixel_box(&pixels) else {
-        return Err("intensity refinement skipped: no pixels in the inlier cells".into());
+        return Err(Rejected::skipped(
+            "intensity refinement skipped: no pixels in the inlier cells",
+        ));
     };
     let started = std::time::Instant::now();
     let Some(window) = FrameWindow::new(frame, bbox, transform, frame_sigma) else {
-        return Err("intensity refinement skipped: the pixels map outside the frame".into());
+        return Err(Rejected::skipped(
+            "intensity refinement skipped: the pixels map outside the frame",
+        ));
     };
     let window_at = started.elapsed();
     let refined = match refine(prepared, &window, &pixels, &grid, *transform, &settings) {
         Ok(r) => r,
-        Err(e) => return Err(format!("intensity refinement skipped: {e}")),
+        Err(e) => {
+            return Err(Rejected::skipped(format!(
+                "intensity refinement skipped: {e}"
+            )))
+        }
     };
     tracing::debug!(
         flow = ?transform.params(),
@@ -962,15 +972,16 @@ pub fn apply(
         .map(|k| (a[k] - b[k]).abs() / sa[k].hypot(sb[k]).max(f64::MIN_POSITIVE))
         .fold(0.0, f64::max);
     if worst.is_nan() || worst > MAX_DISAGREEMENT_SIGMA {
-        return Err(format!(
-            "intensity refinement rejected: {worst:.1}σ from the flow's answer"
-        ));
+        return Err(Rejected {
+            note: format!("intensity refinement rejected: {worst:.1}σ from the flow's answer"),
+            disagreeing: (!worst.is_nan() && refined.converged).then_some(refined.transform),
+        });
     }
     if !refined.converged {
-        return Err(format!(
+        return Err(Rejected::skipped(format!(
             "intensity refinement rejected: not converged in {} iterations",
             refined.iterations
-        ));
+        )));
     }
     *transform = refined.transform;
     *covariance = cov;
@@ -1188,6 +1199,24 @@ fn pixel_box(pixels: &[(usize, usize, usize)]) -> Option<(usize, usize, usize, u
                 (x0.min(x), y0.min(y), x1.max(x), y1.max(y))
             }),
     )
+}
+
+/// Why the refinement's answer was not taken.
+#[derive(Debug, Clone)]
+pub struct Rejected {
+    pub note: String,
+    /// The refinement's converged answer when it disagreed with the flow's beyond their σ:
+    /// one of the two is wrong, and which one the data alone cannot say.
+    pub disagreeing: Option<Similarity>,
+}
+
+impl Rejected {
+    fn skipped(note: impl Into<String>) -> Rejected {
+        Rejected {
+            note: note.into(),
+            disagreeing: None,
+        }
+    }
 }
 
 /// Most pixels one refinement uses. Its precision grows as √pixels while its cost and memory
