@@ -306,10 +306,14 @@ fn from_cd(cd: [[f64; 2]; 2], unit: [f64; 2]) -> Result<LinearPart, String> {
 
 /// From `CDELTi` with `PCi_j`, else `CROTA2`, else `SC_ROLL`, else no roll.
 fn from_cdelt_and_rotation(h: &Header, unit: [f64; 2]) -> Result<LinearPart, String> {
-    let cdelt = [
-        h.f64("CDELT1").ok_or("CDELT1 is missing: no plate scale")? * unit[0],
-        h.f64("CDELT2").ok_or("CDELT2 is missing: no plate scale")? * unit[1],
-    ];
+    let cdelt = match (h.f64("CDELT1"), h.f64("CDELT2")) {
+        (Some(x), Some(y)) => [x * unit[0], y * unit[1]],
+        _ => match limb_plate_scale(h) {
+            Some(scale) => scale,
+            None if h.contains("CDELT1") => return Err("CDELT2 is missing: no plate scale".into()),
+            None => return Err("CDELT1 is missing: no plate scale".into()),
+        },
+    };
     if cdelt[0] == 0.0 || cdelt[1] == 0.0 {
         return Err("CDELT1/CDELT2 is zero".into());
     }
@@ -339,6 +343,21 @@ fn from_cdelt_and_rotation(h: &Header, unit: [f64; 2]) -> Result<LinearPart, Str
     // CROTA2 → M (Calabretta & Greisen 2002, eq. 189 with CDELT applied).
     let m = [[cdelt[0] * c, -cdelt[1] * s], [cdelt[0] * s, cdelt[1] * c]];
     Ok((cdelt, m, roll))
+}
+
+/// Plate scale (arcsec/px) from the solar semi-diameter and the limb fit's radii, for headers
+/// that give no `CDELT` (GONG: `SOLAR-R` in arcsec or `SEMIDIAM` in radians, over the fitted
+/// limb's minor and major axes `FNDLMBMI`/`FNDLMBMA` in pixels, as sunpy reads them).
+fn limb_plate_scale(h: &Header) -> Option<[f64; 2]> {
+    let semi_diameter = h
+        .f64("SOLAR-R")
+        .or_else(|| h.f64("SEMIDIAM").map(|r| r.to_degrees() * 3600.0))
+        .filter(|r| *r > 0.0)?;
+    let radius = |k: &str| h.f64(k).filter(|r| *r > 0.0);
+    Some([
+        semi_diameter / radius("FNDLMBMI")?,
+        semi_diameter / radius("FNDLMBMA")?,
+    ])
 }
 
 /// `PCi_j` (or the older `PC00i00j`) if any element is present; missing ones default to identity.
@@ -462,10 +481,11 @@ pub fn exptime_s(h: &Header) -> Option<f64> {
 }
 
 /// Apparent solar radius in arcsec: `RSUN_OBS`, `RSUN_ARC` (PROBA2, PUNCH) or `RSUN` (STEREO,
-/// LASCO, K-Cor), all in arcsec; else `SOLAR_R`, in pixels in EIT files (×|CDELT1|) but in
-/// arcsec in Yohkoh's, told apart by its comment or, without one, by which reading gives a
-/// radius the Sun can have; else `asin(RSUN_REF / DSUN_OBS)` (the sphere's apparent radius,
-/// as sunpy computes it); else unknown.
+/// LASCO, K-Cor), all in arcsec; else `SOLAR_R` (GONG: `SOLAR-R`), in pixels in EIT files
+/// (×|CDELT1|) but in arcsec in Yohkoh's and GONG's, told apart by its comment or, without
+/// one, by which reading gives a radius the Sun can have; else GONG's `SEMIDIAM` (radians);
+/// else `asin(RSUN_REF / DSUN_OBS)` (the sphere's apparent radius, as sunpy computes it); else
+/// unknown.
 pub fn rsun_arcsec(h: &Header, cdelt1_arcsec: f64) -> Option<f64> {
     if let Some(r) = ["RSUN_OBS", "RSUN_ARC", "RSUN"]
         .iter()
@@ -473,8 +493,12 @@ pub fn rsun_arcsec(h: &Header, cdelt1_arcsec: f64) -> Option<f64> {
     {
         return Some(r);
     }
-    if let Some(r) = h.f64("SOLAR_R").filter(|r| *r > 0.0) {
-        let comment = h.comment("SOLAR_R").unwrap_or("").to_ascii_lowercase();
+    // GONG writes `SOLAR-R` ("[arcsec] solar semi-diameter").
+    let solar_r = ["SOLAR_R", "SOLAR-R"]
+        .into_iter()
+        .find_map(|k| h.f64(k).filter(|r| *r > 0.0).map(|r| (k, r)));
+    if let Some((key, r)) = solar_r {
+        let comment = h.comment(key).unwrap_or("").to_ascii_lowercase();
         let in_pixels = r * cdelt1_arcsec.abs();
         return Some(if comment.contains("arcsec") {
             r
@@ -485,6 +509,10 @@ pub fn rsun_arcsec(h: &Header, cdelt1_arcsec: f64) -> Option<f64> {
         } else {
             in_pixels
         });
+    }
+    // GONG magnetograms: the semi-diameter in radians.
+    if let Some(r) = h.f64("SEMIDIAM").filter(|r| *r > 0.0 && *r < 0.1) {
+        return Some(r.to_degrees() * 3600.0);
     }
     let (rsun_m, dsun_m) = (h.f64("RSUN_REF")?, h.f64("DSUN_OBS")?);
     (rsun_m > 0.0 && dsun_m > rsun_m).then(|| (rsun_m / dsun_m).asin().to_degrees() * 3600.0)
@@ -813,6 +841,34 @@ mod tests {
             Some(372.27 * 2.63)
         );
         assert_eq!(rsun_arcsec(&header(&[("DSUN_OBS", f(1.5e11))]), 1.0), None);
+    }
+
+    #[test]
+    fn gong_halpha_plate_scale_from_the_limb_fit() {
+        // sunpy's test header gong_halpha.header (no CDELT): sunpy's GONGHalphaMap gives scale
+        // 1.07949397″/px (SOLAR-R / FNDLMBMI), sun centre (1023, 1023), rsun 971.544571″.
+        let mut h = header(&[
+            ("CTYPE1", s("GONGX")),
+            ("CTYPE2", s("GONGY")),
+            ("CRVAL1", f(0.0)),
+            ("CRVAL2", f(0.0)),
+            ("CRPIX1", f(1024.0)),
+            ("CRPIX2", f(1024.0)),
+            ("FNDLMBMI", f(900.0)),
+            ("FNDLMBMA", f(900.0)),
+        ]);
+        h.push_with_comment(
+            "SOLAR-R",
+            f(971.544571353755),
+            "[arcsec] solar semi-diameter",
+        );
+        let wcs = CelestialWcs::from_header(&h).unwrap();
+        for v in wcs.plate_scale_arcsec() {
+            assert!((v - 1.07949397).abs() < 1e-8, "{v}");
+        }
+        let c = wcs.sun_center_px().unwrap();
+        assert!((c[0] - 1023.0).abs() < 1e-9 && (c[1] - 1023.0).abs() < 1e-9);
+        assert_eq!(rsun_arcsec(&h, wcs.cdelt_arcsec[0]), Some(971.544571353755));
     }
 
     #[test]
