@@ -168,20 +168,28 @@ fn sizes_that_overflow_are_refused() {
     );
 }
 
-#[test]
-fn header_without_wcs_is_a_bad_header() {
-    let dir = tempfile::tempdir().unwrap();
-    let cards = [
+/// A 4×4 8-bit image (16 data bytes) with `wcs` cards after the structural ones.
+fn byte_image_4x4(wcs: &[&'static str]) -> Vec<u8> {
+    let mut cards = vec![
         "SIMPLE  =                    T",
         "BITPIX  =                    8",
         "NAXIS   =                    2",
         "NAXIS1  =                    4",
         "NAXIS2  =                    4",
+    ];
+    cards.extend_from_slice(wcs);
+    fits_bytes(&cards, &[7u8; 16])
+}
+
+#[test]
+fn header_without_wcs_is_a_bad_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
         "CRPIX1  =                  2.5",
         "CRPIX2  =                  2.5",
     ];
     expect_bad(
-        &temp_file(&dir, "nowcs.fits", &fits_bytes(&cards, &[7u8; 16])),
+        &temp_file(&dir, "nowcs.fits", &byte_image_4x4(&cards)),
         "header: CDELT1 is missing",
     );
 }
@@ -229,11 +237,6 @@ fn heliographic_map_is_a_bad_header() {
     // Sun, not an image of the sky (WCS Paper IV, Thompson 2006).
     let dir = tempfile::tempdir().unwrap();
     let cards = [
-        "SIMPLE  =                    T",
-        "BITPIX  =                    8",
-        "NAXIS   =                    2",
-        "NAXIS1  =                    4",
-        "NAXIS2  =                    4",
         "CTYPE1  = 'CRLN-CEA'",
         "CTYPE2  = 'CRLT-CEA'",
         "CRPIX1  =                  2.5",
@@ -242,7 +245,7 @@ fn heliographic_map_is_a_bad_header() {
         "CDELT2  =                  0.1",
     ];
     expect_bad(
-        &temp_file(&dir, "synoptic.fits", &fits_bytes(&cards, &[7u8; 16])),
+        &temp_file(&dir, "synoptic.fits", &byte_image_4x4(&cards)),
         "CTYPE1 = 'CRLN-CEA' is a heliographic",
     );
 }
