@@ -4,7 +4,7 @@
 use crate::engine::{self, Image};
 use crate::fits::{self, FrameSpec};
 use crate::geometry::Similarity;
-use crate::resample::SplineImage;
+use crate::resample::{HighOrder, HighOrderSpline};
 use crate::simulate::{
     contract_units, draw_truths, summarise, MonteCarloSummary, TrialOutcome, TrialRanges,
 };
@@ -71,7 +71,10 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
-    let spline = SplineImage::new(reference.data.view());
+    // Frames are made with a septic spline, not the engine's cubic one: with the same
+    // interpolator on both sides its errors cancel, and the Monte Carlo would not see what a
+    // real frame (a new sampling of the sky) shows the engine.
+    let spline = HighOrderSpline::new(reference.data.view(), HighOrder::Septic);
     let background_sigma = crate::simulate::background_noise(reference.data.view());
     let noise_sigma = match (args.noise, background_sigma) {
         (None, _) => None,

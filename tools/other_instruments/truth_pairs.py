@@ -5,7 +5,7 @@ usage: truth_pairs.py IMAGE.fits N SEED NOISE_K OUT.jsonl [--keep DIR]
 
 frame(p) = ref(T^-1(p)),  T(p) = s R(th) (p - c) + c + (dx, dy),
 c = ((W-1)/2, (H-1)/2), R counter-clockwise in (x = column right, y = row up).
-scipy.ndimage.map_coordinates order=5 with prefilter. Even trials mode='nearest',
+scipy.ndimage.map_coordinates order=5 (env WARP_ORDER: another order) with prefilter. Even trials mode='nearest',
 odd trials NaN outside the reference's support. NaN pixels of the input are filled
 (nearest valid) before the spline and re-masked after.
 NOISE_K > 0: independent Gaussian noise of K x background sigma added to BOTH images.
