@@ -185,17 +185,7 @@ impl SplineImage {
         out_width: usize,
         out_height: usize,
     ) -> Array2<f32> {
-        let (a, b) = t.ab();
-        let [cx, cy] = t.center;
-        let map = RowMap {
-            a,
-            b,
-            cx,
-            cy,
-            ox: cx + t.dx,
-            oy: cy + t.dy,
-            x0: x0 as f64,
-        };
+        let map = RowMap::new(t, x0);
         let mut out = Array2::<f32>::zeros((out_height, out_width));
         out.axis_iter_mut(Axis(0))
             .into_par_iter()
@@ -290,6 +280,20 @@ struct RowMap {
 }
 
 impl RowMap {
+    fn new(t: &Similarity, x0: usize) -> Self {
+        let (a, b) = t.ab();
+        let [cx, cy] = t.center;
+        RowMap {
+            a,
+            b,
+            cx,
+            cy,
+            ox: cx + t.dx,
+            oy: cy + t.dy,
+            x0: x0 as f64,
+        }
+    }
+
     /// Same arithmetic as `similarity_map` at `(x + x0, y)`, so results are bitwise equal.
     #[inline(always)]
     fn at(&self, x: usize, y: f64) -> (f64, f64) {
@@ -482,17 +486,7 @@ impl HighOrderSpline {
         out_width: usize,
         out_height: usize,
     ) -> Array2<f32> {
-        let (a, b) = t.ab();
-        let [cx, cy] = t.center;
-        let map = RowMap {
-            a,
-            b,
-            cx,
-            cy,
-            ox: cx + t.dx,
-            oy: cy + t.dy,
-            x0: x0 as f64,
-        };
+        let map = RowMap::new(t, x0);
         let mut out = Array2::<f32>::zeros((out_height, out_width));
         out.axis_iter_mut(Axis(0))
             .into_par_iter()

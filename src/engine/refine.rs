@@ -1122,7 +1122,7 @@ fn central_pixels(
 /// nearly the same across the field (a shift with little rotation or scale change: pointing
 /// jitter), it does not average out. A real frame is a new sampling of the sky, and a cubic
 /// spline moves near-Nyquist structure differently: on TRACE 1024², a band-limited (Fourier)
-/// shift of 0.25 px came back 5.4e-4 px off, 7× the σ without this term; the quintic frame's
+/// shift of 0.25 px came back 5.4e-4 px off, 20× the σ without this term; the quintic frame's
 /// error there is 4.3e-4. The shift is reduced to its fractional part (same sub-pixel
 /// positions), so that the synthetic frame stays inside the reference. `None` when the check
 /// cannot run.
