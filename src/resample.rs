@@ -321,25 +321,23 @@ fn bspline5_weights(t: f64) -> [f64; 6] {
     [first, b0 + b1, a0 + a1, a0 - a1, b0 - b1, last]
 }
 
-/// Centred B-spline of odd degree `n` at `x` (de Boor's explicit sum of truncated powers).
-fn bspline(n: usize, x: f64) -> f64 {
-    let half = (n + 1) as f64 / 2.0;
-    if x.abs() >= half {
-        return 0.0;
-    }
-    let (mut acc, mut binomial, mut factorial) = (0.0, 1.0, 1.0);
-    for k in 0..=n + 1 {
-        let u = x + half - k as f64;
-        if u > 0.0 {
-            let term = binomial * u.powi(n as i32);
-            acc += if k % 2 == 0 { term } else { -term };
+/// Weights of the `n + 1` samples at offsets `−(n−1)/2 ..= (n+1)/2` from `floor(x)` for the
+/// fraction `t`, for odd degree `n ≤ 7`: the cardinal B-spline recurrence
+/// `M_d(x) = (x·M_{d−1}(x) + (d+1−x)·M_{d−1}(x−1)) / d` at `x = t + k`, no powers.
+fn bspline_weights(n: usize, t: f64) -> [f64; 8] {
+    // v[k] = M_d(t + k), k = 0..=d.
+    let mut v = [0.0; 8];
+    v[0] = 1.0;
+    for d in 1..=n {
+        for k in (0..=d).rev() {
+            let x = t + k as f64;
+            let here = if k < d { v[k] } else { 0.0 };
+            let below = if k >= 1 { v[k - 1] } else { 0.0 };
+            v[k] = (x * here + (d as f64 + 1.0 - x) * below) / d as f64;
         }
-        binomial = binomial * (n + 1 - k) as f64 / (k + 1) as f64;
     }
-    for i in 2..=n {
-        factorial *= i as f64;
-    }
-    acc / factorial
+    // Tap i sits at centred argument t − (i − (n−1)/2), i.e. M_n at t + (n − i).
+    std::array::from_fn(|i| if i <= n { v[n - i] } else { 0.0 })
 }
 
 /// Odd spline degrees above the engine's cubic one.
@@ -435,18 +433,12 @@ impl HighOrderSpline {
         let reach = (n as isize - 1) / 2;
         let weights = |t: f64| -> [f64; 8] {
             match self.order {
-                // The explicit form: the generic sum costs ~40 powers per sample.
+                // The explicit form: fewer operations than the recurrence.
                 HighOrder::Quintic => {
                     let w = bspline5_weights(t);
                     [w[0], w[1], w[2], w[3], w[4], w[5], 0.0, 0.0]
                 }
-                HighOrder::Septic => std::array::from_fn(|i| {
-                    if i <= n {
-                        bspline(n, t - (i as isize - reach) as f64)
-                    } else {
-                        0.0
-                    }
-                }),
+                HighOrder::Septic => bspline_weights(n, t),
             }
         };
         let (wx, wy) = (weights(tx), weights(ty));
@@ -955,13 +947,44 @@ mod tests {
         assert!(sample(&q, -0.01, 2.0).is_nan());
     }
 
+    /// Centred B-spline of odd degree `n` at `x` (de Boor's explicit sum of truncated powers).
+    fn bspline(n: usize, x: f64) -> f64 {
+        let half = (n + 1) as f64 / 2.0;
+        if x.abs() >= half {
+            return 0.0;
+        }
+        let (mut acc, mut binomial, mut factorial) = (0.0, 1.0, 1.0);
+        for k in 0..=n + 1 {
+            let u = x + half - k as f64;
+            if u > 0.0 {
+                let term = binomial * u.powi(n as i32);
+                acc += if k % 2 == 0 { term } else { -term };
+            }
+            binomial = binomial * (n + 1 - k) as f64 / (k + 1) as f64;
+        }
+        for i in 2..=n {
+            factorial *= i as f64;
+        }
+        acc / factorial
+    }
+
     #[test]
-    fn explicit_quintic_weights_are_the_b_spline() {
+    fn quintic_and_septic_weights_are_the_b_spline() {
         for t in [0.0, 0.13, 0.5, 0.77, 0.999] {
-            let w = bspline5_weights(t);
-            for (i, wi) in w.iter().enumerate() {
-                let want = bspline(5, t - (i as f64 - 2.0));
-                assert!((wi - want).abs() < 1e-12, "t {t}, tap {i}: {wi} vs {want}");
+            let explicit = bspline5_weights(t);
+            for (n, w) in [
+                (5, [&explicit[..], &[0.0, 0.0]].concat()),
+                (5, bspline_weights(5, t).to_vec()),
+                (7, bspline_weights(7, t).to_vec()),
+            ] {
+                let reach = (n as f64 - 1.0) / 2.0;
+                for (i, wi) in w.iter().enumerate().take(n + 1) {
+                    let want = bspline(n, t - (i as f64 - reach));
+                    assert!(
+                        (wi - want).abs() < 1e-12,
+                        "n {n}, t {t}, tap {i}: {wi} vs {want}"
+                    );
+                }
             }
         }
     }
