@@ -7,6 +7,9 @@
 //!   Positions are float (no 1/32 px quantisation as in OpenCV's warps).
 //! - [`Interp::Keys`]: Keys (1981) cubic convolution, a = −0.5, on the raw samples.
 //! - [`Interp::Linear`]: bilinear, for quick looks.
+//! - [`HighOrderSpline`]: quintic, septic and degree-9 B-splines (same prefilter scheme and
+//!   boundaries; the quintic one matches scipy's `order=5`), with value and gradient. The
+//!   engine's flow warps and intensity refinement model the frame with the quintic one.
 //!
 //! Non-finite input pixels: the spline prefilter is recursive across whole rows and
 //! columns, so a single NaN would poison them. NaNs are filled first with a smooth
@@ -16,7 +19,7 @@
 //! Sample coordinates are f64: at 4096 px an f32 position resolves only 2.4e-4 px.
 
 use crate::geometry::Similarity;
-use ndarray::{Array2, ArrayView2, Axis, Zip};
+use ndarray::{Array2, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 /// Choice of interpolator.
@@ -467,10 +470,9 @@ impl HighOrder {
     }
 }
 
-/// An image prepared for quintic or septic B-spline sampling: interpolators other than the
-/// engine's cubic one and closer to band-limited, for making frames the way a different
-/// resampling (or the sky itself) would. The refinement's interpolation check and `simulate`'s
-/// frames use them.
+/// An image prepared for quintic, septic or degree-9 B-spline sampling: closer to band-limited
+/// than the cubic one. The refinement models the frame with the quintic spline (and the flow
+/// stage warps with it); `simulate` makes its frames with the degree-9 one.
 #[derive(Debug, Clone)]
 pub struct HighOrderSpline {
     order: HighOrder,
@@ -1006,44 +1008,39 @@ fn filter_columns_body(filter: Prefilter, block: &mut [[f64; COLUMN_BLOCK]]) {
 }
 
 /// Separable prefilter: blocks of rows in parallel, then blocks of columns in parallel, each
-/// block's lines interleaved in an f64 scratch (lanes past the image's edge stay zero).
+/// block's lines interleaved in an f64 scratch.
 fn prefilter(img: &mut Array2<f32>, filter: Prefilter) {
     let (h, w) = img.dim();
     if w >= 2 {
         img.axis_chunks_iter_mut(Axis(0), ROW_BLOCK)
             .into_par_iter()
-            .for_each(|mut block| {
-                let mut lanes = vec![[0.0f64; ROW_BLOCK]; w];
-                for (r, row) in block.axis_iter(Axis(0)).enumerate() {
-                    for (x, v) in row.iter().enumerate() {
-                        lanes[x][r] = *v as f64;
-                    }
-                }
-                filter_rows(filter, &mut lanes);
-                for (r, mut row) in block.axis_iter_mut(Axis(0)).enumerate() {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        *v = lanes[x][r] as f32;
-                    }
-                }
-            });
+            .for_each(|rows| filter_block(rows.reversed_axes(), filter, filter_rows));
     }
     if h >= 2 {
         img.axis_chunks_iter_mut(Axis(1), COLUMN_BLOCK)
             .into_par_iter()
-            .for_each(|mut block| {
-                let mut lanes = vec![[0.0f64; COLUMN_BLOCK]; h];
-                for (y, row) in block.axis_iter(Axis(0)).enumerate() {
-                    for (x, v) in row.iter().enumerate() {
-                        lanes[y][x] = *v as f64;
-                    }
-                }
-                filter_columns(filter, &mut lanes);
-                for (y, mut row) in block.axis_iter_mut(Axis(0)).enumerate() {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        *v = lanes[y][x] as f32;
-                    }
-                }
-            });
+            .for_each(|columns| filter_block(columns, filter, filter_columns));
+    }
+}
+
+/// Filter the lines of `block`, indexed `[position along the line, line]` (at most `L` lines;
+/// the scratch's spare lanes stay zero), through `run`.
+fn filter_block<const L: usize>(
+    mut block: ArrayViewMut2<f32>,
+    filter: Prefilter,
+    run: fn(Prefilter, &mut [[f64; L]]),
+) {
+    let mut lanes = vec![[0.0f64; L]; block.nrows()];
+    for (lane, line) in lanes.iter_mut().zip(block.rows()) {
+        for (slot, v) in lane.iter_mut().zip(line) {
+            *slot = *v as f64;
+        }
+    }
+    run(filter, &mut lanes);
+    for (lane, mut line) in lanes.iter().zip(block.rows_mut()) {
+        for (slot, v) in lane.iter().zip(line.iter_mut()) {
+            *v = *slot as f32;
+        }
     }
 }
 

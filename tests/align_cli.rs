@@ -559,10 +559,11 @@ fn a_noisy_coronagraph_pair_gets_no_confident_wrong_answer() {
 }
 
 /// A band-limited (Fourier) quarter-pixel shift of a real TRACE crop
-/// (`tests/data/trace_fourier_shift/README.md`): the frame is not the refinement's own cubic
-/// spline resampling, and the cubic spline moves near-Nyquist structure differently. The
-/// answer must stay within a hundredth of a pixel and its σ must cover the error (before the
-/// per-frame interpolation check: `ok`, dx 7.8σ off).
+/// (`tests/data/trace_fourier_shift/README.md`): the frame is not the refinement's own spline
+/// resampling, and a spline moves near-Nyquist structure differently. The σ must cover the
+/// error (before the per-frame interpolation check: `ok`, dx 7.8σ off), and the answer must be
+/// within 2e-4 px: the refinement's quintic model comes within 7.1e-5 px; the cubic model it
+/// replaced was 5.6e-4 px off.
 #[test]
 fn a_band_limited_subpixel_shift_is_covered_by_its_sigma() {
     let truth = [
@@ -578,6 +579,6 @@ fn a_band_limited_subpixel_shift_is_covered_by_its_sigma() {
     }
     for (key, value) in [("dx_px", 0.25), ("dy_px", 0.0)] {
         let error = (num(&doc, key) - value).abs();
-        assert!(error < 0.01, "{key} off by {error} px: {doc}");
+        assert!(error < 2e-4, "{key} off by {error} px: {doc}");
     }
 }

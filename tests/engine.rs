@@ -30,8 +30,11 @@ fn crop(img: &Image, size: usize) -> Image {
     Image { data, meta }
 }
 
-/// A frame in which reference content at p appears at `truth(p)` (float-coordinate cubic
-/// B-spline, as the paper's Monte Carlo with a quantisation-free warp).
+/// A frame in which reference content at p appears at `truth(p)`: the reference resampled by a
+/// float-coordinate cubic B-spline (scipy's default order; checked against scipy in
+/// `resample`), one order below the refinement's quintic model, so that the σ must cover the
+/// difference through the interpolation check (with a septic check frame instead, 5.5σ off in
+/// rotation here).
 fn transformed(reference: &Image, truth: &Similarity) -> Image {
     let (h, w) = reference.data.dim();
     let data = SplineImage::new(reference.data.view()).warp_similarity(&truth.inverse(), w, h);

@@ -71,10 +71,10 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
-    // Frames are made with a degree-9 spline, neither the engine's quintic model nor its
-    // interpolation check's septic frames: with the same interpolator on both sides its errors
-    // cancel, and the Monte Carlo would not see what a real frame (a new sampling of the sky)
-    // shows the engine.
+    // Frames are made with a degree-9 spline, the closest to band-limited here: neither the
+    // engine's quintic model nor its interpolation check's cubic frames. With the same
+    // interpolator on both sides its errors cancel, and the Monte Carlo would not see what a
+    // real frame (a new sampling of the sky) shows the engine.
     let spline = HighOrderSpline::new(reference.data.view(), HighOrder::Nonic);
     let background_sigma = crate::simulate::background_noise(reference.data.view());
     let noise_sigma = match (args.noise, background_sigma) {

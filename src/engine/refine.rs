@@ -953,9 +953,9 @@ pub fn apply(
     };
     let mut note = String::new();
     // What the agreement test below weighs: the σ with the floor but not the interpolation
-    // check. The check says how far a cubic model may be from a band-limited frame; taken as
-    // agreement, it let a refinement 9e-3 px off replace a flow 2e-3 px off (HMI continuum,
-    // 8-bit, Fourier-shifted).
+    // check. The check bounds how far the model may be from frames made otherwise; taken as
+    // agreement, it let a cubic model's refinement 9e-3 px off replace a flow 2e-3 px off (HMI
+    // continuum, 8-bit, Fourier-shifted).
     let mut agreement_cov = cov;
     if cfg.sigma == super::SigmaMethod::Calibrated {
         // The method's systematic floor for this reference, measured once per reference;
@@ -1133,17 +1133,17 @@ fn central_pixels(
         .collect()
 }
 
-/// The error this frame's own transform brings from the refinement's interpolator, per
+/// The error this frame's own transform may bring from the refinement's interpolator, per
 /// parameter, beyond the variance the check reported (quadratic excess): a frame made from the
-/// reference through `transform` with a quintic spline is refined from the exact answer on the
-/// same pixels. The error depends on the sub-pixel positions the pixels land on. When they are
-/// nearly the same across the field (a shift with little rotation or scale change: pointing
-/// jitter), it does not average out. A real frame is a new sampling of the sky, and a cubic
-/// spline moves near-Nyquist structure differently: on TRACE 1024², a band-limited (Fourier)
-/// shift of 0.25 px came back 5.4e-4 px off, 20× the σ without this term; the quintic frame's
-/// error there is 4.3e-4. The shift is reduced to its fractional part (same sub-pixel
-/// positions), so that the synthetic frame stays inside the reference. `None` when the check
-/// cannot run.
+/// reference through `transform` with a cubic spline (see [`FrameMaker::CubicSpline`]) is
+/// refined from the exact answer on the same pixels. The error depends on the sub-pixel
+/// positions the pixels land on. When they are nearly the same across the field (a shift with
+/// little rotation or scale change: pointing jitter), it does not average out. On TRACE 1024²,
+/// a band-limited (Fourier) shift of 0.25 px came back 7e-5 px off with the quintic model;
+/// this check says 4.2e-4 (a cubic-spline frame's error, which bounds it); without such a term
+/// the cubic model's σ had been 20× short of its 5.4e-4 px error. The shift is reduced to its
+/// fractional part (same sub-pixel positions), so that the synthetic frame stays inside the
+/// reference. `None` when the check cannot run.
 fn interpolation_check(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
