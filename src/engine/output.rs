@@ -1,14 +1,14 @@
 //! Files `align` can write besides its numbers: the resampled frame and a quick-look composite.
 //!
-//! Both render the frame on the reference grid through the engine's transform (cubic
-//! B-spline, NaN where the frame has no data), so what a person sees is what was measured.
+//! Both render the frame on the reference grid through the engine's transform (the
+//! refinement's quintic B-spline, NaN where the frame has no data), so what a person sees is what was measured.
 
 use super::{AlignOutcome, Image};
 use crate::fits;
 use crate::geometry::Similarity;
 use crate::header::{Header, HeaderValue};
 use crate::meta::FrameMeta;
-use crate::resample::SplineImage;
+use crate::resample::HighOrderSpline;
 use crate::{Error, Result};
 use ndarray::{Array2, ArrayView2};
 use plotters::prelude::{BitMapBackend, DrawingBackend};
@@ -29,7 +29,8 @@ pub fn write_aligned(
 ) -> Result<()> {
     let transform = require_transform(path, outcome)?;
     let (h, w) = reference.data.dim();
-    let aligned = SplineImage::new(frame.data.view()).warp_similarity(&transform, w, h);
+    let aligned = HighOrderSpline::new(frame.data.view(), super::refine::MODEL)
+        .warp_similarity(&transform, w, h);
 
     let (_, ref_header) = fits::read_image_header(&reference.meta.file)?;
     let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
@@ -253,7 +254,7 @@ fn alignment_history(
         ),
         format!("reference: {}", describe(reference)),
         format!("frame: {}", describe(frame)),
-        "cubic B-spline; NaN where the frame has no data; WCS = reference's".to_string(),
+        "quintic B-spline; NaN where the frame has no data; WCS = reference's".to_string(),
         format!(
             "p_frame = s R(theta) (p_ref - c) + c + (dx, dy), c = ({}, {}) px",
             t.center[0], t.center[1]
@@ -313,7 +314,7 @@ fn quicklook_rgb(
     let (h, w) = reference.dim();
     let ref_range = percentile_range(reference)?;
     let frame_range = percentile_range(frame)?;
-    let spline = SplineImage::new(frame);
+    let spline = HighOrderSpline::new(frame, super::refine::MODEL);
     let red = resize(&stretch(reference, ref_range));
     let before = resize(&stretch(
         spline.warp_similarity(coarse, w, h).view(),
@@ -442,6 +443,7 @@ fn write_png(path: &Path, look: &Quicklook) -> Result<()> {
 mod tests {
     use super::*;
     use crate::resample::test_data::read_real;
+    use crate::resample::SplineImage;
 
     #[test]
     fn grid_keys_are_the_wcs_of_axes_one_and_two_and_pointing() {
