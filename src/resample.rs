@@ -188,21 +188,8 @@ impl SplineImage {
         out_width: usize,
         out_height: usize,
     ) -> Array2<f32> {
-        let map = RowMap::new(t, x0);
-        let mut out = Array2::<f32>::zeros((out_height, out_width));
-        out.axis_iter_mut(Axis(0))
-            .into_par_iter()
-            .enumerate()
-            .for_each(|(y, mut row)| match row.as_slice_mut() {
-                Some(r) => spline_similarity_row(self, &map, (y + y0) as f64, r),
-                None => {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        let (sx, sy) = map.at(x, (y + y0) as f64);
-                        *v = self.sample_at(sx, sy);
-                    }
-                }
-            });
-        out
+        let size = (out_width, out_height);
+        warp_rows(self, t, (x0, y0), size, spline_similarity_row)
     }
 
     /// Value and gradient `[v, ∂v/∂x, ∂v/∂y]` of the spline at `(x, y)`: NaN outside the
@@ -632,21 +619,8 @@ impl HighOrderSpline {
         out_width: usize,
         out_height: usize,
     ) -> Array2<f32> {
-        let map = RowMap::new(t, x0);
-        let mut out = Array2::<f32>::zeros((out_height, out_width));
-        out.axis_iter_mut(Axis(0))
-            .into_par_iter()
-            .enumerate()
-            .for_each(|(y, mut row)| match row.as_slice_mut() {
-                Some(r) => high_order_similarity_row(self, &map, (y + y0) as f64, r),
-                None => {
-                    for (x, v) in row.iter_mut().enumerate() {
-                        let (sx, sy) = map.at(x, (y + y0) as f64);
-                        *v = self.sample_at(sx, sy);
-                    }
-                }
-            });
-        out
+        let size = (out_width, out_height);
+        warp_rows(self, t, (x0, y0), size, high_order_similarity_row)
     }
 
     pub fn warp_similarity(
@@ -656,22 +630,6 @@ impl HighOrderSpline {
         out_height: usize,
     ) -> Array2<f32> {
         self.warp_similarity_window(t, 0, 0, out_width, out_height)
-    }
-}
-
-crate::flow::simd::multiversion!(fn high_order_similarity_row(
-    sp: &HighOrderSpline,
-    map: &RowMap,
-    y: f64,
-    out: &mut [f32],
-) => high_order_similarity_row_body);
-
-/// One output row of a high-order spline warp (AVX2 when available, as the cubic one's).
-#[inline(always)]
-fn high_order_similarity_row_body(sp: &HighOrderSpline, map: &RowMap, y: f64, out: &mut [f32]) {
-    for (x, v) in out.iter_mut().enumerate() {
-        let (sx, sy) = map.at(x, y);
-        *v = sp.sample_at(sx, sy);
     }
 }
 
@@ -688,17 +646,69 @@ fn gradients_at_body(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f
     }
 }
 
+/// A prefiltered spline that a warp samples point by point.
+trait SplineSample: Sync {
+    fn sample_at(&self, x: f64, y: f64) -> f32;
+}
+
+impl SplineSample for SplineImage {
+    #[inline(always)]
+    fn sample_at(&self, x: f64, y: f64) -> f32 {
+        SplineImage::sample_at(self, x, y)
+    }
+}
+
+impl SplineSample for HighOrderSpline {
+    #[inline(always)]
+    fn sample_at(&self, x: f64, y: f64) -> f32 {
+        HighOrderSpline::sample_at(self, x, y)
+    }
+}
+
+/// The `width × height` window at column `x0`, row `y0` of `sp` warped by `t`, rows in
+/// parallel, each through `row` (a CPU-dispatched instance of [`similarity_row_body`]).
+fn warp_rows<S: SplineSample>(
+    sp: &S,
+    t: &Similarity,
+    (x0, y0): (usize, usize),
+    (width, height): (usize, usize),
+    row: fn(&S, &RowMap, f64, &mut [f32]),
+) -> Array2<f32> {
+    let map = RowMap::new(t, x0);
+    let mut out = Array2::<f32>::zeros((height, width));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut line)| match line.as_slice_mut() {
+            Some(r) => row(sp, &map, (y + y0) as f64, r),
+            None => {
+                for (x, v) in line.iter_mut().enumerate() {
+                    let (sx, sy) = map.at(x, (y + y0) as f64);
+                    *v = sp.sample_at(sx, sy);
+                }
+            }
+        });
+    out
+}
+
 crate::flow::simd::multiversion!(fn spline_similarity_row(
     sp: &SplineImage,
     map: &RowMap,
     y: f64,
     out: &mut [f32],
-) => spline_similarity_row_body);
+) => similarity_row_body::<SplineImage>);
+
+crate::flow::simd::multiversion!(fn high_order_similarity_row(
+    sp: &HighOrderSpline,
+    map: &RowMap,
+    y: f64,
+    out: &mut [f32],
+) => similarity_row_body::<HighOrderSpline>);
 
 /// One output row of a spline warp (compiled for AVX2 when available: `floor` becomes one
 /// instruction; no FMA contraction, so the values do not depend on the CPU).
 #[inline(always)]
-fn spline_similarity_row_body(sp: &SplineImage, map: &RowMap, y: f64, out: &mut [f32]) {
+fn similarity_row_body<S: SplineSample>(sp: &S, map: &RowMap, y: f64, out: &mut [f32]) {
     for (x, v) in out.iter_mut().enumerate() {
         let (sx, sy) = map.at(x, y);
         *v = sp.sample_at(sx, sy);
