@@ -46,6 +46,9 @@ pub fn draw_truths(n: usize, seed: u64, ranges: &TrialRanges, center: [f64; 2]) 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TrialOutcome {
     pub truth: [f64; 4],
+    /// The alignment's status: `degraded` trials count in the figures (they carry a transform
+    /// and σ), `failed` ones do not.
+    pub status: crate::record::Status,
     pub estimate: Option<[f64; 4]>,
     pub sigma: Option<[f64; 4]>,
     pub uabjm_sigma: Option<[f64; 4]>,
@@ -78,7 +81,10 @@ pub struct ParameterSummary {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MonteCarloSummary {
     pub trials: usize,
+    /// Trials that returned a transform (`ok` or `degraded`).
     pub succeeded: usize,
+    /// Of those, the `degraded` ones.
+    pub degraded: usize,
     pub scale: ParameterSummary,
     pub rotation_arcsec: ParameterSummary,
     pub dx_px: ParameterSummary,
@@ -145,6 +151,10 @@ pub fn summarise(outcomes: &[TrialOutcome]) -> MonteCarloSummary {
     MonteCarloSummary {
         trials: outcomes.len(),
         succeeded: ok.len(),
+        degraded: ok
+            .iter()
+            .filter(|o| o.status == crate::record::Status::Degraded)
+            .count(),
         scale: param(0),
         rotation_arcsec: param(1),
         dx_px: param(2),
@@ -237,6 +247,7 @@ fn chi_quantile_ratio(dof: f64, z: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::record::Status;
 
     #[test]
     fn summary_of_known_residuals() {
@@ -244,6 +255,7 @@ mod tests {
         // and inside 3σ.
         let mk = |r: f64, s: f64| TrialOutcome {
             truth: [1.0, 0.0, 0.0, 0.0],
+            status: Status::Ok,
             estimate: Some([1.0, 0.0, r, -r]),
             sigma: Some([1e-6, 1.0, s, s]),
             uabjm_sigma: Some([1e-6, 1.0, s / 10.0, s / 10.0]),
@@ -263,6 +275,7 @@ mod tests {
     fn a_run_without_aligned_trials_reports_no_figures() {
         let failed = TrialOutcome {
             truth: [1.0, 0.0, 0.0, 0.0],
+            status: Status::Failed,
             estimate: None,
             sigma: None,
             uabjm_sigma: None,

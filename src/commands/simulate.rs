@@ -26,6 +26,10 @@ pub struct Args {
     /// Add Gaussian noise of K times the image's background noise to both images.
     #[arg(long, value_name = "K")]
     pub noise: Option<f64>,
+    /// Add the noise once, to the image before it is transformed (the paper's wording), so the
+    /// frame is a transformed copy of the noisy reference, instead of independently to both.
+    #[arg(long, requires = "noise")]
+    pub shared_noise: bool,
     /// Trials of the translation-only comparison with cross-correlation (0 to skip).
     #[arg(long, default_value_t = 20)]
     pub cc_trials: usize,
@@ -49,6 +53,8 @@ struct Report {
     width: usize,
     height: usize,
     noise_k: Option<f64>,
+    /// The noise was added once, before the transform (`--shared-noise`).
+    shared_noise: bool,
     /// The image's background noise per pixel (`simulate::background_noise`), the unit of K.
     background_sigma: Option<f64>,
     ranges: TrialRanges,
@@ -99,12 +105,24 @@ pub fn run(args: &Args) -> Result<i32> {
     let mut elapsed = 0.0;
     let mut lines = Vec::new();
     let mut run_trial = |truth: &Similarity, with_cc: bool, rng: &mut SplitMix64| -> TrialOutcome {
-        let mut frame_data = spline.warp_similarity(&truth.inverse(), w, h);
         let mut ref_data = reference.data.clone();
-        if let Some(sigma) = noise_sigma {
-            add_noise(&mut ref_data, sigma, rng);
-            add_noise(&mut frame_data, sigma, rng);
-        }
+        let frame_data = match noise_sigma {
+            Some(sigma) if args.shared_noise => {
+                add_noise(&mut ref_data, sigma, rng);
+                HighOrderSpline::new(ref_data.view(), HighOrder::Nonic).warp_similarity(
+                    &truth.inverse(),
+                    w,
+                    h,
+                )
+            }
+            Some(sigma) => {
+                let mut frame_data = spline.warp_similarity(&truth.inverse(), w, h);
+                add_noise(&mut ref_data, sigma, rng);
+                add_noise(&mut frame_data, sigma, rng);
+                frame_data
+            }
+            None => spline.warp_similarity(&truth.inverse(), w, h),
+        };
         let r = Image {
             data: ref_data,
             meta: reference.meta.clone(),
@@ -128,6 +146,7 @@ pub fn run(args: &Args) -> Result<i32> {
         let res = &out.result;
         let trial = TrialOutcome {
             truth: contract_units(truth),
+            status: res.status,
             estimate: out.transform.as_ref().map(contract_units),
             sigma: match (
                 res.sigma_scale,
@@ -151,6 +170,8 @@ pub fn run(args: &Args) -> Result<i32> {
         };
         if out.transform.is_none() {
             tracing::warn!("trial failed: {}", res.message);
+        } else if res.status == crate::record::Status::Degraded {
+            tracing::debug!("trial degraded: {}", res.message);
         }
         progress.inc(1);
         trial
@@ -185,6 +206,7 @@ pub fn run(args: &Args) -> Result<i32> {
         width: w,
         height: h,
         noise_k: args.noise,
+        shared_noise: args.shared_noise,
         background_sigma,
         ranges,
         similarity_trials: summarise(&outcomes),
@@ -215,15 +237,28 @@ fn add_noise(img: &mut Array2<f32>, sigma: f64, rng: &mut SplitMix64) {
 fn print_table(r: &Report) {
     let s = &r.similarity_trials;
     println!(
-        "Monte Carlo on {} ({}×{}), {} trials ({} aligned){}",
+        "Monte Carlo on {} ({}×{}), {} trials ({} aligned{}){}",
         r.image,
         r.width,
         r.height,
         s.trials,
         s.succeeded,
+        if s.degraded > 0 {
+            format!(", {} of them degraded", s.degraded)
+        } else {
+            String::new()
+        },
         r.noise_k
             .zip(r.background_sigma)
-            .map(|(k, b)| format!(", noise {k}× background σ {b:.4} = {:.4}", k * b))
+            .map(|(k, b)| format!(
+                ", {} noise {k}× background σ {b:.4} = {:.4}",
+                if r.shared_noise {
+                    "shared"
+                } else {
+                    "independent"
+                },
+                k * b
+            ))
             .unwrap_or_default()
     );
     println!(
