@@ -100,6 +100,9 @@ def main():
         if keep:
             os.replace(fp, f'{keep}/frame_{t:02d}.fits')
             fp = f'{keep}/frame_{t:02d}.fits'
+            if k > 0:  # each trial has its own noisy reference
+                os.replace(rp, f'{keep}/ref_{t:02d}.fits')
+                rp = f'{keep}/ref_{t:02d}.fits'
         t0 = time.time()
         p = subprocess.run([BIN, 'align', rp, fp, '--json'], capture_output=True, text=True)
         wall = time.time() - t0
