@@ -628,6 +628,31 @@ fn a_slow_flow_settling_with_weak_structure_gets_no_confident_wrong_answer() {
     );
 }
 
+/// IRIS SJI 1400 frames 50 and 52 (8 minutes apart, a brightening between them): the
+/// intensity refinement ran off to scale 0.48 and a 17° turn, with σ so large (4.9 px) that
+/// it passed the agreement test, and came back `ok`. Truth from the headers: both frames have
+/// the same CDELT and the same roll, so the scale is 1 and the rotation 0 to far better than
+/// 1 % and 0.5° (pointing jitter moves the image, it does not resize it).
+#[test]
+fn a_refinement_that_runs_off_is_not_taken() {
+    let frame = |n: usize| std::ffi::OsString::from(format!("{REAL}{IRIS}[{n}]"));
+    let run = sunjitter(&[
+        "align".into(),
+        frame(50),
+        frame(52),
+        "--config".into(),
+        concat!(env!("CARGO_MANIFEST_DIR"), "/examples/demo.toml").into(),
+        "--json".into(),
+    ]);
+    let doc = one_document(&run.stdout);
+    if doc["status"] == "failed" {
+        return;
+    }
+    let (scale, rotation) = (num(&doc, "scale"), num(&doc, "rotation_arcsec"));
+    assert!((scale - 1.0).abs() < 0.01, "scale {scale}: {doc}");
+    assert!(rotation.abs() < 1800.0, "rotation {rotation}″: {doc}");
+}
+
 /// A band-limited (Fourier) quarter-pixel shift of a real TRACE crop
 /// (`tests/data/trace_fourier_shift/README.md`): the frame is not the refinement's own spline
 /// resampling, and a spline moves near-Nyquist structure differently. The σ must cover the

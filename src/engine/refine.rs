@@ -1024,6 +1024,15 @@ pub fn apply(
     let worst = (0..4)
         .map(|k| (a[k] - b[k]).abs() / sa[k].hypot(sb[k]).max(f64::MIN_POSITIVE))
         .fold(0.0, f64::max);
+    // A refinement that ran off (IRIS 1400 frames 50→52: scale 0.48 and a 17° turn from a flow
+    // at 1.006 ± 0.003) reports σ so large that it "agrees" with anything. Gauss–Newton on
+    // intensities is a sub-pixel method: σ beyond a pixel say it is outside its basin.
+    if !(sb[2].max(sb[3]) <= MAX_REFINED_SIGMA_PX) {
+        return Err(Rejected::skipped(format!(
+            "intensity refinement rejected: its σ reach {:.2} px",
+            sb[2].max(sb[3])
+        )));
+    }
     if worst.is_nan() || worst > MAX_DISAGREEMENT_SIGMA {
         return Err(Rejected {
             note: format!("intensity refinement rejected: {worst:.1}σ from the flow's answer"),
@@ -1381,6 +1390,9 @@ impl Rejected {
 /// grow linearly; beyond about a million pixels (a 1024² frame's disk) the other error terms
 /// (the measured floors) dominate, so larger frames are thinned on a regular lattice.
 const MAX_PIXELS: usize = 1 << 20;
+
+/// Largest translation σ of a refinement whose answer is taken, px.
+const MAX_REFINED_SIGMA_PX: f64 = 1.0;
 
 /// Largest disagreement (in combined σ) between flow and refinement that keeps the refinement.
 const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
