@@ -1027,10 +1027,10 @@ pub fn apply(
     // A refinement that ran off (IRIS 1400 frames 50→52: scale 0.48 and a 17° turn from a flow
     // at 1.006 ± 0.003) reports σ so large that it "agrees" with anything. Gauss–Newton on
     // intensities is a sub-pixel method: σ beyond a pixel say it is outside its basin.
-    if !(sb[2].max(sb[3]) <= MAX_REFINED_SIGMA_PX) {
+    let widest = sb[2].max(sb[3]);
+    if widest.is_nan() || widest > MAX_REFINED_SIGMA_PX {
         return Err(Rejected::skipped(format!(
-            "intensity refinement rejected: its σ reach {:.2} px",
-            sb[2].max(sb[3])
+            "intensity refinement rejected: its σ reach {widest:.2} px"
         )));
     }
     if worst.is_nan() || worst > MAX_DISAGREEMENT_SIGMA {
