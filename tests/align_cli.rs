@@ -517,17 +517,22 @@ fn cube_frame_syntax_selects_the_frame() {
     assert!(err0 > 0.07 && err0 > 2.0 * err, "plane 0 error {err0} px");
 }
 
-/// `align --json` on `tests/data/NAME/{ref,frame}.fits`, and each truth's error in σ.
-fn known_truth_pair(name: &str, truth: &[(&str, f64)]) -> (Value, Vec<(String, f64)>) {
+/// `align --json` on `tests/data/NAME/{ref,frame}.fits`.
+fn align_test_pair(name: &str) -> Run {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("tests/data")
         .join(name);
-    let run = sunjitter(&[
+    sunjitter(&[
         "align".into(),
         dir.join("ref.fits").into_os_string(),
         dir.join("frame.fits").into_os_string(),
         "--json".into(),
-    ]);
+    ])
+}
+
+/// `align --json` on `tests/data/NAME/{ref,frame}.fits`, and each truth's error in σ.
+fn known_truth_pair(name: &str, truth: &[(&str, f64)]) -> (Value, Vec<(String, f64)>) {
+    let run = align_test_pair(name);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     let doc = one_document(&run.stdout);
     let z = truth
@@ -565,15 +570,7 @@ fn a_noisy_coronagraph_pair_gets_no_confident_wrong_answer() {
 /// exit 1, numbers `null`, a message naming the weak structure), or one whose σ cover the
 /// error (within 3σ).
 fn no_confident_wrong_answer(name: &str, truth: &[(&str, f64)]) -> Value {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/data")
-        .join(name);
-    let run = sunjitter(&[
-        "align".into(),
-        dir.join("ref.fits").into_os_string(),
-        dir.join("frame.fits").into_os_string(),
-        "--json".into(),
-    ]);
+    let run = align_test_pair(name);
     let doc = one_document(&run.stdout);
     if doc["status"] == "failed" {
         assert_eq!(run.code, Some(1), "{}", run.stderr);
