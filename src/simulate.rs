@@ -261,7 +261,12 @@ mod tests {
             uabjm_sigma: Some([1e-6, 1.0, s / 10.0, s / 10.0]),
             cc: Some([2.0 * r, 0.0]),
         };
-        let s = summarise(&[mk(0.1, 0.2), mk(-0.1, 0.2), mk(0.5, 0.2), mk(-0.5, 0.2)]);
+        let degraded = TrialOutcome {
+            status: Status::Degraded,
+            ..mk(-0.5, 0.2)
+        };
+        let s = summarise(&[mk(0.1, 0.2), mk(-0.1, 0.2), mk(0.5, 0.2), degraded]);
+        assert_eq!((s.succeeded, s.degraded), (4, 1));
         let expected_rmse = ((0.01 + 0.01 + 0.25 + 0.25) / 4.0f64).sqrt();
         assert!((s.dx_px.rmse - expected_rmse).abs() < 1e-12);
         assert!((s.dx_px.within_1sigma - 0.5).abs() < 1e-12);

@@ -492,10 +492,10 @@ fn align_inner(
             // A flow still moving by more than its σ when its passes ran out is mostly
             // converging slowly: weak or noisy structure lowers its gain, and each pass
             // recovers only part of what is left. More passes, then the refinement again
-            // (LASCO C3 102² at 3× noise: 29 of 30 pairs `ok` and all within 3σ, against 14
-            // `ok` and 7 `degraded` up to 9σ off). Only here: on real frames that the
-            // refinement accepts after the first passes, more passes can wander off (IRIS
-            // 1400 frames 22–24 under a brightening).
+            // (LASCO C3 102² at 3× noise, 30 pairs: 26 `ok` and 4 `degraded`, all within
+            // 3.04σ, against 14 `ok`, 13 `degraded` with 7 up to 9.3σ off, and 3 `failed`).
+            // Only here: on real frames that the refinement accepts after the first passes,
+            // more passes can wander off (IRIS 1400 frames 22–24 under a brightening).
             if fine.unsettled_px.is_some() {
                 let mut more = flow_from(
                     fine.transform,
@@ -592,8 +592,8 @@ fn align_inner(
     // had a low gain. With weak common structure, or a flow field most of which fits no one
     // similarity, it may also settle on a wrong match far outside its σ, or stop short of the
     // right one (LASCO C3 102² at 3× noise: 7 of 30 pairs `degraded` 3.4–9.3σ off after 4
-    // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled
-    // sky: settled after 12 passes with 177/380 inliers, 18σ off). Without the refinement's
+    // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled sky: one
+    // settled after extra passes with 177/380 inliers, 18σ off). Without the refinement's
     // confirmation there is no reliable answer.
     let slow_flow = fine.unsettled_px.is_some() || fine.passes > cfg.max_passes.max(1);
     let weak = correlation
