@@ -460,6 +460,7 @@ fn align_inner(
     let mut refine_note = None;
     let mut methods_disagree = false;
     let mut refinement_accepted = false;
+    let mut refinement_ran_off = false;
     if refining {
         let prepared = matched
             .refine_reference
@@ -514,6 +515,7 @@ fn align_inner(
             }
             Err(rejected) => {
                 refine_note = Some(rejected.note);
+                refinement_ran_off = rejected.ran_off;
                 // Two measurements of one motion that disagree beyond their σ: the flow's
                 // answer stays, and its σ grow to cover the refinement's (LASCO C3 with noise:
                 // the flow 8σ off, the rejected refinement right).
@@ -594,7 +596,10 @@ fn align_inner(
     // right one (LASCO C3 102² at 3× noise: 7 of 30 pairs `degraded` 3.4–9.3σ off after 4
     // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled sky: one
     // settled after extra passes with 177/380 inliers, 18σ off). Without the refinement's
-    // confirmation there is no reliable answer.
+    // confirmation there is no reliable answer. Nor when the flow settled but the refinement
+    // from its answer ran off: then both checks of that answer fail (HMI 100² with a zero
+    // sky: two flows settled within 4 passes at almost no motion, 164–174/375 inliers, 26–27σ
+    // from the truth, and the refinement from there left the frame or went singular).
     let slow_flow = fine.unsettled_px.is_some() || fine.passes > cfg.max_passes.max(1);
     let weak = correlation
         .filter(|&c| c < cfg.min_correlation)
@@ -605,17 +610,24 @@ fn align_inner(
             fine.fit.n_inliers, fine.points
         )
     });
-    if let (true, false, Some(why)) = (slow_flow, refinement_accepted, weak.or(incoherent)) {
-        return Err(format!(
-            "no reliable answer: {why}, and the fine alignment {}",
-            match fine.unsettled_px {
-                Some(moved) => format!(
-                    "was still moving after {} passes ({moved:.3} px in the last)",
-                    fine.passes
-                ),
-                None => format!("needed {} passes to settle", fine.passes),
+    if let (false, Some(why)) = (refinement_accepted, weak.or(incoherent)) {
+        let unconfirmed = match fine.unsettled_px {
+            Some(moved) => Some(format!(
+                "the fine alignment was still moving after {} passes ({moved:.3} px in the last)",
+                fine.passes
+            )),
+            None if slow_flow => Some(format!(
+                "the fine alignment needed {} passes to settle",
+                fine.passes
+            )),
+            None if refinement_ran_off => {
+                Some("the intensity refinement from the flow's answer ran off".to_string())
             }
-        ));
+            None => None,
+        };
+        if let Some(unconfirmed) = unconfirmed {
+            return Err(format!("no reliable answer: {why}, and {unconfirmed}"));
+        }
     }
     if let Some(moved) = fine.unsettled_px {
         status = Status::Degraded;

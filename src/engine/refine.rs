@@ -292,12 +292,13 @@ pub fn refine(
     grid: &CellGrid,
     start: Similarity,
     settings: &RefineSettings,
-) -> Result<Refined, String> {
+) -> Result<Refined, RefineFailure> {
+    use RefineFailure::{RanOff, Unusable};
     if pixels.len() < 64 {
-        return Err(format!(
+        return Err(Unusable(format!(
             "{} usable pixels in the inlier cells; too few to refine",
             pixels.len()
-        ));
+        )));
     }
     let (h, w) = reference.smoothed.dim();
     let center = start.center;
@@ -332,7 +333,7 @@ pub fn refine(
         })
         .collect();
     if ref_pixels.len() < 64 {
-        return Err("too few finite reference pixels to refine".into());
+        return Err(Unusable("too few finite reference pixels to refine".into()));
     }
     // Lever arm for conditioning: the scale/rotation columns are q/R.
     let lever = (sum_in_chunks(
@@ -377,6 +378,19 @@ pub fn refine(
         if iterations > 1 {
             sampled = frame.sample(&ref_pixels, &estimate);
         }
+        // The pixels were chosen to map inside the frame from the start: most of them
+        // leaving it means the iterations ran away from the start (HMI 100² with a zero sky:
+        // from a flow 4.5 px off, the gain went negative and the estimate left the frame).
+        let inside = sampled
+            .par_iter()
+            .filter(|s| s.iter().all(|v| v.is_finite()))
+            .count();
+        if 2 * inside < sampled.len() {
+            return Err(RanOff(format!(
+                "its estimate left the frame ({inside} of {} pixels map inside it)",
+                sampled.len()
+            )));
+        }
         residuals
             .par_iter_mut()
             .zip(&ref_pixels)
@@ -386,9 +400,12 @@ pub fn refine(
         // real pairs (IRIS 1400 frames four minutes apart) reweighting every step kept the
         // estimate wandering by about its σ, while with fixed weights Gauss–Newton converges.
         if iterations <= REWEIGHTED_ITERATIONS {
-            scale = robust_sigma(&residuals).ok_or("no finite residuals in the refinement")?;
+            scale = robust_sigma(&residuals)
+                .ok_or_else(|| RanOff("no finite residuals in the refinement".into()))?;
             if scale.is_nan() || scale <= 0.0 {
-                return Err("the refinement's residuals vanish exactly; nothing to weigh".into());
+                return Err(RanOff(
+                    "the refinement's residuals vanish exactly; nothing to weigh".into(),
+                ));
             }
             weights
                 .par_iter_mut()
@@ -431,9 +448,9 @@ pub fn refine(
             |(a, b), (c, d)| (a + c, b + d),
         );
         let lu = slope.lu();
-        let step = lu
-            .solve(&score)
-            .ok_or("the refinement's equations are singular (no structure)")?;
+        let step = lu.solve(&score).ok_or_else(|| {
+            RanOff("the refinement's equations are singular (no structure)".into())
+        })?;
         let delta = [step[0] / lever, step[1] / lever, step[2], step[3]];
         let update = Similarity {
             scale: (1.0 + delta[0]).hypot(delta[1]),
@@ -444,15 +461,15 @@ pub fn refine(
         };
         let moved = (delta[2].hypot(delta[3])) + delta[0].hypot(delta[1]) * lever * 2.0;
         if !moved.is_finite() {
-            return Err("the refinement diverged".into());
+            return Err(RanOff("the refinement diverged".into()));
         }
         let converged = moved < settings.tolerance_px;
         tracing::trace!(iterations, moved, scale, "refinement step");
         if converged || iterations >= settings.max_iterations.max(1) {
             // Covariance at this linearisation point (the last step is below tolerance).
-            let ainv = lu
-                .try_inverse()
-                .ok_or("the refinement's equations are singular (no structure)")?;
+            let ainv = lu.try_inverse().ok_or_else(|| {
+                RanOff("the refinement's equations are singular (no structure)".into())
+            })?;
             // Per chunk: (used, Σw, Σψ′, Σw²JJᵀ, Σw·r²), summed in order.
             let (used, sum_w, sum_psi, white, s2) = sum_in_chunks(
                 ref_pixels.len(),
@@ -929,9 +946,14 @@ pub fn apply(
     let window_at = started.elapsed();
     let refined = match refine(prepared, &window, &pixels, &grid, *transform, &settings) {
         Ok(r) => r,
-        Err(e) => {
+        Err(RefineFailure::Unusable(e)) => {
             return Err(Rejected::skipped(format!(
                 "intensity refinement skipped: {e}"
+            )))
+        }
+        Err(RefineFailure::RanOff(e)) => {
+            return Err(Rejected::ran_off(format!(
+                "intensity refinement ran off: {e}"
             )))
         }
     };
@@ -1029,7 +1051,7 @@ pub fn apply(
     // intensities is a sub-pixel method: σ beyond a pixel say it is outside its basin.
     let widest = sb[2].max(sb[3]);
     if widest.is_nan() || widest > MAX_REFINED_SIGMA_PX {
-        return Err(Rejected::skipped(format!(
+        return Err(Rejected::ran_off(format!(
             "intensity refinement rejected: its σ reach {widest:.2} px"
         )));
     }
@@ -1037,6 +1059,7 @@ pub fn apply(
         return Err(Rejected {
             note: format!("intensity refinement rejected: {worst:.1}σ from the flow's answer"),
             disagreeing: (!worst.is_nan() && refined.converged).then_some(refined.transform),
+            ran_off: false,
         });
     }
     if !refined.converged {
@@ -1375,6 +1398,9 @@ pub struct Rejected {
     /// The refinement's converged answer when it disagreed with the flow's beyond their σ:
     /// one of the two is wrong, and which one the data alone cannot say.
     pub disagreeing: Option<Similarity>,
+    /// Gauss–Newton ran from the flow's answer and found no consistent solution near it:
+    /// evidence against that answer, unlike a refinement that had too little to work with.
+    pub ran_off: bool,
 }
 
 impl Rejected {
@@ -1382,8 +1408,25 @@ impl Rejected {
         Rejected {
             note: note.into(),
             disagreeing: None,
+            ran_off: false,
         }
     }
+
+    fn ran_off(note: impl Into<String>) -> Rejected {
+        Rejected {
+            ran_off: true,
+            ..Rejected::skipped(note)
+        }
+    }
+}
+
+/// Why a refinement gave no answer.
+#[derive(Debug)]
+pub enum RefineFailure {
+    /// Too little to work with (pixels, finite reference values): says nothing of the start.
+    Unusable(String),
+    /// The iterations from the start found no consistent solution near it.
+    RanOff(String),
 }
 
 /// Most pixels one refinement uses. Its precision grows as √pixels while its cost and memory
