@@ -294,6 +294,12 @@ pub fn refine(
     settings: &RefineSettings,
 ) -> Result<Refined, RefineFailure> {
     use RefineFailure::{RanOff, Unusable};
+    // A failure on the first iteration is the start's pixels' (no structure, identical
+    // images); on a later one, where the iterations went.
+    let failed = |iterations: usize, why: &str| match iterations {
+        1 => Unusable(why.to_string()),
+        _ => RanOff(why.to_string()),
+    };
     if pixels.len() < 64 {
         return Err(Unusable(format!(
             "{} usable pixels in the inlier cells; too few to refine",
@@ -401,10 +407,11 @@ pub fn refine(
         // estimate wandering by about its σ, while with fixed weights Gauss–Newton converges.
         if iterations <= REWEIGHTED_ITERATIONS {
             scale = robust_sigma(&residuals)
-                .ok_or_else(|| RanOff("no finite residuals in the refinement".into()))?;
+                .ok_or_else(|| failed(iterations, "no finite residuals in the refinement"))?;
             if scale.is_nan() || scale <= 0.0 {
-                return Err(RanOff(
-                    "the refinement's residuals vanish exactly; nothing to weigh".into(),
+                return Err(failed(
+                    iterations,
+                    "the refinement's residuals vanish exactly; nothing to weigh",
                 ));
             }
             weights
@@ -449,7 +456,10 @@ pub fn refine(
         );
         let lu = slope.lu();
         let step = lu.solve(&score).ok_or_else(|| {
-            RanOff("the refinement's equations are singular (no structure)".into())
+            failed(
+                iterations,
+                "the refinement's equations are singular (no structure)",
+            )
         })?;
         let delta = [step[0] / lever, step[1] / lever, step[2], step[3]];
         let update = Similarity {
@@ -461,14 +471,17 @@ pub fn refine(
         };
         let moved = (delta[2].hypot(delta[3])) + delta[0].hypot(delta[1]) * lever * 2.0;
         if !moved.is_finite() {
-            return Err(RanOff("the refinement diverged".into()));
+            return Err(failed(iterations, "the refinement diverged"));
         }
         let converged = moved < settings.tolerance_px;
         tracing::trace!(iterations, moved, scale, "refinement step");
         if converged || iterations >= settings.max_iterations.max(1) {
             // Covariance at this linearisation point (the last step is below tolerance).
             let ainv = lu.try_inverse().ok_or_else(|| {
-                RanOff("the refinement's equations are singular (no structure)".into())
+                failed(
+                    iterations,
+                    "the refinement's equations are singular (no structure)",
+                )
             })?;
             // Per chunk: (used, Σw, Σψ′, Σw²JJᵀ, Σw·r²), summed in order.
             let (used, sum_w, sum_psi, white, s2) = sum_in_chunks(
@@ -1425,7 +1438,7 @@ impl Rejected {
 pub enum RefineFailure {
     /// Too little to work with (pixels, finite reference values): says nothing of the start.
     Unusable(String),
-    /// The iterations from the start found no consistent solution near it.
+    /// The iterations went away from the start and found no consistent solution near it.
     RanOff(String),
 }
 
@@ -1443,6 +1456,27 @@ const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_featureless_start_is_unusable_not_run_off() {
+        // Identical constant images: the residuals vanish on the first iteration. That says
+        // the pixels hold no structure, not that the iterations went anywhere.
+        let image = Array2::<f32>::from_elem((64, 64), 100.0);
+        let settings = RefineSettings::default();
+        let reference = RefineReference::new(image.view(), &settings);
+        let start = Similarity::identity([31.5, 31.5]);
+        let bbox = (8, 8, 55, 55);
+        let window = FrameWindow::new(image.view(), bbox, &start, 0.0).expect("inside");
+        let grid = CellGrid::over_box(bbox, 4);
+        let pixels: Vec<(usize, usize, usize)> = (8..56)
+            .flat_map(|y| (8..56).map(move |x| (x, y)))
+            .map(|(x, y)| (x, y, grid.cell_of(x, y).expect("in the box")))
+            .collect();
+        match refine(&reference, &window, &pixels, &grid, start, &settings) {
+            Err(RefineFailure::Unusable(why)) => assert!(why.contains("vanish"), "{why}"),
+            other => panic!("expected an unusable start, got {other:?}"),
+        }
+    }
 
     #[test]
     fn the_psi_slope_is_the_derivative_of_the_weighted_residual() {
