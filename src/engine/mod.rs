@@ -233,7 +233,7 @@ struct Matched {
     high_pass: Array2<f32>,
     quality_crop: Crop,
     /// The refinement's systematic floor on this reference (measured on first use).
-    self_test: std::sync::OnceLock<Option<[f64; 4]>>,
+    self_test: std::sync::OnceLock<Option<refine::SelfTest>>,
     /// Binned copies for seed flows on large frames (made on first use).
     binned: std::sync::OnceLock<Binned>,
     /// The reference as the refinement reads it (made on the first refinement).

@@ -60,6 +60,10 @@ pub struct RefineSettings {
     pub max_iterations: usize,
     /// Stop when an update moves no pixel of the region by more than this, px.
     pub tolerance_px: f64,
+    /// Also compute the covariance of the residuals' noise through the exact slope (the
+    /// pair's own refinement; the self-test and the interpolation check need only the
+    /// residual level at the flattest pixels).
+    pub noise_covariance: bool,
 }
 
 impl Default for RefineSettings {
@@ -70,6 +74,7 @@ impl Default for RefineSettings {
             gradient_smoothing_px: 0.0,
             max_iterations: 16,
             tolerance_px: 1e-5,
+            noise_covariance: false,
         }
     }
 }
@@ -93,6 +98,12 @@ pub struct Refined {
     pub converged: bool,
     /// Robust (MAD) σ of the intensity residuals.
     pub residual_sigma: f64,
+    /// Robust σ of the residuals at the flattest quarter of the pixels, where the model's
+    /// misfit is least (see [`noise_covariance`]).
+    pub flat_residual_sigma: Option<f64>,
+    /// The covariance that residual noise of unit σ gives through the M-estimator's exact
+    /// slope, when [`RefineSettings::noise_covariance`] asks for it.
+    pub noise_covariance: Option<Covariance4>,
 }
 
 /// The grid of cells the flow sampling used, over the bounding box of its mask
@@ -542,6 +553,15 @@ pub fn refine(
                 (Some(a), None) | (None, Some(a)) => a,
                 (None, None) => (plain, 1),
             };
+            let noise = noise_covariance(
+                &ref_pixels,
+                &fits,
+                frame_row,
+                TUKEY_C * scale,
+                settings.smoothing_px,
+                settings.noise_covariance,
+            );
+            let flat_residual_sigma = noise.as_ref().map(|n| n.1);
             let final_t = estimate.after(&update);
             let to4 = |m: &Matrix6<f64>| -> Covariance4 {
                 let unlever = [1.0 / lever, 1.0 / lever, 1.0, 1.0];
@@ -555,6 +575,9 @@ pub fn refine(
                 compose_with_covariance(&final_t, &zero, &identity, &to4(&robust));
             let (_, plain_covariance) =
                 compose_with_covariance(&final_t, &zero, &identity, &to4(&plain));
+            let noise_covariance = noise
+                .and_then(|n| n.0)
+                .map(|unit| compose_with_covariance(&final_t, &zero, &identity, &to4(&unit)).1);
             return Ok(Refined {
                 transform: final_t,
                 covariance,
@@ -566,6 +589,8 @@ pub fn refine(
                 iterations,
                 converged,
                 residual_sigma: scale,
+                flat_residual_sigma,
+                noise_covariance,
             });
         }
         estimate = estimate.after(&update);
@@ -835,6 +860,106 @@ fn block_sums(
     )
 }
 
+/// The estimate's covariance from residual noise of unit σ, through the M-estimator's exact
+/// slope: `A⁻¹·B·A⁻ᵀ` with `A = Σ ψ′·J·Fᵀ` and `B = Σᵢ Σⱼ ρᵢⱼ ψ′ᵢψ′ⱼ Jᵢ Jⱼᵀ`, ρ the
+/// correlation exp(−d²/4s²) of white noise smoothed by `smoothing_px`. Tukey's weights follow
+/// the residuals, so pixels whose misfit puts them on its descending side (ψ′ < 0: the limb of
+/// an undersampled disk) make the answer more sensitive to the noise than the weights say.
+/// First, the robust σ of the residuals at the flattest quarter of the pixels, where the
+/// model's misfit is least; the covariance only `with_covariance` (and not with a singular
+/// slope). `None` with too few pixels.
+fn noise_covariance(
+    pixels: &[Pixel],
+    fit: &ClusterFit,
+    frame_row: impl Fn(usize) -> Vector6<f64> + Sync,
+    tukey_c: f64,
+    smoothing_px: f64,
+    with_covariance: bool,
+) -> Option<(Option<Matrix6<f64>>, f64)> {
+    let (jac, residuals, weights) = (fit.jac, fit.residuals, fit.weights);
+    let counts = |k: usize| weights[k] > 0.0 && residuals[k].is_finite();
+    let used: Vec<usize> = (0..pixels.len()).filter(|&k| counts(k)).collect();
+    if used.len() < 64 {
+        return None;
+    }
+    let gradient = |k: usize| pixels[k].gx.hypot(pixels[k].gy);
+    let mut gradients: Vec<f64> = used.iter().map(|&k| gradient(k)).collect();
+    let (_, &mut flattest, _) = gradients.select_nth_unstable_by(used.len() / 4, f64::total_cmp);
+    let flat: Vec<f64> = used
+        .iter()
+        .filter(|&&k| gradient(k) <= flattest)
+        .map(|&k| residuals[k])
+        .collect();
+    let flat_sigma = robust_sigma(&flat)?;
+    if !with_covariance {
+        return Some((None, flat_sigma));
+    }
+    let u: Vec<Vector6<f64>> = (0..pixels.len())
+        .map(|k| match counts(k) {
+            true => Vector6::from(jac[k]) * tukey_psi_slope(residuals[k], tukey_c),
+            false => Vector6::zeros(),
+        })
+        .collect();
+    let slope = used
+        .par_iter()
+        .map(|&k| {
+            let psi = tukey_psi_slope(residuals[k], tukey_c);
+            Vector6::from(jac[k]) * frame_row(k).transpose() * psi
+        })
+        .reduce(Matrix6::zeros, |a, b| a + b);
+    // The pixels lie on a lattice of every `step`-th row and column.
+    let step = pixels
+        .windows(2)
+        .filter(|p| p[0].y == p[1].y && p[1].x > p[0].x)
+        .map(|p| p[1].x - p[0].x)
+        .min()
+        .unwrap_or(1);
+    let (gw, gh) = (
+        pixels.iter().map(|p| p.x).max()? / step + 1,
+        pixels.iter().map(|p| p.y).max()? / step + 1,
+    );
+    let mut index = Array2::<u32>::from_elem((gh, gw), u32::MAX);
+    for (k, p) in pixels.iter().enumerate() {
+        index[[p.y / step, p.x / step]] = k as u32;
+    }
+    let s = smoothing_px.max(0.1);
+    let reach = (3.0 * std::f64::consts::SQRT_2 * s / step as f64).ceil() as isize;
+    let side = (2 * reach + 1) as usize;
+    let correlation: Vec<f64> = (0..side * side)
+        .map(|t| {
+            let (dx, dy) = ((t % side) as isize - reach, (t / side) as isize - reach);
+            let d2 = ((dx * dx + dy * dy) as usize * step * step) as f64;
+            (-d2 / (4.0 * s * s)).exp()
+        })
+        .collect();
+    let meat = used
+        .par_iter()
+        .map(|&i| {
+            let (cx, cy) = ((pixels[i].x / step) as isize, (pixels[i].y / step) as isize);
+            let mut near = Vector6::<f64>::zeros();
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    let (x, y) = (cx + dx, cy + dy);
+                    if x < 0 || y < 0 || x >= gw as isize || y >= gh as isize {
+                        continue;
+                    }
+                    let j = index[[y as usize, x as usize]];
+                    if j != u32::MAX {
+                        let t = (dy + reach) as usize * side + (dx + reach) as usize;
+                        near += u[j as usize] * correlation[t];
+                    }
+                }
+            }
+            u[i] * near.transpose()
+        })
+        .reduce(Matrix6::zeros, |a, b| a + b);
+    let meat = (meat + meat.transpose()) * 0.5;
+    let covariance = slope
+        .try_inverse()
+        .map(|inverse| inverse * meat * inverse.transpose());
+    Some((covariance, flat_sigma))
+}
+
 /// Geometric mean of the ratios of the four geometric variances, `b` over `a`.
 fn geometric_trace_ratio(b: &Matrix6<f64>, a: &Matrix6<f64>) -> f64 {
     ((0..4)
@@ -924,7 +1049,7 @@ pub fn apply(
     inliers: &[Correspondence],
     frame_smoothing_px: f64,
     flow_slack_px: f64,
-    self_test: impl FnOnce(&RefineSettings) -> Option<[f64; 4]>,
+    self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
     cfg: &super::EngineConfig,
 ) -> Result<String, Rejected> {
     let Some(sample_box) = sample_box else {
@@ -957,7 +1082,18 @@ pub fn apply(
         ));
     };
     let window_at = started.elapsed();
-    let refined = match refine(prepared, &window, &pixels, &grid, *transform, &settings) {
+    let pair_settings = RefineSettings {
+        noise_covariance: true,
+        ..settings
+    };
+    let refined = match refine(
+        prepared,
+        &window,
+        &pixels,
+        &grid,
+        *transform,
+        &pair_settings,
+    ) {
         Ok(r) => r,
         Err(RefineFailure::Unusable(e)) => {
             return Err(Rejected::skipped(format!(
@@ -995,8 +1131,17 @@ pub fn apply(
     if cfg.sigma == super::SigmaMethod::Calibrated {
         // The method's systematic floor for this reference, measured once per reference;
         // without it, the configured floor.
-        let floor = self_test(&settings);
+        let self_tested = self_test(&settings);
+        let floor = self_tested.map(|t| t.floor);
         tracing::debug!(self_tested_at = ?started.elapsed(), "refinement self-test");
+        if let Some(factors) = noise_factors(&refined, self_tested, &agreement_cov) {
+            tracing::debug!(?factors, "σ raised to the residual noise's");
+            for i in 0..4 {
+                for j in 0..4 {
+                    agreement_cov[i][j] *= factors[i] * factors[j];
+                }
+            }
+        }
         let check_pixels = central_pixels(&pixels, bbox, CHECK_MAX_SIDE);
         let check = interpolation_check(
             reference,
@@ -1088,6 +1233,33 @@ pub fn apply(
         refined.pixels, refined.blocks, refined.iterations
     ))
 }
+
+/// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives
+/// through the exact slope. The noise is the part of the residual level at the flattest
+/// pixels that the model's misfit alone (the self-test's, noise-free by construction) does
+/// not explain; `None` when there is none or nothing to measure it with.
+fn noise_factors(
+    refined: &Refined,
+    self_test: Option<SelfTest>,
+    cov: &Covariance4,
+) -> Option<[f64; 4]> {
+    let (unit, pair_sigma) = (refined.noise_covariance?, refined.flat_residual_sigma?);
+    let misfit_sigma = self_test?.flat_sigma?;
+    let noise_var = pair_sigma * pair_sigma - misfit_sigma * misfit_sigma;
+    (noise_var > 0.0).then(|| {
+        std::array::from_fn(|k| {
+            let ratio = unit[k][k] * noise_var / cov[k][k];
+            if ratio.is_finite() {
+                ratio.clamp(1.0, MAX_NOISE_INFLATION.powi(2)).sqrt()
+            } else {
+                1.0
+            }
+        })
+    })
+}
+
+/// Most a σ is raised to the residual noise's (as the scalar ψ′ ratio's floor bounds it).
+const MAX_NOISE_INFLATION: f64 = 1.0 / MIN_PSI_RATIO;
 
 /// Reference pixels the refinement may use: inside `mask`, with a finite reference, and at
 /// least `margin` px (the smoothing's and the spline's reach) from the edges of both images
@@ -1235,7 +1407,7 @@ pub fn self_test_floor(
     mask: &Array2<bool>,
     sample: usize,
     settings: &RefineSettings,
-) -> Option<[f64; 4]> {
+) -> Option<SelfTest> {
     let (h, w) = reference.dim();
     let grid = CellGrid::new(mask.view(), sample)?;
     let pixels = lattice_pixels(
@@ -1264,6 +1436,7 @@ pub fn self_test_floor(
     // small undersampled images the error varies strongly with the sub-pixel position.
     let cases = (SELF_TEST_PIXEL_BUDGET / pixels.len().max(1)).clamp(4, 16);
     let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
+    let mut flat = Vec::with_capacity(cases);
     for case in 0..cases {
         let (dx, dy, turn_px, stretch_px) = self_test_case(case);
         let t = Similarity {
@@ -1287,13 +1460,16 @@ pub fn self_test_floor(
             sum[k] += test.bias[k] * test.bias[k];
             seen[k] += test.variance[k];
         }
+        flat.extend(test.flat_sigma);
     }
     // Only the error the residuals do not already show: without noise the cluster covariance
     // is made of these same interpolation residuals, and counting both overstated the σ
     // (TRACE 1024², no noise: 86–95 % of trials within 1σ).
-    Some(std::array::from_fn(|k| {
-        ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()
-    }))
+    Some(SelfTest {
+        floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()),
+        flat_sigma: (!flat.is_empty())
+            .then(|| (flat.iter().map(|s| s * s).sum::<f64>() / flat.len() as f64).sqrt()),
+    })
 }
 
 /// Pixels (summed over the cases) the self-test may refine: 4 cases at 2²⁰ pixels, up to 16
@@ -1384,13 +1560,30 @@ fn self_test_bias(
     let (a, b) = (transform.params(), test.transform.params());
     let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
     let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);
-    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase { bias, variance })
+    let flat_sigma = test.flat_residual_sigma;
+    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase {
+        bias,
+        variance,
+        flat_sigma,
+    })
 }
 
 /// One self-test case: the error it made, and the (cluster-robust) variance it reported.
 struct SelfTestCase {
     bias: [f64; 4],
     variance: [f64; 4],
+    /// Robust σ of its residuals at the flattest pixels: the model's misfit alone.
+    flat_sigma: Option<f64>,
+}
+
+/// What the self-test measured on a reference.
+#[derive(Debug, Clone, Copy)]
+pub struct SelfTest {
+    /// The systematic floor per parameter (scale, rotation rad, dx, dy).
+    pub floor: [f64; 4],
+    /// RMS over the cases of the residuals' robust σ at the flattest pixels: the level the
+    /// model's misfit alone leaves there, without noise.
+    pub flat_sigma: Option<f64>,
 }
 
 /// Bounding box (x0, y0, x1, y1), inclusive, of `pixels`; `None` when there are none.
@@ -1456,6 +1649,58 @@ const MAX_DISAGREEMENT_SIGMA: f64 = 5.0;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_noise_covariance_of_independent_pixels_is_least_squares() {
+        // Pixels far apart (no smoothing, so no correlation between them) with residuals far
+        // inside Tukey's c (ψ′ = 1 to 1e-10): the covariance of unit noise is the least-squares
+        // (ΣJJᵀ)⁻¹. With 6·n pixels whose instruments are a_k·e_k, that is diag(1/(n·a_k²)).
+        let n = 50;
+        let a = [2.0, 0.5, 1.0, 3.0, 0.25, 1.5];
+        let (mut pixels, mut jac) = (Vec::new(), Vec::new());
+        for k in 0..6 {
+            for i in 0..n {
+                pixels.push(Pixel {
+                    x: 4 * i,
+                    y: 4 * k,
+                    cell: 0,
+                    value: 0.0,
+                    gx: 1.0 + i as f64,
+                    gy: 0.0,
+                    neighbours: 0.0,
+                });
+                let mut row = [0.0; 6];
+                row[k] = a[k];
+                jac.push(row);
+            }
+        }
+        let residuals: Vec<f64> = (0..6 * n).map(|i| 1e-5 * (i % 7) as f64).collect();
+        let weights = vec![1.0; 6 * n];
+        let fit = ClusterFit {
+            jac: &jac,
+            residuals: &residuals,
+            weights: &weights,
+            slope_per_weight: 1.0,
+        };
+        let (cov, flat_sigma) =
+            noise_covariance(&pixels, &fit, |k| Vector6::from(jac[k]), 1.0, 0.0, true)
+                .expect("well posed");
+        let cov = cov.expect("a regular slope");
+        for k in 0..6 {
+            for j in 0..6 {
+                let want = if j == k {
+                    1.0 / (n as f64 * a[k] * a[k])
+                } else {
+                    0.0
+                };
+                assert!(
+                    (cov[(k, j)] - want).abs() <= 1e-9 * want.max(1.0),
+                    "({k}, {j})"
+                );
+            }
+        }
+        assert!(flat_sigma > 0.0 && flat_sigma < 1e-4, "{flat_sigma}");
+    }
 
     #[test]
     fn a_featureless_start_is_unusable_not_run_off() {
