@@ -900,13 +900,17 @@ fn noise_covariance(
             false => Vector6::zeros(),
         })
         .collect();
-    let slope = used
-        .par_iter()
-        .map(|&k| {
-            let psi = tukey_psi_slope(residuals[k], tukey_c);
-            Vector6::from(jac[k]) * frame_row(k).transpose() * psi
-        })
-        .reduce(Matrix6::zeros, |a, b| a + b);
+    // Summed in fixed chunks, in order: the same σ whatever the thread count.
+    let slope = sum_in_chunks(
+        used.len(),
+        |range| {
+            used[range].iter().fold(Matrix6::zeros(), |acc, &k| {
+                let psi = tukey_psi_slope(residuals[k], tukey_c);
+                acc + Vector6::from(jac[k]) * frame_row(k).transpose() * psi
+            })
+        },
+        |a, b| a + b,
+    );
     // The pixels lie on a lattice of every `step`-th row and column.
     let step = pixels
         .windows(2)
@@ -932,27 +936,33 @@ fn noise_covariance(
             (-d2 / (4.0 * s * s)).exp()
         })
         .collect();
-    let meat = used
-        .par_iter()
-        .map(|&i| {
-            let (cx, cy) = ((pixels[i].x / step) as isize, (pixels[i].y / step) as isize);
-            let mut near = Vector6::<f64>::zeros();
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    let (x, y) = (cx + dx, cy + dy);
-                    if x < 0 || y < 0 || x >= gw as isize || y >= gh as isize {
-                        continue;
-                    }
-                    let j = index[[y as usize, x as usize]];
-                    if j != u32::MAX {
-                        let t = (dy + reach) as usize * side + (dx + reach) as usize;
-                        near += u[j as usize] * correlation[t];
-                    }
+    let near_product = |i: usize| {
+        let (cx, cy) = ((pixels[i].x / step) as isize, (pixels[i].y / step) as isize);
+        let mut near = Vector6::<f64>::zeros();
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                let (x, y) = (cx + dx, cy + dy);
+                if x < 0 || y < 0 || x >= gw as isize || y >= gh as isize {
+                    continue;
+                }
+                let j = index[[y as usize, x as usize]];
+                if j != u32::MAX {
+                    let t = (dy + reach) as usize * side + (dx + reach) as usize;
+                    near += u[j as usize] * correlation[t];
                 }
             }
-            u[i] * near.transpose()
-        })
-        .reduce(Matrix6::zeros, |a, b| a + b);
+        }
+        u[i] * near.transpose()
+    };
+    let meat = sum_in_chunks(
+        used.len(),
+        |range| {
+            used[range]
+                .iter()
+                .fold(Matrix6::zeros(), |acc, &i| acc + near_product(i))
+        },
+        |a, b| a + b,
+    );
     let meat = (meat + meat.transpose()) * 0.5;
     let covariance = slope
         .try_inverse()
