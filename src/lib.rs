@@ -19,6 +19,7 @@ pub mod header;
 pub mod meta;
 pub mod time;
 
+pub mod blur;
 pub mod coarse;
 pub mod preprocess;
 pub mod resample;

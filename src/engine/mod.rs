@@ -238,6 +238,8 @@ struct Matched {
     binned: std::sync::OnceLock<Binned>,
     /// The reference as the refinement reads it (made on the first refinement).
     refine_reference: std::sync::OnceLock<refine::RefineReference>,
+    /// Radial power spectrum at the mask's centre, for the blur difference (first use).
+    spectrum: std::sync::OnceLock<Option<crate::blur::RadialSpectrum>>,
 }
 
 /// At most this many resolution-matched versions are kept per reference.
@@ -355,6 +357,7 @@ impl ReferenceWork {
             self_test: std::sync::OnceLock::new(),
             binned: std::sync::OnceLock::new(),
             refine_reference: std::sync::OnceLock::new(),
+            spectrum: std::sync::OnceLock::new(),
         });
         let mut cache = lock();
         if cache.len() >= MATCHED_CACHE {
@@ -465,7 +468,26 @@ fn align_inner(
         let prepared = matched
             .refine_reference
             .get_or_init(|| refine::RefineReference::new(ref_matched, &refine::settings(cfg, 0.0)));
+        let blur_of = |fine: &FineResult| {
+            let centre = [
+                mask_box.x as f64 + (mask_box.width as f64 - 1.0) / 2.0,
+                mask_box.y as f64 + (mask_box.height as f64 - 1.0) / 2.0,
+            ];
+            let side = mask_box.width.min(mask_box.height);
+            let reference = matched
+                .spectrum
+                .get_or_init(|| crate::blur::RadialSpectrum::around(ref_matched, centre, side))
+                .as_ref()?;
+            let frame = crate::blur::RadialSpectrum::around(
+                frame_data.view(),
+                fine.transform.apply(centre),
+                side,
+            )?;
+            crate::blur::blur_difference(reference, &frame, fine.transform.scale)
+        };
         let try_refine = |fine: &mut FineResult| {
+            let blur = blur_of(fine);
+            tracing::debug!(?blur, "blur difference");
             refine::apply(
                 &mut fine.transform,
                 &mut fine.covariance,
@@ -476,6 +498,7 @@ fn align_inner(
                 fine.sample_box,
                 &fine.inliers,
                 sig_frame,
+                blur,
                 fine.seed_level.map_or(0.0, seed_slack_px),
                 |settings| {
                     *matched.self_test.get_or_init(|| {

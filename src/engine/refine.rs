@@ -1058,6 +1058,7 @@ pub fn apply(
     sample_box: Option<(usize, usize, usize, usize)>,
     inliers: &[Correspondence],
     frame_smoothing_px: f64,
+    blur: Option<crate::blur::BlurDifference>,
     flow_slack_px: f64,
     self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
     cfg: &super::EngineConfig,
@@ -1068,8 +1069,22 @@ pub fn apply(
         ));
     };
     let grid = CellGrid::over_box(sample_box, cfg.sample);
-    let settings = settings(cfg, frame_smoothing_px);
-    let frame_sigma = settings.smoothing_px.hypot(frame_smoothing_px);
+    let base_settings = settings(cfg, frame_smoothing_px);
+    // A blur difference the model cannot absorb: the sharper image is blurred to the other's.
+    let (reference_extra, frame_smoothing_px) =
+        blur_matching(blur, frame_smoothing_px, base_settings.smoothing_px);
+    let blurred_reference;
+    let (prepared, settings) = if reference_extra > 0.0 {
+        let settings = RefineSettings {
+            smoothing_px: base_settings.smoothing_px.hypot(reference_extra),
+            ..base_settings
+        };
+        blurred_reference = RefineReference::new(reference, &settings);
+        (&blurred_reference, settings)
+    } else {
+        (prepared, base_settings)
+    };
+    let frame_sigma = base_settings.smoothing_px.hypot(frame_smoothing_px);
     let margin = gaussian_reach(frame_sigma.max(settings.smoothing_px)) + 3;
     let region = refinement_region(mask, reference, frame, transform, margin);
     let pixels = inlier_cell_pixels(
@@ -1141,7 +1156,7 @@ pub fn apply(
     if cfg.sigma == super::SigmaMethod::Calibrated {
         // The method's systematic floor for this reference, measured once per reference;
         // without it, the configured floor.
-        let self_tested = self_test(&settings);
+        let self_tested = self_test(&base_settings);
         let floor = self_tested.map(|t| t.floor);
         tracing::debug!(self_tested_at = ?started.elapsed(), "refinement self-test");
         if let Some(factors) = noise_factors(&refined, self_tested, &agreement_cov) {
@@ -1238,10 +1253,57 @@ pub fn apply(
     }
     *transform = refined.transform;
     *covariance = cov;
+    let matched = match blur {
+        Some(b)
+            if reference_extra > 0.0 || frame_smoothing_px > base_settings.frame_smoothing_px =>
+        {
+            format!(
+                ", blur matched (frame blurrier by {:.3} ± {:.3} px²)",
+                b.variance_px2 + base_settings.frame_smoothing_px.powi(2),
+                b.sigma_px2
+            )
+        }
+        _ => String::new(),
+    };
     Ok(format!(
-        "intensity refinement on {} px in {} blocks, {} iterations{note}",
+        "intensity refinement on {} px in {} blocks, {} iterations{matched}{note}",
         refined.pixels, refined.blocks, refined.iterations
     ))
+}
+
+/// Smallest blur difference matched, as a fraction of the refinement's smoothing variance:
+/// below it, what a difference does is within the noise-free σ (on a 512² TRACE crop the
+/// answer moves by about 5e-3 px per px² of difference).
+const MIN_MATCHED_BLUR_FRACTION: f64 = 0.02;
+
+/// Standard errors a blur difference must exceed to be matched. Not 3: the Hann window
+/// correlates neighbouring frequency bins, so the fit's scatter understates its error.
+const MIN_BLUR_SIGNIFICANCE: f64 = 5.0;
+
+/// How the sharper image is blurred to the other's: (σ of the Gaussian added to the
+/// reference, px; the frame's smoothing σ, px). A difference is matched when it is beyond
+/// [`MIN_BLUR_SIGNIFICANCE`] standard errors and [`MIN_MATCHED_BLUR_FRACTION`] of the
+/// smoothing variance.
+fn blur_matching(
+    blur: Option<crate::blur::BlurDifference>,
+    frame_smoothing_px: f64,
+    smoothing_px: f64,
+) -> (f64, f64) {
+    let unmatched = (0.0, frame_smoothing_px);
+    let Some(b) = blur else {
+        return unmatched;
+    };
+    // The frame's resolution-matching smoothing is part of its blur.
+    let excess = b.variance_px2 + frame_smoothing_px * frame_smoothing_px;
+    let significant = excess.abs() > MIN_BLUR_SIGNIFICANCE * b.sigma_px2
+        && excess.abs() > MIN_MATCHED_BLUR_FRACTION * smoothing_px * smoothing_px;
+    if !significant || !excess.is_finite() {
+        unmatched
+    } else if excess > 0.0 {
+        (excess.sqrt(), frame_smoothing_px)
+    } else {
+        (0.0, (-b.variance_px2).max(0.0).sqrt())
+    }
 }
 
 /// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives
