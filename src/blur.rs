@@ -310,10 +310,16 @@ mod tests {
             // seeing; the noise floor, modelled as white, is then too high at high frequency
             // in the blurred copy, which reads 2–3 % blurrier.
             let tolerance = 0.01 + 0.03 * injected;
-            assert!((d.variance_px2 - injected).abs() < tolerance, "{injected}: {d:?}");
+            assert!(
+                (d.variance_px2 - injected).abs() < tolerance,
+                "{injected}: {d:?}"
+            );
             // And the other way round.
             let d = blur_difference(&f, &r, 1.0).unwrap();
-            assert!((d.variance_px2 + injected).abs() < tolerance, "{injected}: {d:?}");
+            assert!(
+                (d.variance_px2 + injected).abs() < tolerance,
+                "{injected}: {d:?}"
+            );
         }
     }
 
