@@ -1862,6 +1862,33 @@ mod tests {
     }
 
     #[test]
+    fn only_a_significant_blur_difference_is_matched_on_the_blurrier_side() {
+        let blur = |v: f64, sd: f64| {
+            Some(crate::blur::BlurDifference {
+                variance_px2: v,
+                sigma_px2: sd,
+                bins: 50,
+            })
+        };
+        // Frame blurrier by 0.64 px²: the reference gets a Gaussian of that variance.
+        let m = blur_matching(blur(0.64, 0.005), 0.0, 0.7);
+        assert!((m.reference_extra - 0.8).abs() < 1e-12 && m.frame_smoothing_px == 0.0);
+        assert!(m.uncertainty_px2.is_some());
+        // Reference blurrier by 0.25 px²: the frame is smoothed by 0.5 px.
+        let m = blur_matching(blur(-0.25, 0.005), 0.0, 0.7);
+        assert!(m.reference_extra == 0.0 && (m.frame_smoothing_px - 0.5).abs() < 1e-12);
+        // The frame's resolution-matching smoothing (0.3 px) is part of its blur.
+        let m = blur_matching(blur(-0.25, 0.005), 0.3, 0.7);
+        assert!((m.frame_smoothing_px - 0.5).abs() < 1e-12);
+        // Within 5 standard errors, or under 2 % of the smoothing variance: nothing.
+        for (v, sd) in [(0.04, 0.01), (0.009, 0.0001)] {
+            let m = blur_matching(blur(v, sd), 0.0, 0.7);
+            assert_eq!((m.reference_extra, m.frame_smoothing_px), (0.0, 0.0));
+            assert!(m.uncertainty_px2.is_none());
+        }
+    }
+
+    #[test]
     fn a_featureless_start_is_unusable_not_run_off() {
         // Identical constant images: the residuals vanish on the first iteration. That says
         // the pixels hold no structure, not that the iterations went anywhere.
