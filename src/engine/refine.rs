@@ -1369,8 +1369,34 @@ fn blur_check(
     settings: &RefineSettings,
     mismatch_px2: f64,
 ) -> Option<[f64; 4]> {
+    let test = check_at_fractional_shift(
+        (reference, prepared, pixels, grid),
+        transform,
+        settings,
+        mismatch_px2.max(0.0).sqrt(),
+        FrameMaker::Model,
+    )?;
+    tracing::debug!(bias = ?test.bias, mismatch_px2, "blur check");
+    Some(test.bias.map(f64::abs))
+}
+
+/// A self-test at `transform` with its shift reduced to the fractional part (the same
+/// sub-pixel positions, and a synthetic frame that stays inside the reference), its frame
+/// smoothed by `frame_smoothing_px` beyond the reference's.
+fn check_at_fractional_shift(
+    (reference, prepared, pixels, grid): (
+        ArrayView2<f32>,
+        &RefineReference,
+        &[(usize, usize, usize)],
+        &CellGrid,
+    ),
+    transform: &Similarity,
+    settings: &RefineSettings,
+    frame_smoothing_px: f64,
+    maker: FrameMaker,
+) -> Option<SelfTestCase> {
     let settings = RefineSettings {
-        frame_smoothing_px: mismatch_px2.max(0.0).sqrt(),
+        frame_smoothing_px,
         ..*settings
     };
     let local = Similarity {
@@ -1378,17 +1404,7 @@ fn blur_check(
         dy: transform.dy - transform.dy.round(),
         ..*transform
     };
-    let test = self_test_bias(
-        reference,
-        prepared,
-        pixels,
-        grid,
-        &local,
-        &settings,
-        FrameMaker::Model,
-    )?;
-    tracing::debug!(bias = ?test.bias, mismatch_px2, "blur check");
-    Some(test.bias.map(f64::abs))
+    self_test_bias(reference, prepared, pixels, grid, &local, &settings, maker)
 }
 
 /// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives
@@ -1526,22 +1542,11 @@ fn interpolation_check(
     transform: &Similarity,
     settings: &RefineSettings,
 ) -> Option<[f64; 4]> {
-    let settings = RefineSettings {
-        frame_smoothing_px: 0.0,
-        ..*settings
-    };
-    let local = Similarity {
-        dx: transform.dx - transform.dx.round(),
-        dy: transform.dy - transform.dy.round(),
-        ..*transform
-    };
-    let test = self_test_bias(
-        reference,
-        prepared,
-        pixels,
-        grid,
-        &local,
-        &settings,
+    let test = check_at_fractional_shift(
+        (reference, prepared, pixels, grid),
+        transform,
+        settings,
+        0.0,
         FrameMaker::CubicSpline,
     )?;
     tracing::debug!(bias = ?test.bias, variance = ?test.variance, "interpolation check");
