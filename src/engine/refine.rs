@@ -1370,7 +1370,10 @@ fn blur_check(
     mismatch_px2: f64,
 ) -> Option<[f64; 4]> {
     let test = check_at_fractional_shift(
-        (reference, prepared, pixels, grid),
+        reference,
+        prepared,
+        pixels,
+        grid,
         transform,
         settings,
         mismatch_px2.max(0.0).sqrt(),
@@ -1383,13 +1386,12 @@ fn blur_check(
 /// A self-test at `transform` with its shift reduced to the fractional part (the same
 /// sub-pixel positions, and a synthetic frame that stays inside the reference), its frame
 /// smoothed by `frame_smoothing_px` beyond the reference's.
+#[allow(clippy::too_many_arguments)]
 fn check_at_fractional_shift(
-    (reference, prepared, pixels, grid): (
-        ArrayView2<f32>,
-        &RefineReference,
-        &[(usize, usize, usize)],
-        &CellGrid,
-    ),
+    reference: ArrayView2<f32>,
+    prepared: &RefineReference,
+    pixels: &[(usize, usize, usize)],
+    grid: &CellGrid,
     transform: &Similarity,
     settings: &RefineSettings,
     frame_smoothing_px: f64,
@@ -1543,7 +1545,10 @@ fn interpolation_check(
     settings: &RefineSettings,
 ) -> Option<[f64; 4]> {
     let test = check_at_fractional_shift(
-        (reference, prepared, pixels, grid),
+        reference,
+        prepared,
+        pixels,
+        grid,
         transform,
         settings,
         0.0,
