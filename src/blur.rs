@@ -230,9 +230,11 @@ fn fft(data: &mut [Complex]) {
     let mut len = 2;
     while len <= n {
         let angle = -2.0 * std::f64::consts::PI / len as f64;
+        let twiddles: Vec<Complex> = (0..len / 2)
+            .map(|k| Complex::new((angle * k as f64).cos(), (angle * k as f64).sin()))
+            .collect();
         for start in (0..n).step_by(len) {
-            for k in 0..len / 2 {
-                let twiddle = Complex::new((angle * k as f64).cos(), (angle * k as f64).sin());
+            for (k, &twiddle) in twiddles.iter().enumerate() {
                 let (a, b) = (data[start + k], data[start + k + len / 2].mul(twiddle));
                 data[start + k] = Complex::new(a.re + b.re, a.im + b.im);
                 data[start + k + len / 2] = Complex::new(a.re - b.re, a.im - b.im);
