@@ -486,8 +486,9 @@ fn align_inner(
             crate::blur::blur_difference(reference, &frame, fine.transform.scale)
         };
         let try_refine = |fine: &mut FineResult| {
+            let measured = Instant::now();
             let blur = blur_of(fine);
-            tracing::debug!(?blur, "blur difference");
+            tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
             refine::apply(
                 &mut fine.transform,
                 &mut fine.covariance,
