@@ -33,6 +33,9 @@ pub struct BlurDifference {
     pub variance_px2: f64,
     /// Its standard error from the fit's scatter, px².
     pub sigma_px2: f64,
+    /// Half the difference between the two halves of the band, px²: 0 for a Gaussian blur,
+    /// more for another shape (a defocused pillbox, a seeing halo).
+    pub shape_px2: f64,
     /// Frequency bins fitted.
     pub bins: usize,
 }
@@ -136,7 +139,6 @@ pub fn blur_difference(
     scale: f64,
 ) -> Option<BlurDifference> {
     let n = frame.side as f64;
-    let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
     let mut points = Vec::new();
     for bin in 2..frame.power.len() {
         let k = bin as f64 / n;
@@ -159,16 +161,42 @@ pub fn blur_difference(
         let x = (2.0 * std::f64::consts::PI * k).powi(2);
         let y = (pf - frame.noise_power).ln() - lr;
         // Each bin's log power is the mean of `count` periodogram values.
-        let weight = frame.count[bin] as f64;
-        points.push((x, y, weight));
-        sw += weight;
-        sx += weight * x;
-        sy += weight * y;
-        sxx += weight * x * x;
-        sxy += weight * x * y;
+        points.push((x, y, frame.count[bin] as f64));
     }
     if points.len() < 4 {
         return None;
+    }
+    let (slope, sigma) = fit_line(&points)?;
+    // A blur of another shape than a Gaussian's bends the line: the two halves of the band
+    // then disagree, and a Gaussian match is good only to about half their difference.
+    let half = (2.0 * std::f64::consts::PI * MAX_FREQUENCY / 2.0).powi(2);
+    let (low, high): (Vec<_>, Vec<_>) = points.iter().partition(|p| p.0 <= half);
+    let shape = match (fit_line(&low), fit_line(&high)) {
+        (Some((a, _)), Some((b, _))) if low.len() >= 3 && high.len() >= 3 => (a - b).abs() / 2.0,
+        _ => 0.0,
+    };
+    Some(BlurDifference {
+        variance_px2: -slope,
+        sigma_px2: sigma,
+        shape_px2: shape,
+        bins: points.len(),
+    })
+}
+
+/// Weighted least-squares line through (x, y, weight): its slope and the slope's standard
+/// error (the weights are inverse variances up to a common factor, which the scatter
+/// estimates).
+fn fit_line(points: &[(f64, f64, f64)]) -> Option<(f64, f64)> {
+    if points.len() < 3 {
+        return None;
+    }
+    let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for &(x, y, w) in points {
+        sw += w;
+        sx += w * x;
+        sy += w * y;
+        sxx += w * x * x;
+        sxy += w * x * y;
     }
     let det = sw * sxx - sx * sx;
     if det <= 0.0 {
@@ -180,14 +208,7 @@ pub fn blur_difference(
         .iter()
         .map(|&(x, y, w)| w * (y - intercept - slope * x).powi(2))
         .sum();
-    // Weighted least squares: the weights are inverse variances up to a common factor,
-    // which the residual scatter estimates.
-    let sigma = (rss / (points.len() - 2) as f64 * sw / det).sqrt();
-    Some(BlurDifference {
-        variance_px2: -slope,
-        sigma_px2: sigma,
-        bins: points.len(),
-    })
+    Some((slope, (rss / (points.len() - 2) as f64 * sw / det).sqrt()))
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -323,6 +344,39 @@ mod tests {
                 "{injected}: {d:?}"
             );
         }
+    }
+
+    #[test]
+    fn a_box_blur_is_measured_by_its_variance_and_flagged_as_not_gaussian() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/data/real/trace_171_19980519T222143_1024.fits"
+        );
+        let image = crate::fits::read_frame(&crate::fits::FrameSpec::parse(path)).unwrap();
+        let sharp = image.data.slice(ndarray::s![256..768, 256..768]).to_owned();
+        // A 3×3 mean: variance 2/3 px² per axis, and an MTF (sinc²) that is no Gaussian's.
+        let boxed = Array2::from_shape_fn((512, 512), |(y, x)| {
+            let (y0, x0) = (y.clamp(1, 510), x.clamp(1, 510));
+            sharp
+                .slice(ndarray::s![y0 - 1..=y0 + 1, x0 - 1..=x0 + 1])
+                .sum()
+                / 9.0
+        });
+        let gaussian = crate::preprocess::gaussian_smooth(sharp.view(), (2.0f64 / 3.0).sqrt());
+        let centre = [255.5, 255.5];
+        let r = RadialSpectrum::around(sharp.view(), centre, 512).unwrap();
+        let of = |img: &Array2<f32>| {
+            let f = RadialSpectrum::around(img.view(), centre, 512).unwrap();
+            blur_difference(&r, &f, 1.0).unwrap()
+        };
+        let (b, g) = (of(&boxed), of(&gaussian));
+        // The Gaussian line through a sinc² reads 0.82 px²: the shape term says how far off a
+        // Gaussian reading of this blur may be.
+        assert!(
+            (b.variance_px2 - 2.0 / 3.0).abs() < 2.0 * b.shape_px2,
+            "{b:?}"
+        );
+        assert!(b.shape_px2 > 3.0 * g.shape_px2, "{b:?} against {g:?}");
     }
 
     #[test]

@@ -1322,8 +1322,11 @@ fn blur_matching(
     if !significant || !excess.is_finite() {
         return unmatched;
     }
-    let uncertainty_px2 =
-        Some((BLUR_SIGMA_UNDERSTATEMENT * b.sigma_px2).hypot(BLUR_SYSTEMATIC_FRACTION * excess));
+    let uncertainty_px2 = Some(
+        (BLUR_SIGMA_UNDERSTATEMENT * b.sigma_px2)
+            .hypot(BLUR_SYSTEMATIC_FRACTION * excess)
+            .hypot(b.shape_px2),
+    );
     if excess > 0.0 {
         BlurMatch {
             reference_extra: excess.sqrt(),
@@ -1877,6 +1880,7 @@ mod tests {
             Some(crate::blur::BlurDifference {
                 variance_px2: v,
                 sigma_px2: sd,
+                shape_px2: 0.0,
                 bins: 50,
             })
         };
