@@ -1,6 +1,7 @@
 """Known-truth pairs whose frame is also blurred (seeing-like), through `sunjitter align`.
 
     python3 tools/other_instruments/blur_pairs.py IMAGE BLUR_PX NOISE_K N SEED
+    BLUR_KERNEL=pillbox python3 tools/other_instruments/blur_pairs.py ...   (a disk of radius BLUR_PX)
 
 The frame is the image moved by a random similarity (quintic spline, scipy), then blurred by a
 Gaussian of BLUR_PX; NOISE_K times the background sigma of noise goes into both. Prints per pair
@@ -22,7 +23,10 @@ for t in range(n):
     X = xx - c[0] - dx; Y = yy - c[1] - dy; ct, st = np.cos(th), np.sin(th)
     px = (ct*X + st*Y)/s + c[0]; py = (-st*X + ct*Y)/s + c[1]
     fr = ndimage.map_coordinates(coef, [py, px], order=5, mode='mirror', prefilter=False)
-    if blur > 0: fr = ndimage.gaussian_filter(fr, blur)
+    if blur > 0 and os.environ.get('BLUR_KERNEL') == 'pillbox':
+        r_k = int(np.ceil(blur)); yk, xk = np.mgrid[-r_k:r_k+1, -r_k:r_k+1]
+        ker = (np.hypot(xk, yk) <= blur).astype(float); fr = ndimage.convolve(fr, ker / ker.sum(), mode='mirror')
+    elif blur > 0: fr = ndimage.gaussian_filter(fr, blur)
     r = ref.copy()
     if noise_k > 0: r += noise_k*bg*rng.standard_normal(r.shape); fr += noise_k*bg*rng.standard_normal(fr.shape)
     fits.PrimaryHDU(r.astype(np.float32), hdu.header).writeto(RP, overwrite=True)
