@@ -1298,8 +1298,8 @@ const MIN_MATCHED_BLUR_FRACTION: f64 = 0.02;
 /// correlates neighbouring frequency bins, so the fit's scatter understates its error.
 const MIN_BLUR_SIGNIFICANCE: f64 = 5.0;
 
-/// How the sharper image is blurred to the other's: (σ of the Gaussian added to the
-/// reference, px; the frame's smoothing σ, px). A difference is matched when it is beyond
+/// How the sharper image is blurred to the other's, and how uncertain that is. A difference
+/// (the frame's resolution-matching smoothing included) is matched when it is beyond
 /// [`MIN_BLUR_SIGNIFICANCE`] standard errors and [`MIN_MATCHED_BLUR_FRACTION`] of the
 /// smoothing variance.
 fn blur_matching(
