@@ -304,6 +304,16 @@ mod tests {
         }
     }
 
+    /// The central 512² of the bundled TRACE image.
+    fn trace_centre_512() -> Array2<f32> {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/data/real/trace_171_19980519T222143_1024.fits"
+        );
+        let image = crate::fits::read_frame(&crate::fits::FrameSpec::parse(path)).unwrap();
+        image.data.slice(ndarray::s![256..768, 256..768]).to_owned()
+    }
+
     /// Variance of the sampled Gaussian kernel that `preprocess::gaussian_smooth` applies.
     fn kernel_variance(sigma: f64) -> f64 {
         let radius = (4.0 * sigma + 0.5) as i64;
@@ -316,12 +326,7 @@ mod tests {
 
     #[test]
     fn an_injected_gaussian_blur_is_measured_on_a_real_image() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/real/trace_171_19980519T222143_1024.fits"
-        );
-        let image = crate::fits::read_frame(&crate::fits::FrameSpec::parse(path)).unwrap();
-        let sharp = image.data.slice(ndarray::s![256..768, 256..768]).to_owned();
+        let sharp = trace_centre_512();
         let centre = [255.5, 255.5];
         for sigma in [0.5, 0.8, 1.2] {
             let injected = kernel_variance(sigma);
@@ -348,12 +353,7 @@ mod tests {
 
     #[test]
     fn a_box_blur_is_measured_by_its_variance_and_flagged_as_not_gaussian() {
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/data/real/trace_171_19980519T222143_1024.fits"
-        );
-        let image = crate::fits::read_frame(&crate::fits::FrameSpec::parse(path)).unwrap();
-        let sharp = image.data.slice(ndarray::s![256..768, 256..768]).to_owned();
+        let sharp = trace_centre_512();
         // A 3×3 mean: variance 2/3 px² per axis, and an MTF (sinc²) that is no Gaussian's.
         let boxed = Array2::from_shape_fn((512, 512), |(y, x)| {
             let (y0, x0) = (y.clamp(1, 510), x.clamp(1, 510));
