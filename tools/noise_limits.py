@@ -13,13 +13,16 @@ Monte Carlo):
 2. the exact covariance of the engine's refinement equations, linearised: both images
    smoothed by `--smoothing` px, the reference's (noisy) gradient as instrument, the slope
    from the noise-free gradient; one noise realisation for the instrument;
-3. the covariance of the best estimator of that kind found (`--best`): a symmetric one, whose
+3. the covariance of the best estimator of that kind found (`--best`, with 4.): a symmetric one, whose
    instrument is the gradient of the two images' mean (its noise is then uncorrelated with
    the difference's, and half as large), filtered by a Gaussian of 0.5–1 px or by a power of
    the Wiener filter built from the noise-free image's own spectrum (an oracle no real
    estimator has). The residual stays unfiltered. With the scene unknown, an instrument's
    noise costs information wherever the scene's power is comparable to the noise's, so this
-   sits above the bound; it shows how close an estimator of this kind can come.
+   sits above the bound; it shows how close an estimator of this kind can come;
+4. with `--best`, the bound for a shift alone when the scene is random with the image's own
+   spectrum, which the Wiener-weighted symmetric instrument attains (see
+   `random_scene_translation_bound`).
 
 The image is cleaned of hot pixels first, with the engine's rule (`preprocess::
 remove_hot_pixels`, default fraction 1.0): `simulate` does the same before making frames, and
@@ -143,6 +146,7 @@ def main():
     print(f"{label:44s}%10.3g%9.3g%10.3g%10.3g" % sigmas(Ai @ B @ Ai.T))
     if a.best:
         best_symmetric(img, sigma, mask, qx, qy)
+        random_scene_translation_bound(img, sigma)
 
 
 def best_symmetric(img, sigma, mask, qx, qy):
@@ -166,6 +170,27 @@ def best_symmetric(img, sigma, mask, qx, qy):
         Ai = np.linalg.inv(A)
         label = f"symmetric instrument, {name}"
         print(f"{label:44s}%10.3g%9.3g%10.3g%10.3g" % sigmas(Ai @ B @ Ai.T))
+
+
+def random_scene_translation_bound(img, sigma):
+    """The Cramér–Rao bound of a shift alone when the scene is unknown and random (Gaussian,
+    with the image's own power spectrum P) rather than a fixed unknown: per Fourier mode of
+    the two noisy copies, the Fisher information is k²·P²/(σ_N²·(2P + σ_N²)) instead of the
+    fixed scene's k²·P/(2σ_N²) (σ_N² = N·σ² for the unnormalised DFT). The loss is where the
+    scene's power is comparable to the noise's, and the symmetric Wiener-weighted instrument
+    above attains this bound: it is the limit for an estimator that must learn the scene from
+    the two noisy images. Spectra of the image mirrored into a 2×2 tile (no edge jumps)."""
+    tile = np.block([[img, img[:, ::-1]], [img[::-1, :], img[::-1, ::-1]]])
+    power = np.abs(np.fft.fft2(tile - tile.mean())) ** 2
+    noise_power = tile.size * sigma**2
+    for axis, name in ((1, "dx"), (0, "dy")):
+        k2 = (2 * np.pi * np.fft.fftfreq(tile.shape[axis])) ** 2
+        k2 = k2[None, :] if axis == 1 else k2[:, None]
+        # The tile holds four copies of the image.
+        fixed = (k2 * power / (2 * noise_power)).sum() / 4
+        random = (k2 * power**2 / (noise_power * (2 * power + noise_power))).sum() / 4
+        print(f"shift alone, {name}: Cramér–Rao bound {fixed ** -0.5:.3g} px for a fixed scene, "
+              f"{random ** -0.5:.3g} px for a random one with the image's spectrum")
 
 
 if __name__ == "__main__":
