@@ -33,18 +33,33 @@ pub fn disk_mask(
 pub const HOT_PIXEL_NOISE_SIGMAS: f32 = 5.0;
 
 /// Replace pixels deviating from their 3×3 median by more than `threshold_fraction` of
-/// that median (and by more than [`HOT_PIXEL_NOISE_SIGMAS`] of the noise) with the
-/// median. Non-finite pixels are left alone and ignored by the medians.
-/// Returns the number of pixels replaced.
+/// that median (and by more than [`HOT_PIXEL_NOISE_SIGMAS`] of the noise), and standing alone
+/// by [`HOT_PIXEL_LONE_FACTOR`], with the median. Non-finite pixels are left alone and
+/// ignored by the medians. Returns the number of pixels replaced.
 pub fn remove_hot_pixels(img: &mut Array2<f32>, threshold_fraction: f32) -> usize {
-    remove_hot_pixels_with(img, threshold_fraction, HOT_PIXEL_NOISE_SIGMAS)
+    remove_hot_pixels_with(
+        img,
+        threshold_fraction,
+        HOT_PIXEL_NOISE_SIGMAS,
+        HOT_PIXEL_LONE_FACTOR,
+    )
 }
 
-/// [`remove_hot_pixels`] with an explicit noise guard (0 disables it: the paper's test).
+/// [`remove_hot_pixels`] without the test that the pixel stands alone: every suspect goes,
+/// real compact features included. For a scene that is to be warped into synthetic frames
+/// (`simulate`): a detector defect warped along with the Sun would be a feature no real pair
+/// has, and what this removes of real structure it removes from both images alike.
+pub fn remove_spikes_from_scene(img: &mut Array2<f32>, threshold_fraction: f32) -> usize {
+    remove_hot_pixels_with(img, threshold_fraction, HOT_PIXEL_NOISE_SIGMAS, 0.0)
+}
+
+/// [`remove_hot_pixels`] with an explicit noise guard (0 disables it: the paper's test) and
+/// lone factor (0: every suspect stands alone).
 pub fn remove_hot_pixels_with(
     img: &mut Array2<f32>,
     threshold_fraction: f32,
     noise_sigmas: f32,
+    lone_factor: f32,
 ) -> usize {
     let medians = median3x3(&img.view());
     // Image-wide robust noise of the residual: 1.4826 × median |v − m|, from at most
@@ -86,8 +101,15 @@ pub fn remove_hot_pixels_with(
                 // Cheap tests first (false for NaN): most pixels end here.
                 let suspect = dev > threshold_fraction * m.abs() && dev > noise_sigmas * sigma;
                 // The local spread is needed only for the few suspects.
-                (suspect && dev > noise_sigmas * neighbour_spread(view, y, x, m))
-                    .then_some((y, x, m))
+                let is_suspect = |yy: usize, xx: usize| {
+                    let (v, m) = (view[[yy, xx]], medians[[yy, xx]]);
+                    let dev = (v - m).abs();
+                    dev > threshold_fraction * m.abs() && dev > noise_sigmas * sigma
+                };
+                (suspect
+                    && dev > noise_sigmas * neighbour_spread(view, y, x, m)
+                    && stands_alone(view, medians, (y, x), lone_factor, is_suspect))
+                .then_some((y, x, m))
             })
         })
         .collect();
@@ -95,6 +117,89 @@ pub fn remove_hot_pixels_with(
         img[[y, x]] = m;
     }
     hits.len()
+}
+
+/// A hot pixel (or a cosmic ray's hit) stands alone: it rises above the floor of its 8
+/// neighbours by more than this many times the brightest of them does. A real feature,
+/// however compact, spills into a neighbour (the optics' PSF, the pixel's own footprint): a
+/// point source with a PSF of FWHM 1 px, centred on a pixel, rises 7.4× as high as its
+/// brightest neighbour, and less at any other phase. On the 128² AIA 171 image, rebinned
+/// 32×, the previous rules flagged 33 bright cores of real structure, at most 3.2× their
+/// brightest neighbour by this measure. Their cleaning depends on
+/// the sub-pixel phase, so it differs between two images of the same Sun: between channels
+/// the flow came back 188″ and 0.013 px off (RMSE, 8 pairs), 2.2″ and 0.0007 px with this
+/// rule. The largest spikes on the raw TRACE, EIT and IRIS frames stand 10–305× above their
+/// neighbours.
+pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;
+
+/// Whether the pixel at `at` stands alone: its rise above the floor of its 8 neighbours is
+/// more than `lone_factor` times the brightest neighbour's (mirrored for a dark pixel). Or it stands alone together with that neighbour, when that one is a `suspect` too
+/// and the pair does among the rest of their neighbours: a cosmic ray's hit of two pixels.
+fn stands_alone(
+    img: &ArrayView2<f32>,
+    medians: &Array2<f32>,
+    at: (usize, usize),
+    lone_factor: f32,
+    suspect: impl Fn(usize, usize) -> bool,
+) -> bool {
+    let above = img[[at.0, at.1]] > medians[[at.0, at.1]];
+    let Some(alone) = rise_over_neighbours(img, at, above, None) else {
+        return true;
+    };
+    if alone.ratio > lone_factor {
+        return true;
+    }
+    let partner = alone.brightest;
+    let pair_alone = |of: (usize, usize), but: (usize, usize)| {
+        rise_over_neighbours(img, of, above, Some(but)).is_none_or(|r| r.ratio > lone_factor)
+    };
+    suspect(partner.0, partner.1) && pair_alone(at, partner) && pair_alone(partner, at)
+}
+
+/// How a pixel rises above its neighbours (but `skip`), on its side (`above`, or mirrored).
+struct Rise {
+    /// The pixel's rise above the neighbours' floor over the brightest neighbour's.
+    ratio: f32,
+    brightest: (usize, usize),
+}
+
+fn rise_over_neighbours(
+    img: &ArrayView2<f32>,
+    (y, x): (usize, usize),
+    above: bool,
+    skip: Option<(usize, usize)>,
+) -> Option<Rise> {
+    let (h, w) = img.dim();
+    let signed = |v: f32| if above { v } else { -v };
+    let (mut floor, mut top) = (f32::INFINITY, f32::NEG_INFINITY);
+    let mut brightest = (y, x);
+    for yy in y.saturating_sub(1)..(y + 2).min(h) {
+        for xx in x.saturating_sub(1)..(x + 2).min(w) {
+            let n = img[[yy, xx]];
+            if (yy, xx) == (y, x) || Some((yy, xx)) == skip || !n.is_finite() {
+                continue;
+            }
+            let n = signed(n);
+            floor = floor.min(n);
+            if n > top {
+                top = n;
+                brightest = (yy, xx);
+            }
+        }
+    }
+    if !top.is_finite() {
+        return None;
+    }
+    let rise = signed(img[[y, x]]) - floor;
+    let spread = top - floor;
+    Some(Rise {
+        ratio: if spread > 0.0 {
+            rise / spread
+        } else {
+            f32::INFINITY
+        },
+        brightest,
+    })
 }
 
 /// Robust σ of the 8 neighbours about `median`: 1.4826 × median |n − median|.
@@ -1130,6 +1235,53 @@ mod tests {
                 "({x}, {y}): {orig} → {} → {now}",
                 hit[[y, x]]
             );
+        }
+    }
+
+    /// A real feature spills into a neighbour however compact it is: a point source imaged
+    /// with a Gaussian PSF of FWHM 1 px (σ 0.425 px), integrated over each pixel, rises at
+    /// most 7.4× as far above its neighbours' floor as its brightest neighbour does (centred
+    /// on a pixel; less elsewhere). The previous rules replaced its core at every phase here.
+    /// At every sub-pixel phase it stays; a lone spike beside it goes.
+    #[test]
+    fn an_undersampled_point_source_is_not_a_hot_pixel_at_any_phase() {
+        let erf = |z: f64| {
+            // Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7).
+            let t = 1.0 / (1.0 + 0.3275911 * z.abs());
+            let y = 1.0
+                - t * (0.254829592
+                    + t * (-0.284496736
+                        + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+                    * (-z * z).exp();
+            y.copysign(z)
+        };
+        let sigma = 1.0 / (2.0 * (2.0 * 2f64.ln()).sqrt());
+        let cover = |lo: f64, hi: f64| {
+            0.5 * (erf(hi / (sigma * 2f64.sqrt())) - erf(lo / (sigma * 2f64.sqrt())))
+        };
+        for (k, (fx, fy)) in [(0.0, 0.0), (0.5, 0.0), (0.25, 0.4), (0.5, 0.5), (0.1, 0.3)]
+            .into_iter()
+            .enumerate()
+        {
+            let (cx, cy) = (16.0 + fx, 16.0 + fy);
+            let mut img = Array2::from_shape_fn((33, 33), |(y, x)| {
+                let px = cover(x as f64 - 0.5 - cx, x as f64 + 0.5 - cx);
+                let py = cover(y as f64 - 0.5 - cy, y as f64 + 0.5 - cy);
+                (100.0 + 0.2 * x as f64 + 2000.0 * px * py) as f32
+            });
+            img[[5, 26]] += 1500.0;
+            let before = img.clone();
+            let count = remove_hot_pixels(&mut img, 1.0);
+            assert_eq!(count, 1, "phase {k}: {count} replaced");
+            assert!(
+                (img[[5, 26]] - before[[5, 25]]).abs() < 1.0,
+                "the spike is replaced"
+            );
+            for y in 12..21 {
+                for x in 12..21 {
+                    assert_eq!(img[[y, x]], before[[y, x]], "phase {k}: ({x}, {y}) changed");
+                }
+            }
         }
     }
 

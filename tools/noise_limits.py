@@ -24,8 +24,8 @@ Monte Carlo):
    spectrum, which the Wiener-weighted symmetric instrument attains (see
    `random_scene_translation_bound`).
 
-The image is cleaned of hot pixels first, with the engine's rule (`preprocess::
-remove_hot_pixels`, default fraction 1.0): `simulate` does the same before making frames, and
+The image is cleaned of hot pixels first, as `simulate` cleans the scene it warps
+(`preprocess::remove_spikes_from_scene`, default fraction 1.0), and
 a hot pixel left in would count as a 1000-DN point feature, which no solar scene has
 (on TRACE 1024² its 29 spikes alone would lower the bound by 30 %).
 
@@ -64,9 +64,14 @@ def background_noise(img, block=16, quantile=0.10):
     return np.quantile(sigmas, quantile, method="nearest") / at_quantile
 
 
-def remove_hot_pixels(img, fraction=1.0, noise_sigmas=5.0):
-    """The engine's rule: |v − m| > fraction·|m|, > k·σ (image-wide MAD of v − m) and
-    > k × the robust spread of the 8 neighbours about m; replaced by m (3×3 median)."""
+def remove_hot_pixels(img, fraction=1.0, noise_sigmas=5.0, lone=0.0):
+    """The engine's rules (`preprocess::remove_hot_pixels_with`): |v − m| > fraction·|m|,
+    > k·σ (image-wide MAD of v − m) and > k × the robust spread of the 8 neighbours about
+    m; and the pixel stands alone: it rises above the floor of its 8 neighbours by more than
+    `lone` × what the brightest of them does (mirrored for a dark pixel), or does so together
+    with that neighbour (a two-pixel hit) when the neighbour is a suspect too. Replaced by m
+    (3×3 median). `lone = 0` (every suspect) is how `simulate` cleans the scene it warps
+    (`remove_spikes_from_scene`); the engine cleans each image with `lone = 10`."""
     m = ndimage.median_filter(img, 3, mode="nearest")
     dev = np.abs(img - m)
     sigma = 1.482602218505602 * np.median(dev)
@@ -75,7 +80,30 @@ def remove_hot_pixels(img, fraction=1.0, noise_sigmas=5.0):
     neigh = np.stack([pad[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
                       for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)])
     spread = 1.482602218505602 * np.median(np.abs(neigh - m), axis=0)
-    hot = (dev > fraction * np.abs(m)) & (dev > noise_sigmas * sigma) & (dev > noise_sigmas * spread)
+    suspect = (dev > fraction * np.abs(m)) & (dev > noise_sigmas * sigma)
+    candidates = suspect & (dev > noise_sigmas * spread)
+
+    def rise(y, x, sign, skip=None):
+        """(the pixel's rise over the neighbours' floor / the brightest one's, where it is)"""
+        vals = [(sign * img[yy, xx], (yy, xx))
+                for yy in range(max(y - 1, 0), min(y + 2, h))
+                for xx in range(max(x - 1, 0), min(x + 2, w))
+                if (yy, xx) not in ((y, x), skip) and np.isfinite(img[yy, xx])]
+        if not vals:
+            return np.inf, None
+        floor = min(v for v, _ in vals)
+        top, where = max(vals)
+        up = sign * img[y, x] - floor
+        return (up / (top - floor) if top > floor else np.inf), where
+
+    hot = np.zeros_like(candidates)
+    for y, x in zip(*np.nonzero(candidates)):
+        sign = 1.0 if img[y, x] > m[y, x] else -1.0
+        ratio, partner = rise(y, x, sign)
+        if ratio > lone:
+            hot[y, x] = True
+        elif suspect[partner]:
+            hot[y, x] = rise(y, x, sign, partner)[0] > lone and rise(*partner, sign, (y, x))[0] > lone
     out = np.where(hot, m, img)
     return out, int(hot.sum())
 

@@ -71,9 +71,10 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     let mut reference = fits::read_frame(&FrameSpec::parse(&args.image))?;
     // Clean cosmic-ray hits and hot pixels before making frames: a spike smeared by the warp
-    // is no longer recognisable as one, and would be a difference no real pair has.
+    // is no longer recognisable as one, and would be a difference no real pair has. Every
+    // suspect goes, also those the engine keeps as possibly real.
     if cfg.hot_pixel_fraction > 0.0 {
-        crate::preprocess::remove_hot_pixels(&mut reference.data, cfg.hot_pixel_fraction);
+        crate::preprocess::remove_spikes_from_scene(&mut reference.data, cfg.hot_pixel_fraction);
     }
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);

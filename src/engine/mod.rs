@@ -9,6 +9,7 @@
 pub mod output;
 pub mod quality;
 
+mod flow_check;
 mod geometry_check;
 pub mod refine;
 mod sigma;
@@ -565,6 +566,38 @@ fn align_inner(
                 }
             }
         }
+    }
+    // The flow's answer is final: its σ must cover its own interpolation bias, which the
+    // scatter of its vectors does not show (see `flow_check`).
+    if !refining && cfg.sigma == SigmaMethod::Calibrated {
+        let checked = Instant::now();
+        let region = FlowRegion {
+            mask,
+            sample_within: limb_clear,
+        };
+        match flow_check::flow_interpolation_check(
+            ref_matched,
+            region,
+            &fine.transform,
+            &coarse,
+            winsize,
+            cfg,
+        ) {
+            Some(term) => {
+                for (k, t) in term.iter().enumerate() {
+                    fine.covariance[k][k] += t * t;
+                }
+                notes.push(format!(
+                    "flow interpolation check {:.1e} / {:.3}″ / {:.1e} / {:.1e} px",
+                    term[0],
+                    term[1] * crate::geometry::ARCSEC_PER_RAD,
+                    term[2],
+                    term[3]
+                ));
+            }
+            None => notes.push("flow interpolation check could not run".to_string()),
+        }
+        tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
     }
     if !fine.converged {
         notes.push(format!(
