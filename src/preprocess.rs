@@ -127,7 +127,7 @@ pub fn remove_hot_pixels_with(
 /// 32×, the previous rules flagged 33 bright cores of real structure, at most 3.2× their
 /// brightest neighbour by this measure. Their cleaning depends on
 /// the sub-pixel phase, so it differs between two images of the same Sun: between channels
-/// the flow came back 188″ and 0.013 px off (RMSE, 8 pairs), 2.2″ and 0.0007 px with this
+/// the flow came back 188″ and 0.013 px off (RMSE, 8 pairs), 2.5″ and 0.0006 px with this
 /// rule. The largest spikes on the raw TRACE, EIT and IRIS frames stand 10–305× above their
 /// neighbours.
 pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;

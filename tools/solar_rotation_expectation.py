@@ -16,7 +16,7 @@ Defaults are the bundled EIT 195 -> 171 pair: the true plate scale 21.04"/px (8 
 the headers were not updated when the images were rebinned), the photospheric radius
 979.07" (the header's SOLAR_R x CDELT), SOHO rolled 180 deg, the disk centre sunjitter's
 limb fit finds in the reference (62.8, 64.2) and the region its flow samples between
-channels (the disk less the flow's reach, 48.5 - 17 = 31.5 px).
+channels (the disk less the flow's reach, 48.5 - 19 = 29.5 px).
 """
 import argparse
 import math
@@ -53,7 +53,7 @@ def main():
     ap.add_argument("--plate", type=float, default=21.04, help="true plate scale, arcsec/px")
     ap.add_argument("--rsun", type=float, default=979.07, help="photospheric radius, arcsec")
     ap.add_argument("--centre", type=float, nargs=2, default=(62.8, 64.2))
-    ap.add_argument("--rho", type=float, default=31.5, help="radius of the fitted region, px")
+    ap.add_argument("--rho", type=float, default=29.5, help="radius of the fitted region, px")
     ap.add_argument("--roll", type=float, default=180.0, help="image roll, deg (solar north from +y)")
     a = ap.parse_args()
 
