@@ -492,10 +492,11 @@ fn align_inner(
                 .spectrum
                 .get_or_init(|| crate::blur::RadialSpectrum::around(ref_matched, centre, side))
                 .as_ref()?;
-            let frame = crate::blur::RadialSpectrum::around(
+            let at = fine.transform.apply(centre);
+            let frame = crate::blur::RadialSpectrum::moved(
                 frame_data.view(),
-                fine.transform.apply(centre),
-                side,
+                reference,
+                [at[0] - centre[0], at[1] - centre[1]],
             )?;
             crate::blur::blur_difference(reference, &frame, fine.transform.scale)
         };
