@@ -133,8 +133,9 @@ pub fn remove_hot_pixels_with(
 pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;
 
 /// Whether the pixel at `at` stands alone: its rise above the floor of its 8 neighbours is
-/// more than `lone_factor` times the brightest neighbour's (mirrored for a dark pixel). Or it stands alone together with that neighbour, when that one is a `suspect` too
-/// and the pair does among the rest of their neighbours: a cosmic ray's hit of two pixels.
+/// more than `lone_factor` times the brightest neighbour's (mirrored for a dark pixel). Or it
+/// stands alone together with that neighbour, when that one is a `suspect` too and the pair
+/// does among the rest of their neighbours: a cosmic ray's hit of two pixels.
 fn stands_alone(
     img: &ArrayView2<f32>,
     medians: &Array2<f32>,
@@ -1241,8 +1242,8 @@ mod tests {
     /// A real feature spills into a neighbour however compact it is: a point source imaged
     /// with a Gaussian PSF of FWHM 1 px (σ 0.425 px), integrated over each pixel, rises at
     /// most 7.4× as far above its neighbours' floor as its brightest neighbour does (centred
-    /// on a pixel; less elsewhere). The previous rules replaced its core at every phase here.
-    /// At every sub-pixel phase it stays; a lone spike beside it goes.
+    /// on a pixel; less elsewhere). The previous rules replaced its core when it was centred
+    /// on a pixel. At every sub-pixel phase it stays; a lone spike beside it goes.
     #[test]
     fn an_undersampled_point_source_is_not_a_hot_pixel_at_any_phase() {
         let erf = |z: f64| {

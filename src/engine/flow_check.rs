@@ -15,7 +15,7 @@
 //! depends on the way in (AIA 171 128², between channels: from the exact answer the check
 //! saw 1″ of error in rotation, from the pair's start 200″, the pair's own).
 
-use super::{fine_alignment, limb_clearance_px, mask_roi, EngineConfig, FlowRegion, FLOW_TAPER_PX};
+use super::{fine_alignment, flow_reach_px, mask_roi, EngineConfig, FlowRegion, FLOW_TAPER_PX};
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
 use ndarray::{s, Array2, ArrayView2, Zip};
@@ -55,7 +55,7 @@ pub(super) fn flow_interpolation_check(
         side_y,
     );
     // The sub-image around it holds the flow's whole reach from every sampled point.
-    let reach = limb_clearance_px(winsize, cfg.poly_n).ceil() as usize + FLOW_TAPER_PX + 2;
+    let reach = flow_reach_px(winsize, cfg.poly_n).ceil() as usize + FLOW_TAPER_PX + 2;
     let grow = |lo: usize, len: usize, by: usize, n: usize| {
         (lo.saturating_sub(by), (lo + len + by).min(n))
     };

@@ -428,7 +428,7 @@ fn align_inner(
     // 171: 0.9927 ± 0.0020, 3.7σ from 1; with the windows clear of it 0.9975 ± 0.0038).
     let limb_clear = match work.reference_check.disk_px {
         Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
-            Some((centre, radius - limb_clearance_px(winsize, cfg.poly_n)))
+            Some((centre, radius - flow_reach_px(winsize, cfg.poly_n)))
         }
         _ => None,
     };
@@ -832,14 +832,14 @@ struct FlowRegion<'a> {
     sample_within: Option<([f64; 2], f64)>,
 }
 
-/// How far inside the limb a point must lie for its flow to see none of it, px: half the
+/// How far a point's flow sees, px (a point that far inside the limb sees none of it): half the
 /// window, the polynomial expansion's reach (`poly_n` px each side, as in OpenCV) and two
 /// strides of the affine grid. A point's flow is interpolated from the nodes around it, one
 /// stride; and each iteration of the solver reads the previous flow across the window, so the
 /// dependence reaches further. Measured on AIA 171 128² between channels, with the frame's limb
 /// made twice as bright (6 pairs): with one stride the scale came back 2.2e-4 short (1.65σ),
 /// with two 4.2e-5, and the bias keeps falling with the margin (6e-6 at 10 px more).
-fn limb_clearance_px(winsize: usize, poly_n: usize) -> f64 {
+fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
     (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
 }
 
