@@ -200,6 +200,7 @@ mod tests {
             plate_scale_arcsec: scale,
             rotation_deg: roll_deg,
             sun_center_px: sun,
+            observer: Default::default(),
             rsun_arcsec: rsun,
         }
     }

@@ -23,6 +23,7 @@ pub mod blur;
 pub mod coarse;
 pub mod preprocess;
 pub mod resample;
+pub mod solar_rotation;
 
 pub mod crosscorr;
 pub mod fit;

@@ -6,6 +6,7 @@
 //! pixel direction (sin ρ, cos ρ)), sun centre as 0-based pixel coordinates.
 
 use crate::header::Header;
+pub use crate::solar_rotation::Observer;
 use crate::time::{self, TimeScale};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -36,6 +37,9 @@ pub struct FrameMeta {
     /// 0-based pixel where helioprojective (0″, 0″) falls.
     pub sun_center_px: [f64; 2],
     pub rsun_arcsec: Option<f64>,
+    /// Where the observer was (`HGLN_OBS`, `HGLT_OBS`, `DSUN_OBS`, …), for the Sun's rotation.
+    #[serde(default)]
+    pub observer: Observer,
 }
 
 impl FrameMeta {
@@ -73,6 +77,7 @@ pub fn from_header(header: &Header, place: ImagePlace) -> Result<FrameMeta, Stri
         rotation_deg: wcs.rotation_deg,
         sun_center_px: wcs.sun_center_px()?,
         rsun_arcsec: rsun_arcsec(header, wcs.cdelt_arcsec[0]),
+        observer: observer(header),
         file: place.file,
         hdu: place.hdu,
         frame: place.frame,
@@ -478,6 +483,21 @@ pub fn exptime_s(h: &Header) -> Option<f64> {
     ["XPOSURE", "EXPTIME", "EXPOSURE", "SHT_MDUR"]
         .iter()
         .find_map(|k| h.f64(k))
+}
+
+/// The observer's position from the header: Stonyhurst (`HGLN_OBS`, `HGLT_OBS`), else
+/// Carrington (`CRLN_OBS`, `CRLT_OBS`), else EIT's `SOLAR_B0`; distance `DSUN_OBS`.
+pub fn observer(h: &Header) -> Observer {
+    let finite = |k: &str| h.f64(k).filter(|v| v.is_finite());
+    Observer {
+        hgln_deg: finite("HGLN_OBS"),
+        hglt_deg: ["HGLT_OBS", "CRLT_OBS", "SOLAR_B0"]
+            .iter()
+            .find_map(|k| finite(k)),
+        crln_deg: finite("CRLN_OBS"),
+        dsun_m: finite("DSUN_OBS").filter(|d| *d > 0.0),
+        rsun_ref_m: finite("RSUN_REF").filter(|r| *r > 0.0),
+    }
 }
 
 /// Apparent solar radius in arcsec: `RSUN_OBS`, `RSUN_ARC` (PROBA2, PUNCH) or `RSUN` (STEREO,

@@ -65,6 +65,7 @@ fn meta_from_header(path: &Path) -> FrameMeta {
         plate_scale_arcsec: [cdelt1, cdelt2],
         rotation_deg: rho,
         sun_center_px: [crpix1 - 1.0 - ux / cdelt1, crpix2 - 1.0 - uy / cdelt2],
+        observer: Default::default(),
         rsun_arcsec: rsun,
     }
 }

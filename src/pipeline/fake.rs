@@ -160,6 +160,7 @@ pub fn fake_meta(path: &Path, channel: &str, obs_time_ns: Option<i64>) -> FrameM
         plate_scale_arcsec: [1.0, 1.0],
         rotation_deg: 0.0,
         sun_center_px: [0.0, 0.0],
+        observer: Default::default(),
         rsun_arcsec: None,
     }
 }
