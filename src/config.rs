@@ -135,6 +135,8 @@ pub struct ChannelConfig {
     pub restart_after_failures: Option<u32>,
     pub tolerance_s: Option<f64>,
     pub hold_s: Option<f64>,
+    /// The Sun's rotation profile for this channel (else `[engine] solar_rotation`).
+    pub solar_rotation: Option<crate::solar_rotation::Profile>,
 }
 
 /// Command-line settings that override the file.
@@ -257,6 +259,14 @@ impl Config {
             tolerance_s: c.tolerance_s.unwrap_or(r.tolerance_s),
             hold_s: c.hold_s.unwrap_or(r.hold_s),
         }
+    }
+
+    /// The solar rotation profile of each channel that sets its own, by topic name.
+    pub fn channel_rotation(&self) -> std::collections::BTreeMap<String, crate::solar_rotation::Profile> {
+        self.channels
+            .iter()
+            .filter_map(|(name, c)| Some((name.clone(), c.solar_rotation?)))
+            .collect()
     }
 
     /// Follow `channel:NAME` links from `channel`; a cycle would make frames wait forever.

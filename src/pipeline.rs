@@ -180,6 +180,7 @@ impl FrameReader for FitsReader {
 /// window, …), so a reference used for many frames is prepared once.
 pub struct EngineAligner {
     config: EngineConfig,
+    rotation: ChannelRotation,
     prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
 }
 
@@ -221,7 +222,19 @@ impl EngineAligner {
     pub fn new(config: EngineConfig) -> EngineAligner {
         EngineAligner {
             config,
+            rotation: Default::default(),
             prepared: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The whole configuration's engine, with each channel's own solar rotation profile.
+    pub fn from_config(config: &crate::config::Config) -> EngineAligner {
+        EngineAligner {
+            rotation: ChannelRotation {
+                by_channel: config.channel_rotation(),
+                names: config.channel_names.clone(),
+            },
+            ..EngineAligner::new(config.engine.clone())
         }
     }
 
@@ -266,8 +279,20 @@ impl std::fmt::Debug for EngineAligner {
 
 impl Aligner for EngineAligner {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
-        self.prepared(reference).align(frame)
+        let channel = &frame.meta.channel;
+        let name = self.rotation.names.get(channel).unwrap_or(channel);
+        let profile = self.rotation.by_channel.get(name).copied();
+        self.prepared(reference)
+            .align_with(frame, profile.unwrap_or(self.config.solar_rotation))
     }
+}
+
+/// Channels whose solar rotation profile is their own, by topic name, and the header
+/// channel → topic name map that finds them.
+#[derive(Debug, Default)]
+struct ChannelRotation {
+    by_channel: std::collections::BTreeMap<String, crate::solar_rotation::Profile>,
+    names: std::collections::BTreeMap<String, String>,
 }
 
 /// A sink that keeps records in memory (tests, dry runs). Clones share the same log.

@@ -20,6 +20,22 @@ pub struct TransformFields {
     pub dy_px: f64,
 }
 
+/// The record's `solar_rotation` object: what was taken out.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SolarRotationFields {
+    /// `howard`, `snodgrass`, `allen` or `none`.
+    pub profile: crate::solar_rotation::Profile,
+    /// Frame time minus reference time, s.
+    pub dt_s: f64,
+    /// Motion removed at the centre of the measured region (the disk centre for full-disk
+    /// images), reference pixels.
+    pub dx_px: f64,
+    pub dy_px: f64,
+    /// The field was taken to follow the Sun (a partial field): the motion of its centre was
+    /// left to the pointing.
+    pub tracked: bool,
+}
+
 /// The result of aligning one frame to one reference (`align --json`).
 /// Numbers are `None` (JSON `null`) when `status` is `failed`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -41,6 +57,9 @@ pub struct AlignResult {
     pub uabjm_sigma_dx_px: Option<f64>,
     pub uabjm_sigma_dy_px: Option<f64>,
     pub header_residual: Option<TransformFields>,
+    /// The Sun's rotation taken out between the two times (`null` when nothing was).
+    #[serde(default)]
+    pub solar_rotation: Option<SolarRotationFields>,
     pub points: usize,
     pub inliers: usize,
     pub residual_rms_px: Option<f64>,

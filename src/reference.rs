@@ -900,6 +900,7 @@ impl ChannelState {
                 dx_px: 0.0,
                 dy_px: 0.0,
             }),
+            solar_rotation: None,
             points: 0,
             inliers: 0,
             residual_rms_px: zero,

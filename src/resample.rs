@@ -561,7 +561,7 @@ impl HighOrderSpline {
     }
 
     #[inline(always)]
-    fn sample_at(&self, x: f64, y: f64) -> f32 {
+    pub fn sample_at(&self, x: f64, y: f64) -> f32 {
         let Some(((ix, tx), (iy, ty))) = self.locate(x, y) else {
             return f32::NAN;
         };

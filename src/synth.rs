@@ -271,6 +271,10 @@ pub struct SynthConfig {
     pub exptime_s: f64,
     /// Poisson and read noise on (off gives the noiseless expectation).
     pub noise: bool,
+    /// The Sun's differential rotation between frames (`none`: a Sun that does not turn).
+    pub solar_rotation: crate::solar_rotation::Profile,
+    /// Observation time of frame 0, ns since the Unix epoch (UTC): the Earth's position.
+    pub start_ns: i64,
 }
 
 impl SynthConfig {
@@ -281,6 +285,8 @@ impl SynthConfig {
             cadence_s,
             exptime_s: 2.0,
             noise: true,
+            solar_rotation: crate::solar_rotation::Profile::default(),
+            start_ns: DEFAULT_START_NS,
         }
     }
 
@@ -292,6 +298,60 @@ impl SynthConfig {
     pub fn rsun_px(&self) -> f64 {
         RSUN_ARCSEC / self.plate_scale_arcsec()
     }
+
+    /// What a frame's header says, as the engine reads it (nominal pointing).
+    pub fn meta(&self, obs_time_ns: i64) -> crate::meta::FrameMeta {
+        let cdelt = self.plate_scale_arcsec();
+        let c = (self.size as f64 - 1.0) / 2.0;
+        crate::meta::FrameMeta {
+            file: std::path::PathBuf::from("synth.fits"),
+            hdu: 0,
+            frame: None,
+            width: self.size,
+            height: self.size,
+            bitpix: 16,
+            channel: CHANNEL.into(),
+            instrument: Some(INSTRUMENT.into()),
+            wavelength: Some(WAVELENGTH_A as f64),
+            obs_time_ns: Some(obs_time_ns),
+            exptime_s: Some(self.exptime_s),
+            plate_scale_arcsec: [cdelt, cdelt],
+            rotation_deg: 0.0,
+            sun_center_px: [c, c],
+            rsun_arcsec: Some(RSUN_ARCSEC),
+            observer: crate::meta::Observer {
+                hgln_deg: Some(0.0),
+                hglt_deg: Some(0.0),
+                crln_deg: None,
+                dsun_m: Some(dsun_m()),
+                rsun_ref_m: Some(RSUN_REF_M),
+            },
+        }
+    }
+
+    /// The surface motion from the time `time_s` after frame 0 back to frame 0's time, when
+    /// the Sun turns.
+    fn back_to_start(&self, time_s: f64) -> Option<crate::solar_rotation::SurfaceMotion> {
+        use crate::solar_rotation::{Profile, SurfaceMotion, View};
+        if self.solar_rotation == Profile::None || time_s == 0.0 {
+            return None;
+        }
+        let now = self.start_ns + (time_s * 1e9).round() as i64;
+        Some(SurfaceMotion::new(
+            View::new(&self.meta(now))?,
+            View::new(&self.meta(self.start_ns))?,
+            self.solar_rotation,
+        ))
+    }
+}
+
+/// Frame 0's time when none is given: 2024-05-01T12:00:00Z.
+pub const DEFAULT_START_NS: i64 = 1_714_564_800_000_000_000;
+/// The sphere the synthetic disk shows, m, and the observer's distance that makes it
+/// [`RSUN_ARCSEC`] across.
+const RSUN_REF_M: f64 = 6.96e8;
+fn dsun_m() -> f64 {
+    RSUN_REF_M / (RSUN_ARCSEC / ARCSEC_PER_RAD).sin()
 }
 
 /// A bright active-region component: an anisotropic Gaussian, brightness evolving slowly.
@@ -403,8 +463,25 @@ impl SunModel {
     }
 
     /// Frame `index` seen through `motion` at `time_s` after the start: shape `(size, size)`, DN.
+    /// The surface has turned with the Sun since frame 0 (unless the profile is `none`);
+    /// `motion` is the telescope's, on top.
     pub fn render(&self, motion: &Similarity, time_s: f64, index: u64) -> Array2<f32> {
         let n = self.cfg.size;
+        let turned = self.cfg.back_to_start(time_s);
+        // Where a point seen at `p` (nominal pointing, now) was at frame 0's time.
+        let unturn = |p: [f64; 2]| match turned.as_ref().map(|m| m.map(p)) {
+            Some(crate::solar_rotation::Moved::To(q)) => q,
+            _ => p,
+        };
+        // Rotation moves features by at most this much (rows of blobs to look at).
+        let reach = if turned.is_some() {
+            let c = self.center;
+            let q = unturn(c);
+            2.0 * (q[0] - c[0]).hypot(q[1] - c[1]) + 1.0
+        } else {
+            0.0
+        };
+
         // Frame pixel q → reference point p = T⁻¹(q).
         let inv = motion.recentered(self.center).inverse();
         let (a, b) = inv.ab();
@@ -424,7 +501,7 @@ impl SunModel {
             let px0 = c[0] + inv.dx - a * c[0] - b * qy;
             let py0 = c[1] + inv.dy + b * (-c[0]) + a * qy;
             let (ya, yb) = (py0, py0 + b * (n as f64 - 1.0));
-            let (ylo, yhi) = (ya.min(yb), ya.max(yb));
+            let (ylo, yhi) = (ya.min(yb) - reach, ya.max(yb) + reach);
             let row_blobs: Vec<(usize, &Blob)> = self
                 .blobs
                 .iter()
@@ -435,7 +512,7 @@ impl SunModel {
                 .collect();
             let mut rng = Rng::new(mix(noise_seed, y as u64));
             for (x, out) in row.iter_mut().enumerate() {
-                let p = [px0 + a * x as f64, py0 + b * x as f64];
+                let p = unturn([px0 + a * x as f64, py0 + b * x as f64]);
                 let mut v = self.scene(p);
                 for (i, bl) in &row_blobs {
                     let (u, w) = (p[0] - bl.center[0], p[1] - bl.center[1]);
@@ -699,8 +776,7 @@ pub fn header_cards(cfg: &SynthConfig, frame: usize, obs_time_ns: i64) -> Vec<Ca
     use CardValue::*;
     let cdelt = cfg.plate_scale_arcsec();
     let crpix = (cfg.size as f64 + 1.0) / 2.0;
-    let rsun_ref = 6.96e8;
-    let dsun = rsun_ref / (RSUN_ARCSEC / ARCSEC_PER_RAD).sin();
+    let (rsun_ref, dsun) = (RSUN_REF_M, dsun_m());
     let card = |key, value, comment| Card {
         key,
         value,

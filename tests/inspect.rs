@@ -57,6 +57,7 @@ fn record(
                 uabjm_sigma_dx_px: v(sigma / 2.0),
                 uabjm_sigma_dy_px: v(sigma / 2.0),
                 header_residual: None,
+                solar_rotation: None,
                 points: if ok { 400 } else { 0 },
                 inliers: if ok { 370 } else { 0 },
                 residual_rms_px: v(0.04),

@@ -64,6 +64,7 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         uabjm_sigma_dx_px: v(1e-3),
         uabjm_sigma_dy_px: v(1e-3),
         header_residual,
+        solar_rotation: None,
         points: if failed { 0 } else { 400 },
         inliers: if failed { 0 } else { 380 - i as usize % 50 },
         residual_rms_px: v(0.1),

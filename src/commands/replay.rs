@@ -51,7 +51,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let parts = RunParts {
         config: config.clone(),
         reader: Arc::new(reader),
-        aligner: Arc::new(EngineAligner::new(config.engine.clone())),
+        aligner: Arc::new(EngineAligner::from_config(&config)),
         sink,
         history,
         progress: progress_tx,

@@ -15,7 +15,6 @@ use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
 use crate::time::{parse_fits_time, TimeScale};
 
 /// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
-const DEFAULT_START_NS: i64 = 1_714_564_800_000_000_000;
 use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
@@ -44,6 +43,11 @@ pub struct Args {
     /// rot:ARCSEC_PER_HOUR, scale:PER_HOUR (or `none`).
     #[arg(long, default_value = synth::DEFAULT_JITTER)]
     pub jitter: String,
+
+    /// The Sun's differential rotation between frames: howard, snodgrass, allen, or none for
+    /// a Sun that does not turn. The truth stays the telescope's motion.
+    #[arg(long, default_value = "howard")]
+    pub solar_rotation: crate::solar_rotation::Profile,
     /// Write one frame per cadence in wall-clock time (to feed `watch`).
     #[arg(long)]
     pub realtime: bool,
@@ -68,7 +72,11 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     let spec: JitterSpec = args.jitter.parse()?;
     let start_ns = start_time(args)?;
-    let cfg = SynthConfig::new(args.size, args.seed, args.cadence);
+    let cfg = SynthConfig {
+        solar_rotation: args.solar_rotation,
+        start_ns,
+        ..SynthConfig::new(args.size, args.seed, args.cadence)
+    };
     let began = Instant::now();
     let model = SunModel::new(&cfg)?;
     let truth = synth::jitter_truth(&spec, args.frames, args.cadence, args.seed, args.size);
@@ -127,6 +135,7 @@ pub fn run(args: &Args) -> Result<i32> {
             "cadence_s": args.cadence,
             "seed": args.seed,
             "jitter": args.jitter,
+            "solar_rotation": args.solar_rotation,
             "truth_csv": truth_path,
             "files": files,
             "seconds_per_frame": per_frame,
@@ -160,7 +169,7 @@ fn start_time(args: &Args) -> Result<i64> {
                 .unwrap_or_default();
             Ok(now.as_secs() as i64 * 1_000_000_000)
         }
-        None => Ok(DEFAULT_START_NS),
+        None => Ok(synth::DEFAULT_START_NS),
     }
 }
 

@@ -9,6 +9,7 @@
 pub mod output;
 pub mod quality;
 
+mod derotate;
 mod flow_check;
 mod geometry_check;
 pub mod refine;
@@ -99,6 +100,9 @@ pub struct EngineConfig {
     /// When the refinement follows, the flow seeds it on copies binned to the pyramid level
     /// where the mask spans at least this many pixels (full resolution below twice that).
     pub seed_extent_px: usize,
+    /// The Sun's differential rotation taken out between the reference's and the frame's
+    /// times (`howard`, `snodgrass`, `allen`, or `none` to keep it in the answer).
+    pub solar_rotation: crate::solar_rotation::Profile,
 }
 
 impl Default for EngineConfig {
@@ -129,6 +133,7 @@ impl Default for EngineConfig {
             refine_smoothing_px: 0.7,
             refine_gradient_smoothing_px: 0.0,
             seed_extent_px: SEED_EXTENT_PX,
+            solar_rotation: crate::solar_rotation::Profile::default(),
         }
     }
 }
@@ -263,9 +268,18 @@ impl PreparedReference {
 
     /// Align `frame` to the prepared reference.
     pub fn align(&self, frame: &Image) -> AlignOutcome {
+        self.align_with(frame, self.cfg.solar_rotation)
+    }
+
+    /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
+    pub fn align_with(&self, frame: &Image, profile: crate::solar_rotation::Profile) -> AlignOutcome {
         let started = Instant::now();
+        let cfg = EngineConfig {
+            solar_rotation: profile,
+            ..self.cfg.clone()
+        };
         let result = match &self.work {
-            Ok(work) => align_inner(work, frame, &self.cfg),
+            Ok(work) => align_inner(work, frame, &cfg),
             Err(reason) => Err(reason.clone()),
         };
         let mut outcome = result.unwrap_or_else(|reason| {
@@ -408,6 +422,33 @@ fn align_inner(
     }
     let (mask, mask_box, winsize) = (&work.mask, work.mask_box, work.winsize);
     let ref_data = &work.cleaned;
+
+    // The Sun's rotation between the two times: the frame is carried back to the reference's
+    // time, so that what is measured is the telescope.
+    let rotation = derotate::derotate(
+        &derotate::ReferenceSide {
+            meta: &work.reference_check.meta,
+            disk_px: work.reference_check.disk_px,
+            mask,
+            mask_box,
+            mask_fraction: cfg.mask_radius_fraction,
+        },
+        &frame_meta,
+        &frame_data,
+        coarse,
+        cfg.solar_rotation,
+    );
+    let (frame_data, coarse, solar_rotation, rotation_gradient) = match rotation {
+        derotate::Rotation::Removed(d) => {
+            notes.extend(d.notes);
+            (d.frame, d.coarse, Some(d.fields), d.gradient)
+        }
+        derotate::Rotation::Kept { fields, note } => {
+            notes.extend(note);
+            (frame_data, coarse, fields, 0.0)
+        }
+    };
+    tracing::debug!(?solar_rotation, rotation_gradient, derotated_at = ?started.elapsed(), "solar rotation");
 
     // Resolution matching: degrade the sharper image to the other's resolution.
     let plate = work.reference_check.meta.plate_scale_arcsec[0].abs();
@@ -637,6 +678,17 @@ fn align_inner(
 
     tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
+    // Derotating through the coarse map instead of the final one leaves the rotation field's
+    // gradient times the motion beyond the coarse map.
+    if rotation_gradient > 0.0 {
+        let radius = mask_extent_px(mask, mask_box).max(1.0);
+        let beyond = max_motion_px(&coarse.inverse().after(&t), radius);
+        let e = rotation_gradient * beyond;
+        fine.covariance[2][2] += e * e;
+        fine.covariance[3][3] += e * e;
+        fine.covariance[0][0] += (e / radius).powi(2);
+        fine.covariance[1][1] += (e / radius).powi(2);
+    }
     let sig = sigmas(&fine.covariance);
     let usig = sigmas(&fine.uabjm_covariance);
     let header_residual = coarse.inverse().after(&t);
@@ -753,6 +805,7 @@ fn align_inner(
             dx_px: header_residual.dx,
             dy_px: header_residual.dy,
         }),
+        solar_rotation,
         points: fine.points,
         inliers: fine.fit.n_inliers,
         residual_rms_px: Some(fine.fit.residual_rms_px),
@@ -1493,6 +1546,7 @@ impl AlignOutcome {
                 uabjm_sigma_dx_px: None,
                 uabjm_sigma_dy_px: None,
                 header_residual: None,
+                solar_rotation: None,
                 points: 0,
                 inliers: 0,
                 residual_rms_px: None,
@@ -1541,6 +1595,7 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
             uabjm_sigma_dx_px: Some(0.0),
             uabjm_sigma_dy_px: Some(0.0),
             header_residual: Some(fields),
+            solar_rotation: None,
             points: 0,
             inliers: 0,
             residual_rms_px: Some(0.0),

@@ -632,6 +632,7 @@ pub(crate) mod testdata {
                     uabjm_sigma_dx_px: v(0.01),
                     uabjm_sigma_dy_px: v(0.01),
                     header_residual: None,
+                    solar_rotation: None,
                     points: 400,
                     inliers: 380,
                     residual_rms_px: v(0.05),

@@ -549,6 +549,7 @@ mod tests {
                 uabjm_sigma_dx_px: None,
                 uabjm_sigma_dy_px: None,
                 header_residual: None,
+                solar_rotation: None,
                 points: 100,
                 inliers: 90,
                 residual_rms_px: num(0.1),

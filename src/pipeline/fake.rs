@@ -271,6 +271,7 @@ pub fn outcome(
                 dx_px: t.dx,
                 dy_px: t.dy,
             }),
+            solar_rotation: None,
             points: 400,
             inliers: 400,
             residual_rms_px: Some(0.0),
