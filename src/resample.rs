@@ -284,6 +284,14 @@ impl RowMap {
         }
     }
 
+    /// `T(p + d)` for `p = (x + x0, y)`: the similarity's linear part carries the shift.
+    #[inline(always)]
+    fn shifted(&self, x: usize, y: f64, d: &[f32; 2]) -> (f64, f64) {
+        let (sx, sy) = self.at(x, y);
+        let (dx, dy) = (d[0] as f64, d[1] as f64);
+        (sx + self.a * dx - self.b * dy, sy + self.b * dx + self.a * dy)
+    }
+
     /// Same arithmetic as `similarity_map` at `(x + x0, y)`, so results are bitwise equal.
     #[inline(always)]
     fn at(&self, x: usize, y: f64) -> (f64, f64) {
@@ -561,7 +569,7 @@ impl HighOrderSpline {
     }
 
     #[inline(always)]
-    pub fn sample_at(&self, x: f64, y: f64) -> f32 {
+    fn sample_at(&self, x: f64, y: f64) -> f32 {
         let Some(((ix, tx), (iy, ty))) = self.locate(x, y) else {
             return f32::NAN;
         };
@@ -631,6 +639,37 @@ impl HighOrderSpline {
     ) -> Array2<f32> {
         self.warp_similarity_window(t, 0, 0, out_width, out_height)
     }
+
+    /// As [`Self::warp_similarity_window`], each output pixel moved by `shift` first:
+    /// `out[p] = image(T(p + shift[p]))`, with `shift` the window's shape (NaN: no value).
+    pub fn warp_similarity_window_shifted(
+        &self,
+        t: &Similarity,
+        x0: usize,
+        y0: usize,
+        shift: ArrayView2<[f32; 2]>,
+    ) -> Array2<f32> {
+        let (height, width) = shift.dim();
+        let map = RowMap::new(t, x0);
+        let mut out = Array2::<f32>::zeros((height, width));
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .zip(shift.axis_iter(Axis(0)))
+            .enumerate()
+            .for_each(|(y, (mut line, shifts))| {
+                let y = (y + y0) as f64;
+                match (line.as_slice_mut(), shifts.as_slice()) {
+                    (Some(r), Some(d)) => high_order_shifted_row(self, &map, y, d, r),
+                    _ => {
+                        for (x, (v, d)) in line.iter_mut().zip(shifts.iter()).enumerate() {
+                            let (sx, sy) = map.shifted(x, y, d);
+                            *v = self.sample_at(sx, sy);
+                        }
+                    }
+                }
+            });
+        out
+    }
 }
 
 crate::flow::simd::multiversion!(fn gradients_at(
@@ -697,6 +736,23 @@ crate::flow::simd::multiversion!(fn spline_similarity_row(
     y: f64,
     out: &mut [f32],
 ) => similarity_row_body::<SplineImage>);
+
+crate::flow::simd::multiversion!(fn high_order_shifted_row(
+    sp: &HighOrderSpline,
+    map: &RowMap,
+    y: f64,
+    shift: &[[f32; 2]],
+    out: &mut [f32],
+) => shifted_row_body);
+
+/// One output row of a warp whose pixels are moved by `shift` before the similarity.
+#[inline(always)]
+fn shifted_row_body(sp: &HighOrderSpline, map: &RowMap, y: f64, shift: &[[f32; 2]], out: &mut [f32]) {
+    for (x, (v, d)) in out.iter_mut().zip(shift).enumerate() {
+        let (sx, sy) = map.shifted(x, y, d);
+        *v = sp.sample_at(sx, sy);
+    }
+}
 
 crate::flow::simd::multiversion!(fn high_order_similarity_row(
     sp: &HighOrderSpline,

@@ -352,31 +352,32 @@ impl SurfaceMotion {
     }
 }
 
-/// A displacement sampled on a regular grid and read bilinearly: `map(p) − p` over an image,
-/// NaN where a point has no image (hidden behind the limb).
+/// A displacement sampled on a regular grid and read by cubic convolution (Catmull–Rom):
+/// `map(p) − p` over an image, NaN where a point has no image (hidden behind the limb).
 #[derive(Debug, Clone)]
 pub struct DisplacementGrid {
     step: f64,
     nx: usize,
     ny: usize,
-    /// `(dx, dy)` per node, row-major.
+    /// `(dx, dy)` per node, row-major; node `(i, j)` sits at `((i − 1)·step, (j − 1)·step)`.
     nodes: Vec<[f64; 2]>,
 }
 
 impl DisplacementGrid {
-    /// Sample `displacement` every `step` px over a `width × height` grid (nodes on and just
-    /// past the last row and column).
+    /// Sample `displacement` every `step` px over a `width × height` grid, with one node beyond
+    /// every edge.
     pub fn sample<F>(width: usize, height: usize, step: usize, displacement: F) -> DisplacementGrid
     where
         F: Fn([f64; 2]) -> [f64; 2] + Sync,
     {
         use rayon::prelude::*;
         let step = step.max(1);
-        let nx = (width.max(1) - 1) / step + 2;
-        let ny = (height.max(1) - 1) / step + 2;
+        let nx = (width.max(1) - 1) / step + 4;
+        let ny = (height.max(1) - 1) / step + 4;
+        let at = |i: usize| (i as f64 - 1.0) * step as f64;
         let nodes = (0..nx * ny)
             .into_par_iter()
-            .map(|k| displacement([(k % nx * step) as f64, (k / nx * step) as f64]))
+            .map(|k| displacement([at(k % nx), at(k / nx)]))
             .collect();
         DisplacementGrid {
             step: step as f64,
@@ -386,35 +387,38 @@ impl DisplacementGrid {
         }
     }
 
-    /// The displacement at `p` (bilinear between nodes; NaN when a node around is NaN or `p`
-    /// lies outside the grid).
+    /// The displacement at `p` (NaN when a node around is NaN or `p` lies outside the grid).
+    #[inline]
     pub fn at(&self, p: [f64; 2]) -> [f64; 2] {
-        let (gx, gy) = (p[0] / self.step, p[1] / self.step);
-        if !(gx >= 0.0 && gy >= 0.0) {
+        let (gx, gy) = (p[0] / self.step + 1.0, p[1] / self.step + 1.0);
+        if !(gx >= 1.0 && gy >= 1.0) {
             return [f64::NAN; 2];
         }
         let (ix, iy) = (gx.floor() as usize, gy.floor() as usize);
-        if ix + 1 >= self.nx || iy + 1 >= self.ny {
+        if ix + 2 >= self.nx || iy + 2 >= self.ny {
             return [f64::NAN; 2];
         }
-        let (fx, fy) = (gx - ix as f64, gy - iy as f64);
-        let n = |x: usize, y: usize| self.nodes[y * self.nx + x];
-        let (a, b, c, d) = (n(ix, iy), n(ix + 1, iy), n(ix, iy + 1), n(ix + 1, iy + 1));
-        std::array::from_fn(|k| {
-            let top = a[k] + (b[k] - a[k]) * fx;
-            let bottom = c[k] + (d[k] - c[k]) * fx;
-            top + (bottom - top) * fy
-        })
+        let (wx, wy) = (catmull_rom(gx - ix as f64), catmull_rom(gy - iy as f64));
+        let mut sum = [0.0; 2];
+        for (j, wyj) in wy.iter().enumerate() {
+            let row = &self.nodes[(iy + j - 1) * self.nx + ix - 1..][..4];
+            for (n, wxi) in row.iter().zip(&wx) {
+                let w = wyj * wxi;
+                sum[0] += w * n[0];
+                sum[1] += w * n[1];
+            }
+        }
+        sum
     }
 
-    /// Largest change of the displacement per px between neighbouring nodes at which
+/// Largest change of the displacement per px between neighbouring nodes at which
     /// `inside` holds (both finite).
     pub fn max_gradient(&self, inside: impl Fn([f64; 2]) -> bool) -> f64 {
         let mut worst = 0.0f64;
         for y in 0..self.ny {
             for x in 0..self.nx {
                 let a = self.nodes[y * self.nx + x];
-                let here = [x as f64 * self.step, y as f64 * self.step];
+                let here = [(x as f64 - 1.0) * self.step, (y as f64 - 1.0) * self.step];
                 if !(a[0].is_finite() && inside(here)) {
                     continue;
                 }
@@ -423,7 +427,7 @@ impl DisplacementGrid {
                         continue;
                     }
                     let b = self.nodes[y2 * self.nx + x2];
-                    let there = [x2 as f64 * self.step, y2 as f64 * self.step];
+                    let there = [(x2 as f64 - 1.0) * self.step, (y2 as f64 - 1.0) * self.step];
                     if b[0].is_finite() && inside(there) {
                         worst = worst.max((b[0] - a[0]).hypot(b[1] - a[1]) / self.step);
                     }
@@ -443,16 +447,30 @@ impl DisplacementGrid {
     }
 }
 
-/// Node spacing (px) that keeps a bilinear reading of a rotation displacement within about
-/// 1e-3 px inside `fraction` of the disk: the displacement's curvature is largest where the
-/// sphere turns away, `|r''| ≈ ω·Δt·R²/z³` with `z = R·√(1 − fraction²)`.
+/// Cubic convolution weights (Keys, a = −½) of the four nodes around fraction `t`.
+#[inline(always)]
+fn catmull_rom(t: f64) -> [f64; 4] {
+    let (t2, t3) = (t * t, t * t * t);
+    [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ]
+}
+
+/// Node spacing (px) that keeps a cubic reading of a rotation displacement within about
+/// 1e-4 px inside `fraction` of the disk. The displacement goes like the sphere's depth
+/// `z = √(R² − ρ²)`, whose fourth derivative is about `15·R⁴/z⁷·(1/R³)`; cubic convolution errs
+/// by about `h⁴/24` times it, largest at the edge, `z = R·√(1 − fraction²)`.
 pub fn grid_step_px(max_shift_px: f64, radius_px: f64, fraction: f64) -> usize {
     let depth = (1.0 - fraction.clamp(0.0, 0.99).powi(2)).sqrt();
-    let curvature = max_shift_px.abs() / (radius_px.max(1.0) * depth.powi(3));
-    if !(curvature.is_finite() && curvature > 0.0) {
-        return 32;
+    let r = radius_px.max(1.0);
+    let fourth = 15.0 * max_shift_px.abs() / (r.powi(4) * depth.powi(7));
+    if !(fourth.is_finite() && fourth > 0.0) {
+        return 64;
     }
-    ((8.0 * 1e-3 / curvature).sqrt().floor() as usize).clamp(2, 32)
+    ((24.0 * 1e-4 / fourth).powf(0.25).floor() as usize).clamp(2, 64)
 }
 
 #[cfg(test)]
@@ -496,12 +514,12 @@ mod tests {
     }
 
     #[test]
-    fn a_bilinear_grid_reads_a_linear_field_exactly() {
-        let g = DisplacementGrid::sample(100, 60, 7, |p| [0.01 * p[0] - 0.3, 2.0 - 0.02 * p[1]]);
+    fn a_cubic_grid_reads_a_quadratic_field_exactly() {
+        let f = |p: [f64; 2]| [1e-4 * p[0] * p[0] - 0.3, 2.0 - 0.02 * p[1] + 1e-4 * p[0] * p[1]];
+        let g = DisplacementGrid::sample(100, 60, 7, f);
         for p in [[0.0, 0.0], [13.3, 41.9], [99.0, 59.0]] {
-            let d = g.at(p);
-            assert!((d[0] - (0.01 * p[0] - 0.3)).abs() < 1e-12);
-            assert!((d[1] - (2.0 - 0.02 * p[1])).abs() < 1e-12);
+            let (d, want) = (g.at(p), f(p));
+            assert!((d[0] - want[0]).abs() < 1e-12 && (d[1] - want[1]).abs() < 1e-12, "{p:?}");
         }
         assert!(g.at([-1.0, 3.0])[0].is_nan());
     }

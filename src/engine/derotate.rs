@@ -1,40 +1,36 @@
-//! The Sun's rotation taken out of a pair: the frame is resampled so that every solar feature
-//! sits where it would have been at the reference's time, and the engine then measures only
-//! the telescope.
+//! The Sun's rotation taken out of a pair: the reference is carried to the frame's time, so
+//! that the engine measures only the telescope.
 //!
-//! With `C` the header-predicted (coarse) map reference → frame, `F` the solar-surface map
-//! reference pixel → frame pixel at the frame's time ([`SurfaceMotion`]), the derotated frame
-//! is `frame'(y) = frame(F(C⁻¹(y)))`. A frame moved by the telescope `J` on top of the
-//! headers (`frame(J(F(p))) = ref(p)`) then gives `C⁻¹·J·C` up to a term of the rotation
-//! field's gradient times `J`'s motion, which is added to σ.
+//! With `C` the header-predicted (coarse) map reference → frame and `F` the solar-surface map
+//! reference pixel → frame pixel at the frame's time ([`SurfaceMotion`]), the surface motion
+//! on the reference grid is `S = C⁻¹∘F`. Every stage samples the frame at `T(S(p))` where it
+//! sampled `T(p)`; for a frame moved by the telescope `J` on top of the headers
+//! (`frame(J(F(p))) = ref(p)`) the answer is `T = J∘C` exactly. The surface motion costs a
+//! few thousand evaluations of the model per pair, read bilinearly between them.
 //!
 //! A field that does not hold the whole disk (IRIS, TRACE, DKIST) is taken to follow the
 //! Sun at its centre, as such instruments do: the headers' pointing (per frame where they give
 //! it) plus the rotation predict the image, and without per-frame pointing only the rotation
 //! relative to the field's centre is removed. Full-disk images are not tracked.
 
-use super::refine::MODEL;
 use crate::geometry::Similarity;
 use crate::meta::FrameMeta;
-use crate::resample::HighOrderSpline;
 use crate::solar_rotation::{grid_step_px, DisplacementGrid, Moved, Profile, SurfaceMotion, View};
-use ndarray::{Array2, Axis};
-use rayon::prelude::*;
+use ndarray::Array2;
+use std::sync::Arc;
 pub use crate::record::SolarRotationFields;
 
-/// A derotated pair: the frame to measure, the coarse map to start from, and what was done.
-pub(super) struct Derotated {
-    pub frame: Array2<f32>,
+/// A pair with the rotation to take out: the surface motion, the coarse map to start from,
+/// and what was done.
+pub(crate) struct Derotated {
+    pub carried: Carried,
     pub coarse: Similarity,
     pub fields: SolarRotationFields,
-    /// Largest gradient of the removed displacement (px/px): the error left is this times the
-    /// telescope's motion beyond the coarse map.
-    pub gradient: f64,
     pub notes: Vec<String>,
 }
 
 /// Where the engine stands on the Sun's rotation for one pair.
-pub(super) enum Rotation {
+pub(crate) enum Rotation {
     /// Taken out.
     Removed(Derotated),
     /// Nothing to take out (profile `none`, equal times), or not possible (said in `note`).
@@ -45,7 +41,7 @@ pub(super) enum Rotation {
 }
 
 /// Inputs of [`derotate`] that describe the reference side.
-pub(super) struct ReferenceSide<'a> {
+pub(crate) struct ReferenceSide<'a> {
     pub meta: &'a FrameMeta,
     pub disk_px: Option<([f64; 2], f64)>,
     pub mask: &'a Array2<bool>,
@@ -54,10 +50,9 @@ pub(super) struct ReferenceSide<'a> {
 }
 
 /// Take the rotation between the reference's time and the frame's out of `frame`.
-pub(super) fn derotate(
+pub(crate) fn derotate(
     reference: &ReferenceSide,
     frame_meta: &FrameMeta,
-    frame: &Array2<f32>,
     coarse: Similarity,
     profile: Profile,
 ) -> Rotation {
@@ -137,58 +132,26 @@ pub(super) fn derotate(
         )
     };
     let eff_inverse = coarse_eff.inverse();
-    // D(y) − y on the frame grid: F(C_eff⁻¹(y)) on the disk, C(C_eff⁻¹(y)) on the sky.
-    let displacement = |y: [f64; 2]| -> [f64; 2] {
-        let p = eff_inverse.apply(y);
+    // S(p) − p on the reference grid: C_eff⁻¹(F(p)) on the disk, C_eff⁻¹(C(p)) on the sky.
+    let displacement = |p: [f64; 2]| -> [f64; 2] {
         let q = match motion.map(p) {
             Moved::To(q) => q,
             Moved::Hidden => return [f64::NAN; 2],
             Moved::OffDisk => coarse.apply(p),
         };
-        [q[0] - y[0], q[1] - y[1]]
+        let s = eff_inverse.apply(q);
+        [s[0] - p[0], s[1] - p[1]]
     };
-    let (fh, fw) = frame.dim();
-    let radius_px = reference
-        .disk_px
-        .map(|(_, r)| r * coarse.scale)
-        .unwrap_or((fw.max(fh)) as f64);
-    let largest = (removed[0].hypot(removed[1])).max(1e-6);
-    let step = grid_step_px(largest, radius_px, reference.mask_fraction.max(0.9));
-    let grid = DisplacementGrid::sample(fw, fh, step, displacement);
-    let in_mask = |y: [f64; 2]| {
-        let p = eff_inverse.apply(y);
-        let (x, y) = (p[0].round(), p[1].round());
-        x >= 0.0
-            && y >= 0.0
-            && (x as usize) < w
-            && (y as usize) < h
-            && reference.mask[[y as usize, x as usize]]
-    };
-    let gradient = grid.max_gradient(in_mask);
-
-    let spline = HighOrderSpline::new(frame.view(), MODEL);
-    let mut out = Array2::<f32>::zeros((fh, fw));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            for (x, v) in row.iter_mut().enumerate() {
-                let d = grid.at([x as f64, y as f64]);
-                *v = if d[0] == 0.0 && d[1] == 0.0 {
-                    frame[[y, x]]
-                } else if d[0].is_finite() && d[1].is_finite() {
-                    spline.sample_at(x as f64 + d[0], y as f64 + d[1])
-                } else {
-                    f32::NAN
-                };
-            }
-        });
+    let radius_px = reference.disk_px.map_or(w.max(h) as f64, |(_, r)| r);
+    let largest = (moved_centre[0] - centre[0]).hypot(moved_centre[1] - centre[1]);
+    let step = grid_step_px(largest.max(1e-6), radius_px, reference.mask_fraction.max(0.9));
+    let grid = DisplacementGrid::sample(w, h, step, displacement);
     let mut notes = Vec::new();
     if motion.observer_assumed() {
         notes.push("solar rotation: observer keywords missing, the Earth's position assumed".into());
     }
     Rotation::Removed(Derotated {
-        frame: out,
+        carried: Carried::new(grid),
         coarse: coarse_eff,
         fields: SolarRotationFields {
             profile,
@@ -197,9 +160,77 @@ pub(super) fn derotate(
             dy_px: removed[1] - tau[1],
             tracked: !full_disk,
         },
-        gradient,
         notes,
     })
+}
+
+/// The Sun's motion between the two times on the reference grid, `S(p) = p + field(p)`: the
+/// frame is sampled at `T(S(p))` instead of `T(p)`. On binned copies (`factor` 2^level) the
+/// same field in binned pixels.
+#[derive(Debug, Clone)]
+pub struct Carried {
+    grid: Arc<DisplacementGrid>,
+    factor: f64,
+    /// Largest motion, px of this grid.
+    pub max_px: f64,
+}
+
+impl Carried {
+    fn new(grid: DisplacementGrid) -> Carried {
+        let max_px = grid.max_norm();
+        Carried {
+            grid: Arc::new(grid),
+            factor: 1.0,
+            max_px,
+        }
+    }
+
+    /// The same motion on copies binned by `factor`.
+    pub fn binned(&self, factor: usize) -> Carried {
+        let f = self.factor * factor as f64;
+        Carried {
+            grid: self.grid.clone(),
+            factor: f,
+            max_px: self.max_px * self.factor / f,
+        }
+    }
+
+    /// `S(p)`: where the surface point at `p` is at the frame's time (NaN: hidden).
+    #[inline]
+    pub fn at(&self, x: f64, y: f64) -> (f64, f64) {
+        let b = self.factor;
+        // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + ½) − ½.
+        let d = self.grid.at([b * (x + 0.5) - 0.5, b * (y + 0.5) - 0.5]);
+        (x + d[0] / b, y + d[1] / b)
+    }
+
+    /// `S(p) − p` over the `width × height` window at column `x0`, row `y0` (NaN: hidden).
+    pub fn shifts(&self, x0: usize, y0: usize, width: usize, height: usize) -> Array2<[f32; 2]> {
+        use ndarray::Axis;
+        use rayon::prelude::*;
+        let mut out = Array2::from_elem((height, width), [0.0f32; 2]);
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| {
+                let y = (y + y0) as f64;
+                for (x, v) in row.iter_mut().enumerate() {
+                    let x = (x + x0) as f64;
+                    let (sx, sy) = self.at(x, y);
+                    *v = [(sx - x) as f32, (sy - y) as f32];
+                }
+            });
+        out
+    }
+
+    /// `T∘S` as a coordinate map.
+    pub fn then(&self, t: &Similarity) -> impl Fn(f64, f64) -> (f64, f64) + Sync + '_ {
+        let map = crate::resample::similarity_map(t);
+        move |x, y| {
+            let (sx, sy) = self.at(x, y);
+            map(sx, sy)
+        }
+    }
 }
 
 /// Frame time minus reference time, s, when both are known.

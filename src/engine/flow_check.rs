@@ -128,6 +128,7 @@ pub(super) fn flow_interpolation_check(
         winsize,
         0.0,
         cfg.max_passes,
+        None,
         cfg,
     )
     .ok()?;

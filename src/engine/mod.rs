@@ -9,7 +9,7 @@
 pub mod output;
 pub mod quality;
 
-mod derotate;
+pub mod derotate;
 mod flow_check;
 mod geometry_check;
 pub mod refine;
@@ -434,21 +434,21 @@ fn align_inner(
             mask_fraction: cfg.mask_radius_fraction,
         },
         &frame_meta,
-        &frame_data,
         coarse,
         cfg.solar_rotation,
     );
-    let (frame_data, coarse, solar_rotation, rotation_gradient) = match rotation {
+    let (carried, coarse, solar_rotation) = match rotation {
         derotate::Rotation::Removed(d) => {
             notes.extend(d.notes);
-            (d.frame, d.coarse, Some(d.fields), d.gradient)
+            (Some(d.carried), d.coarse, Some(d.fields))
         }
         derotate::Rotation::Kept { fields, note } => {
             notes.extend(note);
-            (frame_data, coarse, fields, 0.0)
+            (None, coarse, fields)
         }
     };
-    tracing::debug!(?solar_rotation, rotation_gradient, derotated_at = ?started.elapsed(), "solar rotation");
+    let carried = carried.as_ref();
+    tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");
 
     // Resolution matching: degrade the sharper image to the other's resolution.
     let plate = work.reference_check.meta.plate_scale_arcsec[0].abs();
@@ -485,6 +485,7 @@ fn align_inner(
             winsize,
             sig_frame,
             max_passes,
+            carried,
             cfg,
         )
         .map_err(|e| e.to_string())
@@ -508,6 +509,7 @@ fn align_inner(
             coarse,
             winsize,
             sig_frame,
+            carried,
             cfg,
         )
         // Binned copies can lack what the full frame has (too few vectors, say).
@@ -533,7 +535,13 @@ fn align_inner(
                 .spectrum
                 .get_or_init(|| crate::blur::RadialSpectrum::around(ref_matched, centre, side))
                 .as_ref()?;
-            let at = fine.transform.apply(centre);
+            let at = match carried {
+                Some(c) => {
+                    let (x, y) = c.then(&fine.transform)(centre[0], centre[1]);
+                    [x, y]
+                }
+                None => fine.transform.apply(centre),
+            };
             let frame = crate::blur::RadialSpectrum::moved(
                 frame_data.view(),
                 reference,
@@ -557,6 +565,7 @@ fn align_inner(
                 sig_frame,
                 blur,
                 fine.seed_level.map_or(0.0, seed_slack_px),
+                carried,
                 |settings| {
                     *matched.self_test.get_or_init(|| {
                         refine::self_test_floor(ref_matched, prepared, mask, cfg.sample, settings)
@@ -678,17 +687,6 @@ fn align_inner(
 
     tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
     let t = fine.transform;
-    // Derotating through the coarse map instead of the final one leaves the rotation field's
-    // gradient times the motion beyond the coarse map.
-    if rotation_gradient > 0.0 {
-        let radius = mask_extent_px(mask, mask_box).max(1.0);
-        let beyond = max_motion_px(&coarse.inverse().after(&t), radius);
-        let e = rotation_gradient * beyond;
-        fine.covariance[2][2] += e * e;
-        fine.covariance[3][3] += e * e;
-        fine.covariance[0][0] += (e / radius).powi(2);
-        fine.covariance[1][1] += (e / radius).powi(2);
-    }
     let sig = sigmas(&fine.covariance);
     let usig = sigmas(&fine.uabjm_covariance);
     let header_residual = coarse.inverse().after(&t);
@@ -905,6 +903,7 @@ fn fine_alignment(
     winsize: usize,
     frame_smoothing_px: f64,
     max_passes: usize,
+    carried: Option<&derotate::Carried>,
     cfg: &EngineConfig,
 ) -> Result<FineResult, FineError> {
     let (h, w) = reference.dim();
@@ -949,6 +948,12 @@ fn fine_alignment(
         Crop::around(roi, margin, grid_stride << levels, w, h)
     };
 
+    // The Sun's motion over the largest crop (the first pass's), read by every pass.
+    let shifts = carried.map(|c| {
+        let crop = crop_for(levels);
+        let s = c.shifts(crop.cols.start, crop.rows.start, crop.cols.len(), crop.rows.len());
+        (crop, s)
+    });
     let mut estimate = coarse.recentered(center);
     let mut solver: Option<Farneback> = spare_solver(None);
     let mut pass = 0;
@@ -960,7 +965,20 @@ fn fine_alignment(
         let crop = crop_for(pass_levels);
         let (x0, y0) = (crop.cols.start, crop.rows.start);
         let (ch, cw) = (crop.rows.len(), crop.cols.len());
-        let mut warped = spline.warp_similarity_window(&estimate, x0, y0, cw, ch);
+        let mut warped = match (&shifts, carried) {
+            (Some((outer, s)), _) if outer.contains(&crop) => {
+                let (ox, oy) = (x0 - outer.cols.start, y0 - outer.rows.start);
+                let window = s.slice(s![oy..oy + ch, ox..ox + cw]);
+                spline.warp_similarity_window_shifted(&estimate, x0, y0, window)
+            }
+            (_, Some(c)) => spline.warp_similarity_window_shifted(
+                &estimate,
+                x0,
+                y0,
+                c.shifts(x0, y0, cw, ch).view(),
+            ),
+            _ => spline.warp_similarity_window(&estimate, x0, y0, cw, ch),
+        };
         if frame_smoothing_px > 0.0 {
             warped = preprocess::gaussian_smooth(warped.view(), frame_smoothing_px);
         }
@@ -1107,6 +1125,13 @@ struct Crop {
 }
 
 impl Crop {
+    fn contains(&self, other: &Crop) -> bool {
+        self.rows.start <= other.rows.start
+            && self.cols.start <= other.cols.start
+            && self.rows.end >= other.rows.end
+            && self.cols.end >= other.cols.end
+    }
+
     /// `roi` grown by `margin`, its start rounded down and its end up to multiples of `align`,
     /// clamped to the `w × h` image.
     fn around(roi: Roi, margin: usize, align: usize, w: usize, h: usize) -> Crop {
@@ -1312,6 +1337,7 @@ fn seed_alignment(
     coarse: Similarity,
     winsize: usize,
     frame_smoothing_px: f64,
+    carried: Option<&derotate::Carried>,
     cfg: &EngineConfig,
 ) -> Result<FineResult, String> {
     let factor = 1usize << binned.level;
@@ -1353,6 +1379,7 @@ fn seed_alignment(
         winsize,
         frame_smoothing_px / b,
         seed_cfg.max_passes,
+        carried.map(|c| c.binned(factor)).as_ref(),
         &seed_cfg,
     )
     .map_err(|e| e.to_string())?;

@@ -384,7 +384,9 @@ pub fn refine(
         .collect();
 
     let mut estimate = start;
-    let mut sampled = frame.sample(&ref_pixels, &estimate);
+    let carried = frame.carried_positions(&ref_pixels);
+    let carried = carried.as_deref();
+    let mut sampled = frame.sample(&ref_pixels, carried, &estimate);
     let (mut gain, mut offset) = initial_photometry(&ref_pixels, &sampled);
     let mut iterations = 0;
     let mut residuals: Vec<f64> = vec![0.0; ref_pixels.len()];
@@ -393,7 +395,7 @@ pub fn refine(
     loop {
         iterations += 1;
         if iterations > 1 {
-            sampled = frame.sample(&ref_pixels, &estimate);
+            sampled = frame.sample(&ref_pixels, carried, &estimate);
         }
         // The pixels were chosen to map inside the frame from the start: most of them
         // leaving it means the iterations ran away from the start (HMI 100² with a zero sky:
@@ -659,6 +661,8 @@ pub struct FrameWindow {
     spline: HighOrderSpline,
     /// Frame-grid position of the window's first column and row.
     origin: [f64; 2],
+    /// The Sun's motion between the two times: pixels are sampled at `T(S(p))`.
+    carried: Option<super::derotate::Carried>,
 }
 
 /// Pixels sampled per task.
@@ -679,30 +683,50 @@ impl FrameWindow {
         bbox: (usize, usize, usize, usize),
         t: &Similarity,
         sigma_px: f64,
+        carried: Option<&super::derotate::Carried>,
     ) -> Option<FrameWindow> {
         let (h, w) = frame.dim();
-        let (x0, y0, x1, y1) = mapped_window(bbox, t, window_margin(sigma_px), w, h)?;
+        let moved = carried.map_or(0.0, |c| c.max_px.ceil());
+        let (x0, y0, x1, y1) = mapped_window(bbox, t, window_margin(sigma_px) + moved, w, h)?;
         let smoothed =
             crate::preprocess::gaussian_smooth(frame.slice(s![y0..=y1, x0..=x1]), sigma_px);
         Some(FrameWindow {
             spline: HighOrderSpline::new(smoothed.view(), MODEL),
             origin: [x0 as f64, y0 as f64],
+            carried: carried.cloned(),
         })
     }
 
-    /// Value and reference-grid gradient of the frame at the image of each pixel through `t`.
-    fn sample(&self, pixels: &[Pixel], t: &Similarity) -> Vec<[f64; 3]> {
+    /// Where the Sun carried each pixel (`None`: no rotation to follow); the same for every
+    /// iteration.
+    fn carried_positions(&self, pixels: &[Pixel]) -> Option<Vec<(f64, f64)>> {
+        let c = self.carried.as_ref()?;
+        Some(pixels.par_iter().map(|p| c.at(p.x as f64, p.y as f64)).collect())
+    }
+
+    /// Value and reference-grid gradient of the frame at the image of each pixel through `t`
+    /// (of each pixel's carried position, when given).
+    fn sample(
+        &self,
+        pixels: &[Pixel],
+        carried: Option<&[(f64, f64)]>,
+        t: &Similarity,
+    ) -> Vec<[f64; 3]> {
         let (a, b) = t.ab();
         let map = crate::resample::similarity_map(t);
         let [ox, oy] = self.origin;
         let mut out = vec![[0.0; 3]; pixels.len()];
         out.par_chunks_mut(SAMPLE_CHUNK)
             .zip(pixels.par_chunks(SAMPLE_CHUNK))
-            .for_each(|(out, pixels)| {
+            .enumerate()
+            .for_each(|(k, (out, pixels))| {
+                let moved = carried.map(|c| &c[k * SAMPLE_CHUNK..]);
                 let positions: Vec<[f64; 2]> = pixels
                     .iter()
-                    .map(|p| {
-                        let (x, y) = map(p.x as f64, p.y as f64);
+                    .enumerate()
+                    .map(|(i, p)| {
+                        let (px, py) = moved.map_or((p.x as f64, p.y as f64), |m| m[i]);
+                        let (x, y) = map(px, py);
                         [x - ox, y - oy]
                     })
                     .collect();
@@ -1060,6 +1084,7 @@ pub fn apply(
     frame_smoothing_px: f64,
     blur: Option<crate::blur::BlurDifference>,
     flow_slack_px: f64,
+    carried: Option<&super::derotate::Carried>,
     self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
     cfg: &super::EngineConfig,
 ) -> Result<String, Rejected> {
@@ -1089,7 +1114,7 @@ pub fn apply(
     };
     let frame_sigma = base_settings.smoothing_px.hypot(frame_smoothing_px);
     let margin = gaussian_reach(frame_sigma.max(settings.smoothing_px)) + 3;
-    let region = refinement_region(mask, reference, frame, transform, margin);
+    let region = refinement_region(mask, reference, frame, transform, carried, margin);
     let pixels = inlier_cell_pixels(
         reference.dim(),
         |x, y| region.usable(x, y),
@@ -1104,7 +1129,7 @@ pub fn apply(
         ));
     };
     let started = std::time::Instant::now();
-    let Some(window) = FrameWindow::new(frame, bbox, transform, frame_sigma) else {
+    let Some(window) = FrameWindow::new(frame, bbox, transform, frame_sigma, carried) else {
         return Err(Rejected::skipped(
             "intensity refinement skipped: the pixels map outside the frame",
         ));
@@ -1459,8 +1484,9 @@ fn refinement_region<'a>(
     reference: ArrayView2<'a, f32>,
     frame: ArrayView2<f32>,
     t: &Similarity,
+    carried: Option<&'a super::derotate::Carried>,
     margin: usize,
-) -> RefinementRegion<'a, impl Fn(f64, f64) -> (f64, f64)> {
+) -> RefinementRegion<'a, impl Fn(f64, f64) -> (f64, f64) + 'a> {
     let frame_blank_free = if crate::preprocess::all_finite(frame) {
         None
     } else {
@@ -1471,7 +1497,13 @@ fn refinement_region<'a>(
         reference,
         frame_dim: frame.dim(),
         frame_blank_free,
-        map: crate::resample::similarity_map(t),
+        map: {
+            let map = crate::resample::similarity_map(t);
+            move |x, y| {
+                let (sx, sy) = carried.map_or((x, y), |c| c.at(x, y));
+                map(sx, sy)
+            }
+        },
         margin: margin as f64,
     }
 }
@@ -1727,6 +1759,7 @@ fn self_test_bias(
             MODEL,
         ),
         origin: [wx0 as f64, wy0 as f64],
+        carried: None,
     };
     let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
     let (a, b) = (transform.params(), test.transform.params());
@@ -1911,7 +1944,7 @@ mod tests {
         let reference = RefineReference::new(image.view(), &settings);
         let start = Similarity::identity([31.5, 31.5]);
         let bbox = (8, 8, 55, 55);
-        let window = FrameWindow::new(image.view(), bbox, &start, 0.0).expect("inside");
+        let window = FrameWindow::new(image.view(), bbox, &start, 0.0, None).expect("inside");
         let grid = CellGrid::over_box(bbox, 4);
         let pixels: Vec<(usize, usize, usize)> = (8..56)
             .flat_map(|y| (8..56).map(move |x| (x, y)))
