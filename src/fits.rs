@@ -13,6 +13,9 @@
 //!    cfitsio's extended file-name syntax never applies to `[`, `]` or spaces in paths.
 //! 4. Per-frame times of cubes come from the per-frame table (IRIS: HDU 1, column index in
 //!    header key `TIME`, seconds after `STARTOBS`), else from the time axis, else the header.
+//!    Per-frame pointing comes from the same table (`XCENIX`/`YCENIX`): one primary header
+//!    describes the whole cube at its nominal pointing, while IRIS re-points between frames
+//!    (it follows the Sun's rotation), so each frame's sun centre is moved by its own offset.
 
 use crate::engine::Image;
 use crate::header::{self, HduKind, Header, HeaderValue, ImageGeometry, BLOCK};
@@ -726,7 +729,10 @@ fn read_compressed(
     Ok(out)
 }
 
-/// Per-frame times (and exposures) of a cube from its per-frame table.
+/// Per-frame times, exposures and pointings of a cube from its per-frame table.
+///
+/// The table is the only per-frame record an IRIS level-2 cube has: its primary header holds
+/// one time, one exposure and one pointing (`XCEN`/`YCEN`, the WCS's `CRVAL`) for all frames.
 #[derive(Debug, Clone, Default)]
 struct FrameClock {
     /// Start time the table counts from (IRIS: `STARTOBS`).
@@ -735,10 +741,14 @@ struct FrameClock {
     seconds: Vec<f64>,
     /// Exposure per table row, when the table has one (`EXPTIMES`).
     exposures: Vec<f64>,
+    /// Field-centre pointing per table row, helioprojective arcsec (`XCENIX`, `YCENIX`), when
+    /// the table has both; `NaN` in rows of missing exposures (see [`pointing_columns`]).
+    pointing: [Vec<f64>; 2],
 }
 
 impl FrameClock {
-    /// Find an auxiliary array HDU whose header names a `TIME` column (IRIS level 2).
+    /// Find an auxiliary array HDU whose header names a `TIME` column (IRIS level 2), and read
+    /// its `TIME`, `EXPTIMES`, `XCENIX` and `YCENIX` columns (0-based indices in that header).
     fn of(layout: &Layout, image: &Hdu, path: &Path) -> FrameClock {
         let start_ns = meta::time_reference_ns(&layout.merged_header(image));
         for hdu in layout
@@ -754,15 +764,24 @@ impl FrameClock {
             if col < 0 || col as usize >= ncols || table.axes.len() != 2 {
                 continue;
             }
+            let column = |key: &str| {
+                hdu.header
+                    .i64(key)
+                    .and_then(|c| usize::try_from(c).ok())
+            };
             match read_table_columns(
                 path,
                 hdu,
                 &[
                     Some(col as usize),
-                    hdu.header.i64("EXPTIMES").map(|c| c as usize),
+                    column("EXPTIMES"),
+                    column("XCENIX"),
+                    column("YCENIX"),
                 ],
             ) {
                 Ok(mut cols) => {
+                    let y = cols.pop().unwrap_or_default();
+                    let x = cols.pop().unwrap_or_default();
                     let exposures = cols.pop().unwrap_or_default();
                     let seconds = cols.pop().unwrap_or_default();
                     if seconds.len() == nrows {
@@ -770,6 +789,7 @@ impl FrameClock {
                             start_ns,
                             seconds,
                             exposures,
+                            pointing: pointing_columns(x, y, nrows),
                         };
                     }
                 }
@@ -799,8 +819,10 @@ impl FrameClock {
         }
     }
 
-    /// Fill frame `i`'s time (table, else time axis, else the header's) and exposure.
+    /// Fill frame `i`'s time (table, else time axis, else the header's) and exposure, and
+    /// move its sun centre to the frame's own pointing when the table gives one.
     fn apply(&self, meta: &mut FrameMeta, header: &Header, i: usize, frames: usize) {
+        self.apply_pointing(meta, header, i, frames);
         if let (true, Some(start)) = (self.has_table(), self.start_ns) {
             let p = table_position(i, frames, self.seconds.len());
             meta.obs_time_ns = offset_time(start, interpolate(&self.seconds, p));
@@ -816,6 +838,71 @@ impl FrameClock {
             meta.obs_time_ns = offset_time(reference, t);
         }
     }
+
+    /// Frame `i`'s sun centre at the frame's pointing (`XCENIX`/`YCENIX` at the frame's table
+    /// position) rather than the header's nominal one: the header's WCS places the Sun for
+    /// the nominal pointing only (see [`pointing_shift_px`]). Frames without a usable
+    /// pointing keep the header's centre.
+    fn apply_pointing(&self, meta: &mut FrameMeta, header: &Header, i: usize, frames: usize) {
+        let [xs, ys] = &self.pointing;
+        if xs.is_empty() || xs.len() != ys.len() {
+            return;
+        }
+        let p = table_position(i, frames, xs.len());
+        let at = [interpolate_rows(xs, p), interpolate_rows(ys, p)];
+        if let Some([dx, dy]) = pointing_shift_px(header, at) {
+            meta.sun_center_px[0] += dx;
+            meta.sun_center_px[1] += dy;
+        }
+    }
+}
+
+/// The `XCENIX`/`YCENIX` columns as the pointing per table row, or empty columns when the
+/// table lacks either. IRIS writes `XCENIX = YCENIX = 0` (with `EXPTIMES = 0`) in the rows of
+/// exposures that are missing (rows 198–221 of the trimmed 1400 Å test cube): that is no
+/// pointing at all, so those rows become `NaN` and frames read from them keep the header's.
+fn pointing_columns(x: Vec<f64>, y: Vec<f64>, rows: usize) -> [Vec<f64>; 2] {
+    if x.len() != rows || y.len() != rows {
+        return [Vec::new(), Vec::new()];
+    }
+    let (x, y) = x
+        .iter()
+        .zip(&y)
+        .map(|(&x, &y)| {
+            if x == 0.0 && y == 0.0 {
+                (f64::NAN, f64::NAN)
+            } else {
+                (x, y)
+            }
+        })
+        .unzip();
+    [x, y]
+}
+
+/// Pixel move of the sun centre for a frame pointed at `at` (helioprojective arcsec) when the
+/// header's WCS describes the nominal pointing `XCEN`/`YCEN` (else `CRVAL1`/`CRVAL2` in arcsec).
+///
+/// A telescope pointed `d = at − nominal` further sees every sky point, the disk centre
+/// included, `−M⁻¹·d` pixels from where the header puts it (`M`: the header's
+/// arcsec-per-pixel matrix, world axis i × pixel axis j). This is the linear part of
+/// moving `CRVAL` by `d`; for IRIS fields (≲ 30″ moves, ~10′ from disk centre) the projection
+/// adds < 0.001 px (tools/iris_pointing_truth.py). `None` when the header gives no nominal
+/// pointing, no usable WCS, or the values are not finite.
+fn pointing_shift_px(header: &Header, at: [f64; 2]) -> Option<[f64; 2]> {
+    let wcs = meta::CelestialWcs::from_header(header).ok()?;
+    let nominal = match (header.f64("XCEN"), header.f64("YCEN")) {
+        (Some(x), Some(y)) => [x, y],
+        _ if header.contains("CRVAL1") && header.contains("CRVAL2") => wcs.crval_arcsec,
+        _ => return None,
+    };
+    let d = [at[0] - nominal[0], at[1] - nominal[1]];
+    let [[a, b], [c, e]] = wcs.matrix;
+    let det = a * e - b * c;
+    if !det.is_finite() || det.abs() < 1e-300 {
+        return None;
+    }
+    let shift = [-(e * d[0] - b * d[1]) / det, -(a * d[1] - c * d[0]) / det];
+    shift.iter().all(|v| v.is_finite()).then_some(shift)
 }
 
 /// `start` plus `seconds`, in ns; `None` when the sum is not a representable time (an absurd
@@ -845,6 +932,16 @@ fn interpolate(values: &[f64], p: f64) -> f64 {
     let lo = p.floor() as usize;
     let hi = (lo + 1).min(last);
     values[lo] + (values[hi] - values[lo]) * (p - lo as f64)
+}
+
+/// [`interpolate`], except that a row of zero weight plays no part: a frame read exactly at a
+/// row is that row's value even when its neighbour is `NaN` (a missing exposure's pointing).
+fn interpolate_rows(values: &[f64], p: f64) -> f64 {
+    let p = p.clamp(0.0, (values.len() - 1) as f64);
+    if p.fract() == 0.0 {
+        return values[p as usize];
+    }
+    interpolate(values, p)
 }
 
 /// Read columns of a 2-D array HDU (NAXIS1 = columns, NAXIS2 = rows), as f64.
@@ -1023,7 +1120,9 @@ fn write_with_cfitsio(
 /// Header cards for frame `meta` of a cube written as a 2-D image: the cube's cards minus
 /// structure, the third (time) axis and per-cube time keys, plus the frame's own `DATE-OBS`
 /// (UTC), `EXPTIME`, and where it came from (`SRCFILE`, `SRCFRAME`). Keys that are not
-/// standard 8-character keywords (HIERARCH) are dropped.
+/// standard 8-character keywords (HIERARCH) are dropped. A frame read at its own pointing
+/// (per-frame table) gets `CRPIX1`/`CRPIX2` moved by its sun centre's move, and `XCEN`/`YCEN`
+/// set to that pointing: the 2-D file has no table, so its header must carry the pointing.
 pub fn frame_header_cards(cube_header: &Header, meta: &FrameMeta) -> Vec<(String, HeaderValue)> {
     let mut cards: Vec<(String, HeaderValue)> = cube_header
         .cards()
@@ -1049,6 +1148,20 @@ pub fn frame_header_cards(cube_header: &Header, meta: &FrameMeta) -> Vec<(String
     if let Some(e) = meta.exptime_s {
         cards.push(("EXPTIME".into(), HeaderValue::Float(e)));
     }
+    if let Some((crpix, offset)) = frame_pointing(cube_header, meta) {
+        for (key, value) in cards.iter_mut() {
+            let moved = match key.as_str() {
+                "CRPIX1" => Some(crpix[0]),
+                "CRPIX2" => Some(crpix[1]),
+                "XCEN" => value.as_f64().map(|v| v + offset[0]),
+                "YCEN" => value.as_f64().map(|v| v + offset[1]),
+                _ => None,
+            };
+            if let Some(v) = moved {
+                *value = HeaderValue::Float(v);
+            }
+        }
+    }
     cards.push((
         "SRCFILE".into(),
         HeaderValue::Str(meta.file.display().to_string()),
@@ -1057,6 +1170,29 @@ pub fn frame_header_cards(cube_header: &Header, meta: &FrameMeta) -> Vec<(String
         cards.push(("SRCFRAME".into(), HeaderValue::Int(f as i64)));
     }
     cards
+}
+
+/// For a cube frame whose sun centre the per-frame table moved ([`FrameClock::apply`]): the
+/// frame's reference pixel (1-based `CRPIX1`, `CRPIX2`, moved with the sun centre, which is
+/// exact whatever the projection) and its pointing offset from the header's, arcsec
+/// (`d = −M·move`, the inverse of [`pointing_shift_px`]). `None` at the header's pointing.
+fn frame_pointing(cube_header: &Header, meta: &FrameMeta) -> Option<([f64; 2], [f64; 2])> {
+    meta.frame?;
+    let wcs = meta::CelestialWcs::from_header(cube_header).ok()?;
+    let nominal = wcs.sun_center_px().ok()?;
+    let moved = [
+        meta.sun_center_px[0] - nominal[0],
+        meta.sun_center_px[1] - nominal[1],
+    ];
+    if moved == [0.0, 0.0] || !moved.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let m = wcs.matrix;
+    let offset = [
+        -(m[0][0] * moved[0] + m[0][1] * moved[1]),
+        -(m[1][0] * moved[0] + m[1][1] * moved[1]),
+    ];
+    Some(([wcs.crpix[0] + moved[0], wcs.crpix[1] + moved[1]], offset))
 }
 
 /// 1–8 characters of `A–Z 0–9 _ -`.

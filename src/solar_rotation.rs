@@ -311,6 +311,18 @@ impl SurfaceMotion {
         self.profile
     }
 
+    /// Angle between the two observers as seen from the Sun (Stonyhurst), degrees.
+    pub fn viewpoint_separation_deg(&self) -> f64 {
+        let dir = |v: &View| {
+            let (sl, cl) = v.lon.sin_cos();
+            let (sb, cb) = v.lat.sin_cos();
+            [cb * cl, cb * sl, sb]
+        };
+        let (a, b) = (dir(&self.from), dir(&self.to));
+        let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        dot.clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
     pub fn observer_assumed(&self) -> bool {
         self.from.observer_assumed || self.to.observer_assumed
     }

@@ -120,7 +120,10 @@ const TRUTH: &[Truth] = &[
 ];
 
 /// One IRIS cube frame's truth. All are 110×109, BITPIX −32, plate scale 0.16635″ (the
-/// header's; the test cubes were rebinned 10× without updating it).
+/// header's; the test cubes were rebinned 10× without updating it). The sun centre is the
+/// frame's own (per-frame pointing XCENIX/YCENIX of HDU 1), printed by
+/// `python3 tools/iris_pointing_truth.py` (astropy: CRVAL moved by the frame's pointing offset);
+/// the other values are tools/sunpy_truth.py's.
 struct IrisFrame {
     file: &'static str,
     frame: u64,
@@ -134,7 +137,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_1400,
         frame: 0,
-        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        sun_center_px: (-2875.2011058005073, -1663.2025526899365),
         rotation_deg: -0.6459544553476199,
         obs_time: "2014-03-29T14:09:38.930Z",
         exptime_s: 8.000057220458984,
@@ -142,7 +145,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_1400,
         frame: 1,
-        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        sun_center_px: (-2878.9340724332965, -1664.0308702264024),
         rotation_deg: -0.6459544553476199,
         obs_time: "2014-03-29T14:14:04.344Z",
         exptime_s: 8.000052272148853,
@@ -150,7 +153,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_1400,
         frame: 27,
-        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        sun_center_px: (-2966.9482552152026, -1662.7322756408903),
         rotation_deg: -0.6459544553476199,
         obs_time: "2014-03-29T16:04:07.679Z",
         exptime_s: 3.456562582051979,
@@ -158,7 +161,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_1400,
         frame: 53,
-        sun_center_px: (-2964.8161731086875, -1662.8686007811825),
+        sun_center_px: (-3054.7244211829798, -1664.5321336563816),
         rotation_deg: -0.6459544553476199,
         obs_time: "2014-03-29T17:54:08.106Z",
         exptime_s: 1.8078919649124146,
@@ -166,7 +169,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_2796,
         frame: 0,
-        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        sun_center_px: (-2875.194807987512, -1663.3413826755009),
         rotation_deg: -0.6459244448721853,
         obs_time: "2014-03-29T14:09:48.490Z",
         exptime_s: 8.000052452087402,
@@ -174,7 +177,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_2796,
         frame: 35,
-        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        sun_center_px: (-2963.567602842368, -1662.8234959888541),
         rotation_deg: -0.6459244448721853,
         obs_time: "2014-03-29T16:00:25.047Z",
         exptime_s: 8.000021195747482,
@@ -182,7 +185,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_2796,
         frame: 71,
-        sun_center_px: (-2964.827871566866, -1662.9451040223641),
+        sun_center_px: (-3055.048014518154, -1664.6050530249508),
         rotation_deg: -0.6459244448721853,
         obs_time: "2014-03-29T17:54:11.310Z",
         exptime_s: 8.00007438659668,
@@ -190,7 +193,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_2832,
         frame: 0,
-        sun_center_px: (-2964.137551869601, -1662.6064252184203),
+        sun_center_px: (-2875.2083353901508, -1663.4520041161381),
         rotation_deg: -0.6458950118711072,
         obs_time: "2014-03-29T14:09:57.930Z",
         exptime_s: 8.000049591064503,
@@ -198,7 +201,7 @@ const IRIS: &[IrisFrame] = &[
     IrisFrame {
         file: SJI_2832,
         frame: 17,
-        sun_center_px: (-2964.137551869601, -1662.6064252184203),
+        sun_center_px: (-3054.373204088077, -1664.019897016962),
         rotation_deg: -0.6458950118711072,
         obs_time: "2014-03-29T17:53:24.770Z",
         exptime_s: 8.000077247619705,

@@ -6,11 +6,14 @@ use fitsio::FitsFile;
 use std::path::Path;
 use std::process::Command;
 
+/// A Sun that does not turn: the fit below measures one similarity per frame, and the Sun's
+/// rotation is no similarity.
 fn synth(out: &Path, extra: &[&str]) {
     let status = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
         .arg("synth")
         .arg("--out")
         .arg(out)
+        .args(["--solar-rotation", "none"])
         .args(extra)
         .output()
         .expect("run sunjitter synth");

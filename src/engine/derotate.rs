@@ -38,7 +38,13 @@ pub(crate) enum Rotation {
         fields: Option<SolarRotationFields>,
         note: Option<String>,
     },
+    /// The two images were taken from different places: no similarity relates them.
+    Refused(String),
 }
+
+/// Observers further apart than this (seen from the Sun) see different faces of it: STEREO
+/// and SDO, or a spacecraft and the Earth. One observer moves far less between its frames.
+pub const MAX_VIEWPOINT_SEPARATION_DEG: f64 = 5.0;
 
 /// Inputs of [`derotate`] that describe the reference side.
 pub(crate) struct ReferenceSide<'a> {
@@ -57,19 +63,31 @@ pub(crate) fn derotate(
     profile: Profile,
 ) -> Rotation {
     let kept = |note: Option<String>| Rotation::Kept { fields: None, note };
+    let views = View::new(reference.meta).zip(View::new(frame_meta));
+    if let Some((from, to)) = &views {
+        let apart = SurfaceMotion::new(from.clone(), to.clone(), Profile::None)
+            .viewpoint_separation_deg();
+        if apart > MAX_VIEWPOINT_SEPARATION_DEG {
+            return Rotation::Refused(format!(
+                "the images were taken from viewpoints {apart:.1}° apart (HGLN_OBS/HGLT_OBS): \
+                 no similarity maps one onto the other"
+            ));
+        }
+    }
+    let nothing = |dt_s: f64| SolarRotationFields {
+        profile,
+        dt_s,
+        dx_px: 0.0,
+        dy_px: 0.0,
+        tracked: false,
+    };
     if profile == Profile::None {
         return Rotation::Kept {
-            fields: dt_s(reference.meta, frame_meta).map(|dt_s| SolarRotationFields {
-                profile,
-                dt_s,
-                dx_px: 0.0,
-                dy_px: 0.0,
-                tracked: false,
-            }),
+            fields: dt_s(reference.meta, frame_meta).map(nothing),
             note: None,
         };
     }
-    let (Some(from), Some(to)) = (View::new(reference.meta), View::new(frame_meta)) else {
+    let Some((from, to)) = views else {
         return kept(Some(
             "solar rotation not removed: no observation time or no usable WCS".into(),
         ));
@@ -77,13 +95,7 @@ pub(crate) fn derotate(
     let motion = SurfaceMotion::new(from, to, profile);
     if motion.dt_s() == 0.0 {
         return Rotation::Kept {
-            fields: Some(SolarRotationFields {
-                profile,
-                dt_s: 0.0,
-                dx_px: 0.0,
-                dy_px: 0.0,
-                tracked: false,
-            }),
+            fields: Some(nothing(0.0)),
             note: None,
         };
     }
@@ -256,3 +268,77 @@ fn mask_point_on_disk(
     })
 }
 
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::Roi;
+
+    fn meta(time_s: i64, hgln_deg: f64, sun_center_px: [f64; 2]) -> FrameMeta {
+        let cfg = crate::synth::SynthConfig::new(256, 1, 12.0);
+        let mut m = cfg.meta(crate::synth::DEFAULT_START_NS + time_s * 1_000_000_000);
+        m.observer.hgln_deg = Some(hgln_deg);
+        m.sun_center_px = sun_center_px;
+        m
+    }
+
+    fn side<'a>(m: &'a FrameMeta, mask: &'a Array2<bool>, disk: Option<([f64; 2], f64)>) -> ReferenceSide<'a> {
+        ReferenceSide {
+            meta: m,
+            disk_px: disk,
+            mask,
+            mask_box: Roi {
+                x: 0,
+                y: 0,
+                width: 256,
+                height: 256,
+            },
+            mask_fraction: 0.9,
+        }
+    }
+
+    #[test]
+    fn images_from_two_viewpoints_are_refused() {
+        // SDO (HGLN 0°) and STEREO-A in 2011 (HGLN about 90°).
+        let c = [127.5, 127.5];
+        let (r, f) = (meta(0, 0.0, c), meta(60, 90.0, c));
+        let mask = Array2::from_elem((256, 256), true);
+        let coarse = Similarity::identity(c);
+        let got = derotate(&side(&r, &mask, Some((c, 100.0))), &f, coarse, Profile::Howard);
+        assert!(matches!(got, Rotation::Refused(ref why) if why.contains("90.0°")));
+        // The same observer an hour later is measured.
+        let f = meta(3600, 0.0, c);
+        let got = derotate(&side(&r, &mask, Some((c, 100.0))), &f, coarse, Profile::Howard);
+        assert!(matches!(got, Rotation::Removed(_)));
+    }
+
+    #[test]
+    fn a_tracked_field_keeps_only_the_rotation_relative_to_its_centre() {
+        // A 256² field whose disk (radius 100 px) is mostly outside: the field's centre (on
+        // the disk) is taken to follow the Sun, so the surface motion there is zero and the
+        // coarse map carries the rotation of that point.
+        let c = [-60.0, 127.5];
+        let (r, f) = (meta(0, 0.0, c), meta(3600, 0.0, c));
+        let mut mask = Array2::from_elem((256, 256), false);
+        mask.slice_mut(ndarray::s![100..156, 0..20]).fill(true);
+        let coarse = Similarity::identity([127.5, 127.5]);
+        let mut s = side(&r, &mask, None);
+        s.mask_box = Roi {
+            x: 0,
+            y: 100,
+            width: 20,
+            height: 56,
+        };
+        let Rotation::Removed(d) = derotate(&s, &f, coarse, Profile::Howard) else {
+            panic!("rotation removed")
+        };
+        assert!(d.fields.tracked);
+        let centre = [9.5, 127.5];
+        let (x, y) = d.carried.at(centre[0], centre[1]);
+        // Zero up to the grid's reading of the motion (cubic convolution, about 1e-4 px).
+        assert!((x - centre[0]).hypot(y - centre[1]) < 1e-3, "({x}, {y})");
+        // The coarse map moved by the centre's rotation: west, a fraction of a pixel per hour
+        // at 38″/px (synth's plate scale at 256²: 9.6″, times the disk's 100/25 px ratio).
+        assert!(d.coarse.dx > 0.0, "{:?}", d.coarse);
+    }
+}

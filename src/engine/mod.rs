@@ -446,6 +446,7 @@ fn align_inner(
             notes.extend(note);
             (None, coarse, fields)
         }
+        derotate::Rotation::Refused(why) => return Err(why),
     };
     let carried = carried.as_ref();
     tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");

@@ -1985,7 +1985,7 @@ mod tests {
             dx: 3.4,
             ..Similarity::identity(Similarity::array_center(w, h))
         };
-        let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
+        let region = refinement_region(&mask, reference.view(), frame.view(), &t, None, 4);
         for ((y, x), _) in mask.indexed_iter() {
             assert_eq!(
                 region.usable(x, y),
@@ -1995,7 +1995,7 @@ mod tests {
         }
         // A blank in the frame at (20, 15) removes the pixels mapping within 4 px of it.
         frame[[15, 20]] = f32::NAN;
-        let region = refinement_region(&mask, reference.view(), frame.view(), &t, 4);
+        let region = refinement_region(&mask, reference.view(), frame.view(), &t, None, 4);
         // Pixel (x, y) maps to round(x + 3.4) = x + 3: excluded when |x + 3 − 20| ≤ 4 and
         // |y − 15| ≤ 4.
         for ((y, x), _) in mask.indexed_iter() {
