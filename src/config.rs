@@ -262,7 +262,9 @@ impl Config {
     }
 
     /// The solar rotation profile of each channel that sets its own, by topic name.
-    pub fn channel_rotation(&self) -> std::collections::BTreeMap<String, crate::solar_rotation::Profile> {
+    pub fn channel_rotation(
+        &self,
+    ) -> std::collections::BTreeMap<String, crate::solar_rotation::Profile> {
         self.channels
             .iter()
             .filter_map(|(name, c)| Some((name.clone(), c.solar_rotation?)))

@@ -764,11 +764,7 @@ impl FrameClock {
             if col < 0 || col as usize >= ncols || table.axes.len() != 2 {
                 continue;
             }
-            let column = |key: &str| {
-                hdu.header
-                    .i64(key)
-                    .and_then(|c| usize::try_from(c).ok())
-            };
+            let column = |key: &str| hdu.header.i64(key).and_then(|c| usize::try_from(c).ok());
             match read_table_columns(
                 path,
                 hdu,
@@ -1279,6 +1275,56 @@ mod tests {
         assert!((table_position(1, 54, 540) - 539.0 / 53.0).abs() < 1e-12);
         assert_eq!(interpolate(&[0.0, 10.0, 20.0], 1.5), 15.0);
         assert_eq!(interpolate(&[0.0, 10.0], 7.0), 10.0);
+    }
+
+    /// The pointing move is −M⁻¹·d. With a 90° roll, M = [[0, −2], [2, 0]] arcsec/px, a frame
+    /// pointed 4″ west and 2″ north of XCEN/YCEN sees the disk centre 1 px left, 2 px up.
+    #[test]
+    fn pointing_moves_the_centre_and_fill_rows_are_no_pointing() {
+        let header = |cards: &[(&str, &str)]| {
+            let text: String = cards
+                .iter()
+                .map(|(k, v)| format!("{:<80}", format!("{k:<8}= {v:>20}")))
+                .collect();
+            Header::parse(text.as_bytes())
+        };
+        let mut cards = vec![
+            ("CRPIX1", "1.0"),
+            ("CRPIX2", "1.0"),
+            ("CDELT1", "2.0"),
+            ("CDELT2", "2.0"),
+            ("PC1_1", "0.0"),
+            ("PC1_2", "-1.0"),
+            ("PC2_1", "1.0"),
+            ("PC2_2", "0.0"),
+            ("CRVAL1", "100.0"),
+            ("CRVAL2", "50.0"),
+        ];
+        // CRVAL stands in for a missing XCEN/YCEN.
+        assert_eq!(
+            pointing_shift_px(&header(&cards), [104.0, 52.0]),
+            Some([-1.0, 2.0])
+        );
+        cards.extend([("XCEN", "90.0"), ("YCEN", "40.0")]);
+        assert_eq!(
+            pointing_shift_px(&header(&cards), [94.0, 42.0]),
+            Some([-1.0, 2.0])
+        );
+        assert_eq!(pointing_shift_px(&header(&cards), [f64::NAN, 42.0]), None);
+        let no_nominal: Vec<_> = cards
+            .iter()
+            .copied()
+            .filter(|(k, _)| !matches!(*k, "XCEN" | "YCEN" | "CRVAL1" | "CRVAL2"))
+            .collect();
+        assert_eq!(pointing_shift_px(&header(&no_nominal), [94.0, 42.0]), None);
+
+        let [x, y] = pointing_columns(vec![1.0, 0.0, 0.0], vec![2.0, 0.0, 5.0], 3);
+        assert_eq!((x[0], y[0]), (1.0, 2.0));
+        assert!(x[1].is_nan() && y[1].is_nan());
+        assert_eq!((x[2], y[2]), (0.0, 5.0));
+        assert!(pointing_columns(vec![1.0], Vec::new(), 1)[0].is_empty());
+        assert_eq!(interpolate_rows(&x, 0.0), 1.0);
+        assert!(interpolate_rows(&x, 0.5).is_nan());
     }
 
     /// Pixel values against astropy (`fits.getdata`, which applies BZERO/BSCALE and BLANK):

@@ -289,7 +289,10 @@ impl RowMap {
     fn shifted(&self, x: usize, y: f64, d: &[f32; 2]) -> (f64, f64) {
         let (sx, sy) = self.at(x, y);
         let (dx, dy) = (d[0] as f64, d[1] as f64);
-        (sx + self.a * dx - self.b * dy, sy + self.b * dx + self.a * dy)
+        (
+            sx + self.a * dx - self.b * dy,
+            sy + self.b * dx + self.a * dy,
+        )
     }
 
     /// Same arithmetic as `similarity_map` at `(x + x0, y)`, so results are bitwise equal.
@@ -747,7 +750,13 @@ crate::flow::simd::multiversion!(fn high_order_shifted_row(
 
 /// One output row of a warp whose pixels are moved by `shift` before the similarity.
 #[inline(always)]
-fn shifted_row_body(sp: &HighOrderSpline, map: &RowMap, y: f64, shift: &[[f32; 2]], out: &mut [f32]) {
+fn shifted_row_body(
+    sp: &HighOrderSpline,
+    map: &RowMap,
+    y: f64,
+    shift: &[[f32; 2]],
+    out: &mut [f32],
+) {
     for (x, (v, d)) in out.iter_mut().zip(shift).enumerate() {
         let (sx, sy) = map.shifted(x, y, d);
         *v = sp.sample_at(sx, sy);

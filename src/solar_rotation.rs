@@ -126,8 +126,8 @@ impl Earth {
     pub fn at(utc_ns: i64) -> Earth {
         let jd = julian_date_tt(utc_ns);
         let t = (jd - 2_451_545.0) / 36_525.0;
-        let l0 = 280.46646 + 36_000.76983 * t + 0.000_303_2 * t * t;
-        let m = (357.52911 + 35_999.05029 * t - 0.000_153_7 * t * t).to_radians();
+        let l0 = 280.466_46 + 36_000.769_83 * t + 0.000_303_2 * t * t;
+        let m = (357.529_11 + 35_999.050_29 * t - 0.000_153_7 * t * t).to_radians();
         let e = 0.016_708_634 - 0.000_042_037 * t - 0.000_000_126_7 * t * t;
         let c = (1.914_602 - 0.004_817 * t - 0.000_014 * t * t) * m.sin()
             + (0.019_993 - 0.000_101 * t) * (2.0 * m).sin()
@@ -423,7 +423,7 @@ impl DisplacementGrid {
         sum
     }
 
-/// Largest change of the displacement per px between neighbouring nodes at which
+    /// Largest change of the displacement per px between neighbouring nodes at which
     /// `inside` holds (both finite).
     pub fn max_gradient(&self, inside: impl Fn([f64; 2]) -> bool) -> f64 {
         let mut worst = 0.0f64;
@@ -527,11 +527,19 @@ mod tests {
 
     #[test]
     fn a_cubic_grid_reads_a_quadratic_field_exactly() {
-        let f = |p: [f64; 2]| [1e-4 * p[0] * p[0] - 0.3, 2.0 - 0.02 * p[1] + 1e-4 * p[0] * p[1]];
+        let f = |p: [f64; 2]| {
+            [
+                1e-4 * p[0] * p[0] - 0.3,
+                2.0 - 0.02 * p[1] + 1e-4 * p[0] * p[1],
+            ]
+        };
         let g = DisplacementGrid::sample(100, 60, 7, f);
         for p in [[0.0, 0.0], [13.3, 41.9], [99.0, 59.0]] {
             let (d, want) = (g.at(p), f(p));
-            assert!((d[0] - want[0]).abs() < 1e-12 && (d[1] - want[1]).abs() < 1e-12, "{p:?}");
+            assert!(
+                (d[0] - want[0]).abs() < 1e-12 && (d[1] - want[1]).abs() < 1e-12,
+                "{p:?}"
+            );
         }
         assert!(g.at([-1.0, 3.0])[0].is_nan());
     }

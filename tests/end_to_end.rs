@@ -140,7 +140,11 @@ fn chained_rms(frames: &Path, csv: &Path) -> (f64, f64, usize) {
     let (mut sq, mut n, mut ok) = (0.0, 0.0, 0);
     for r in &rows {
         ok += usize::from(r["status"] == "ok");
-        let name = Path::new(&r["frame"]).file_name().unwrap().to_string_lossy().to_string();
+        let name = Path::new(&r["frame"])
+            .file_name()
+            .unwrap()
+            .to_string_lossy()
+            .to_string();
         let (tx, ty) = truth[&name];
         let (cx, cy): (f64, f64) = (
             r["chained_dx_px"].parse().unwrap(),
@@ -161,8 +165,19 @@ fn the_suns_rotation_is_not_reported_as_pointing_drift() {
     let frames = dir.path().join("frames");
     let f = frames.to_str().unwrap();
     sunjitter(&[
-        "synth", "--out", f, "--frames", "100", "--size", "256", "--cadence", "12", "--seed",
-        "11", "--solar-rotation", "howard",
+        "synth",
+        "--out",
+        f,
+        "--frames",
+        "100",
+        "--size",
+        "256",
+        "--cadence",
+        "12",
+        "--seed",
+        "11",
+        "--solar-rotation",
+        "howard",
     ]);
     let replay = |name: &str, config: Option<&str>| {
         let out = dir.path().join(name);
@@ -174,7 +189,12 @@ fn the_suns_rotation_is_not_reported_as_pointing_drift() {
             args.extend(["--config", config_path.to_str().unwrap()]);
         }
         sunjitter(&args);
-        sunjitter(&["inspect", out.to_str().unwrap(), "--csv", csv.to_str().unwrap()]);
+        sunjitter(&[
+            "inspect",
+            out.to_str().unwrap(),
+            "--csv",
+            csv.to_str().unwrap(),
+        ]);
         chained_rms(&frames, &csv)
     };
     let (removed, ok, logged) = replay("default", None);
@@ -182,7 +202,13 @@ fn the_suns_rotation_is_not_reported_as_pointing_drift() {
     eprintln!("chained RMS error: {removed:.4} px with the rotation removed, {kept:.4} px without");
     assert_eq!(logged, 100, "every frame logged");
     assert!(ok >= 0.9, "{ok} of frames ok");
-    assert!(removed <= 0.02, "RMS error {removed} px with the rotation removed");
+    assert!(
+        removed <= 0.02,
+        "RMS error {removed} px with the rotation removed"
+    );
     // The sequence does carry the Sun's drift: left in, it dominates the error.
-    assert!(kept >= 0.05, "RMS error {kept} px with the rotation left in");
+    assert!(
+        kept >= 0.05,
+        "RMS error {kept} px with the rotation left in"
+    );
 }

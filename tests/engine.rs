@@ -117,7 +117,10 @@ fn eit_195_to_171_one_hour_apart_measures_the_telescope_not_the_suns_rotation() 
     assert!((removed.dt_s - 3605.66).abs() < 0.01, "{removed:?}");
     // Howard's rate against the tool's Snodgrass & Ulrich: 1.5 % apart at the equator.
     assert!((removed.dx_px + 0.465).abs() < 0.02, "{removed:?}");
-    assert!(removed.dy_px.abs() < 0.01 && !removed.tracked, "{removed:?}");
+    assert!(
+        removed.dy_px.abs() < 0.01 && !removed.tracked,
+        "{removed:?}"
+    );
 
     // Left in, the rotation is what the fit measures.
     let kept = EngineConfig {

@@ -132,7 +132,10 @@ fn the_pointing_change_shows_in_the_centre() {
     assert!((dx + moved_arcsec / CDELT).abs() < 0.1, "Δx {dx} px");
     assert!(dx < -179.0 && dx > -181.0, "Δx {dx} px");
     let truth_dx = TRUTH[2].sun_center_px[0] - TRUTH[0].sun_center_px[0];
-    assert!((dx - truth_dx).abs() < 0.01, "Δx {dx} vs astropy {truth_dx}");
+    assert!(
+        (dx - truth_dx).abs() < 0.01,
+        "Δx {dx} vs astropy {truth_dx}"
+    );
 }
 
 /// Rows of missing exposures carry XCENIX = YCENIX = 0 (1400 rows 198–221; frames 20 and 21
@@ -163,8 +166,16 @@ fn a_split_frame_keeps_its_pointing() {
             .and_then(|(_, v)| v.as_f64())
             .unwrap_or_else(|| panic!("{key} missing"))
     };
-    assert!((get("XCEN") - t.xcenix).abs() < 1e-6, "XCEN {}", get("XCEN"));
-    assert!((get("YCEN") - t.ycenix).abs() < 1e-6, "YCEN {}", get("YCEN"));
+    assert!(
+        (get("XCEN") - t.xcenix).abs() < 1e-6,
+        "XCEN {}",
+        get("XCEN")
+    );
+    assert!(
+        (get("YCEN") - t.ycenix).abs() < 1e-6,
+        "YCEN {}",
+        get("YCEN")
+    );
     assert!(matches!(
         cards.iter().find(|(k, _)| k == "CRVAL1").map(|(_, v)| v),
         Some(HeaderValue::Float(v)) if *v == 505.392
@@ -179,5 +190,10 @@ fn a_split_frame_keeps_its_pointing() {
         1e-9,
         "split frame",
     );
-    assert_near(back.meta.sun_center_px, t.sun_center_px, 0.01, "split frame");
+    assert_near(
+        back.meta.sun_center_px,
+        t.sun_center_px,
+        0.01,
+        "split frame",
+    );
 }

@@ -6,7 +6,9 @@ use serde_json::Value;
 use std::path::PathBuf;
 use sunjitter::header::{Header, HeaderValue};
 use sunjitter::meta::{from_header, ImagePlace};
-use sunjitter::solar_rotation::{grid_step_px, DisplacementGrid, Moved, Profile, SurfaceMotion, View};
+use sunjitter::solar_rotation::{
+    grid_step_px, DisplacementGrid, Moved, Profile, SurfaceMotion, View,
+};
 use sunjitter::FrameMeta;
 
 fn oracle() -> Value {
@@ -166,6 +168,9 @@ fn the_sampled_displacement_reads_the_model_within_a_thousandth_of_a_pixel_insid
         }
         let dt = case["dt_s"].as_f64().unwrap();
         eprintln!("Δt = {dt} s: grid step {step} px, worst {worst:.2e} px");
-        assert!(worst < 1e-3, "Δt = {dt} s: grid reads {worst} px off the model");
+        assert!(
+            worst < 1e-3,
+            "Δt = {dt} s: grid reads {worst} px off the model"
+        );
     }
 }

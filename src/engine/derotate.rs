@@ -15,10 +15,10 @@
 
 use crate::geometry::Similarity;
 use crate::meta::FrameMeta;
+pub use crate::record::SolarRotationFields;
 use crate::solar_rotation::{grid_step_px, DisplacementGrid, Moved, Profile, SurfaceMotion, View};
 use ndarray::Array2;
 use std::sync::Arc;
-pub use crate::record::SolarRotationFields;
 
 /// A pair with the rotation to take out: the surface motion, the coarse map to start from,
 /// and what was done.
@@ -65,8 +65,8 @@ pub(crate) fn derotate(
     let kept = |note: Option<String>| Rotation::Kept { fields: None, note };
     let views = View::new(reference.meta).zip(View::new(frame_meta));
     if let Some((from, to)) = &views {
-        let apart = SurfaceMotion::new(from.clone(), to.clone(), Profile::None)
-            .viewpoint_separation_deg();
+        let apart =
+            SurfaceMotion::new(from.clone(), to.clone(), Profile::None).viewpoint_separation_deg();
         if apart > MAX_VIEWPOINT_SEPARATION_DEG {
             return Rotation::Refused(format!(
                 "the images were taken from viewpoints {apart:.1}° apart (HGLN_OBS/HGLT_OBS): \
@@ -107,7 +107,10 @@ pub(crate) fn derotate(
     };
     let (h, w) = reference.mask.dim();
     let full_disk = reference.disk_px.is_some_and(|(c, r)| {
-        c[0] - r >= -0.5 && c[1] - r >= -0.5 && c[0] + r <= w as f64 - 0.5 && c[1] + r <= h as f64 - 0.5
+        c[0] - r >= -0.5
+            && c[1] - r >= -0.5
+            && c[0] + r <= w as f64 - 0.5
+            && c[1] + r <= h as f64 - 0.5
     });
     let centre = if full_disk {
         reference.meta.sun_center_px
@@ -156,11 +159,16 @@ pub(crate) fn derotate(
     };
     let radius_px = reference.disk_px.map_or(w.max(h) as f64, |(_, r)| r);
     let largest = (moved_centre[0] - centre[0]).hypot(moved_centre[1] - centre[1]);
-    let step = grid_step_px(largest.max(1e-6), radius_px, reference.mask_fraction.max(0.9));
+    let step = grid_step_px(
+        largest.max(1e-6),
+        radius_px,
+        reference.mask_fraction.max(0.9),
+    );
     let grid = DisplacementGrid::sample(w, h, step, displacement);
     let mut notes = Vec::new();
     if motion.observer_assumed() {
-        notes.push("solar rotation: observer keywords missing, the Earth's position assumed".into());
+        notes
+            .push("solar rotation: observer keywords missing, the Earth's position assumed".into());
     }
     Rotation::Removed(Derotated {
         carried: Carried::new(grid),
@@ -268,7 +276,6 @@ fn mask_point_on_disk(
     })
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -282,7 +289,11 @@ mod tests {
         m
     }
 
-    fn side<'a>(m: &'a FrameMeta, mask: &'a Array2<bool>, disk: Option<([f64; 2], f64)>) -> ReferenceSide<'a> {
+    fn side<'a>(
+        m: &'a FrameMeta,
+        mask: &'a Array2<bool>,
+        disk: Option<([f64; 2], f64)>,
+    ) -> ReferenceSide<'a> {
         ReferenceSide {
             meta: m,
             disk_px: disk,
@@ -304,11 +315,21 @@ mod tests {
         let (r, f) = (meta(0, 0.0, c), meta(60, 90.0, c));
         let mask = Array2::from_elem((256, 256), true);
         let coarse = Similarity::identity(c);
-        let got = derotate(&side(&r, &mask, Some((c, 100.0))), &f, coarse, Profile::Howard);
+        let got = derotate(
+            &side(&r, &mask, Some((c, 100.0))),
+            &f,
+            coarse,
+            Profile::Howard,
+        );
         assert!(matches!(got, Rotation::Refused(ref why) if why.contains("90.0°")));
         // The same observer an hour later is measured.
         let f = meta(3600, 0.0, c);
-        let got = derotate(&side(&r, &mask, Some((c, 100.0))), &f, coarse, Profile::Howard);
+        let got = derotate(
+            &side(&r, &mask, Some((c, 100.0))),
+            &f,
+            coarse,
+            Profile::Howard,
+        );
         assert!(matches!(got, Rotation::Removed(_)));
     }
 

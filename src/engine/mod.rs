@@ -272,7 +272,11 @@ impl PreparedReference {
     }
 
     /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
-    pub fn align_with(&self, frame: &Image, profile: crate::solar_rotation::Profile) -> AlignOutcome {
+    pub fn align_with(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+    ) -> AlignOutcome {
         let started = Instant::now();
         let cfg = EngineConfig {
             solar_rotation: profile,
@@ -952,7 +956,12 @@ fn fine_alignment(
     // The Sun's motion over the largest crop (the first pass's), read by every pass.
     let shifts = carried.map(|c| {
         let crop = crop_for(levels);
-        let s = c.shifts(crop.cols.start, crop.rows.start, crop.cols.len(), crop.rows.len());
+        let s = c.shifts(
+            crop.cols.start,
+            crop.rows.start,
+            crop.cols.len(),
+            crop.rows.len(),
+        );
         (crop, s)
     });
     let mut estimate = coarse.recentered(center);

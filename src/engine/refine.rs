@@ -701,7 +701,12 @@ impl FrameWindow {
     /// iteration.
     fn carried_positions(&self, pixels: &[Pixel]) -> Option<Vec<(f64, f64)>> {
         let c = self.carried.as_ref()?;
-        Some(pixels.par_iter().map(|p| c.at(p.x as f64, p.y as f64)).collect())
+        Some(
+            pixels
+                .par_iter()
+                .map(|p| c.at(p.x as f64, p.y as f64))
+                .collect(),
+        )
     }
 
     /// Value and reference-grid gradient of the frame at the image of each pixel through `t`

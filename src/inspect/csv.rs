@@ -43,6 +43,11 @@ pub const COLUMNS: &[&str] = &[
     "header_residual_dy_px",
     "header_residual_rotation_arcsec",
     "header_residual_scale",
+    "solar_rotation_profile",
+    "solar_rotation_dt_s",
+    "solar_rotation_dx_px",
+    "solar_rotation_dy_px",
+    "solar_rotation_tracked",
     "points",
     "inliers",
     "residual_rms_px",
@@ -100,7 +105,11 @@ pub fn write_csv<W: Write>(out: &mut W, analyses: &[ChannelAnalysis]) -> std::io
             let mut flat = Vec::new();
             flatten("", &v, &mut flat);
             for (k, _) in &flat {
-                if !COLUMNS.contains(&k.as_str()) && k != "header_residual" && !extra.contains(k) {
+                if !COLUMNS.contains(&k.as_str())
+                    && k != "header_residual"
+                    && k != "solar_rotation"
+                    && !extra.contains(k)
+                {
                     extra.push(k.clone());
                 }
             }

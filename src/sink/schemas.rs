@@ -221,6 +221,22 @@ pub fn frame_alignment_schema() -> Value {
     }
     put("header_residual", transform);
     put(
+        "solar_rotation",
+        json!({
+            "type": "object",
+            "nullable": true,
+            "description": "The Sun's differential rotation taken out between the two times",
+            "properties": {
+                "profile": { "type": "string", "enum": ["howard", "snodgrass", "allen", "none"] },
+                "dt_s": { "type": "number", "description": "Frame time minus reference time, s" },
+                "dx_px": { "type": "number", "description": "Motion removed at the disk (or tracked field's) centre, x, px" },
+                "dy_px": { "type": "number", "description": "Motion removed at the disk (or tracked field's) centre, y, px" },
+                "tracked": { "type": "boolean", "description": "Partial field taken to follow the Sun at its centre" }
+            },
+            "required": ["profile", "dt_s", "dx_px", "dy_px", "tracked"]
+        }),
+    );
+    put(
         "points",
         json!({ "type": "integer", "minimum": 0, "description": "Flow sample points" }),
     );

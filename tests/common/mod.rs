@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 /// `align --json`: the contract's fields plus the paper's plain-UABJM σ.
-pub const ALIGN_FIELDS: [&str; 24] = [
+pub const ALIGN_FIELDS: [&str; 25] = [
     "reference",
     "frame",
     "scale",
@@ -20,6 +20,7 @@ pub const ALIGN_FIELDS: [&str; 24] = [
     "uabjm_sigma_dx_px",
     "uabjm_sigma_dy_px",
     "header_residual",
+    "solar_rotation",
     "points",
     "inliers",
     "residual_rms_px",
