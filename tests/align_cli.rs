@@ -260,6 +260,9 @@ fn align_recovers_an_injected_transform_and_writes_aligned_fits_and_quicklook() 
     write_image(&frame_path, frame.view(), &frame_cards).unwrap();
     let aligned = dir.path().join("aligned.fits");
     let quicklook = dir.path().join("look.png");
+    // The frame is the reference moved rigidly, a minute later: a Sun that did not turn.
+    let config = dir.path().join("still_sun.toml");
+    std::fs::write(&config, "[engine]\nsolar_rotation = \"none\"\n").unwrap();
 
     let run = sunjitter(&[
         "align".as_ref(),
@@ -270,6 +273,8 @@ fn align_recovers_an_injected_transform_and_writes_aligned_fits_and_quicklook() 
         aligned.as_os_str(),
         "--quicklook".as_ref(),
         quicklook.as_os_str(),
+        "--config".as_ref(),
+        config.as_os_str(),
     ]);
     assert_eq!(run.code, Some(0), "{}", run.stderr);
     let doc = one_document(&run.stdout);

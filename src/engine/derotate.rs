@@ -23,7 +23,8 @@ use std::sync::Arc;
 /// A pair with the rotation to take out: the surface motion, the coarse map to start from,
 /// and what was done.
 pub(crate) struct Derotated {
-    pub carried: Carried,
+    /// `None`: the field's tracking only (profile `none` on a partial field).
+    pub carried: Option<Carried>,
     pub coarse: Similarity,
     pub fields: SolarRotationFields,
     pub notes: Vec<String>,
@@ -81,18 +82,36 @@ pub(crate) fn derotate(
         dy_px: 0.0,
         tracked: false,
     };
-    if profile == Profile::None {
-        return Rotation::Kept {
-            fields: dt_s(reference.meta, frame_meta).map(nothing),
-            note: None,
-        };
+    let (h, w) = reference.mask.dim();
+    let full_disk = reference.disk_px.is_some_and(|(c, r)| {
+        c[0] - r >= -0.5
+            && c[1] - r >= -0.5
+            && c[0] + r <= w as f64 - 0.5
+            && c[1] + r <= h as f64 - 0.5
+    });
+    let kept_as_is = Rotation::Kept {
+        fields: dt_s(reference.meta, frame_meta).map(nothing),
+        note: None,
+    };
+    if profile == Profile::None && full_disk {
+        return kept_as_is;
     }
     let Some((from, to)) = views else {
+        if profile == Profile::None {
+            return kept_as_is;
+        }
         return kept(Some(
             "solar rotation not removed: no observation time or no usable WCS".into(),
         ));
     };
-    let motion = SurfaceMotion::new(from, to, profile);
+    // A partial field follows the Sun whatever is removed from the answer: with `none` its
+    // pointing is still predicted with the default law, and nothing else is taken out.
+    let law = if profile == Profile::None {
+        Profile::default()
+    } else {
+        profile
+    };
+    let motion = SurfaceMotion::new(from, to, law);
     if motion.dt_s() == 0.0 {
         return Rotation::Kept {
             fields: Some(nothing(0.0)),
@@ -105,13 +124,6 @@ pub(crate) fn derotate(
         Moved::To(q) => Some(inverse.apply(q)),
         _ => None,
     };
-    let (h, w) = reference.mask.dim();
-    let full_disk = reference.disk_px.is_some_and(|(c, r)| {
-        c[0] - r >= -0.5
-            && c[1] - r >= -0.5
-            && c[0] + r <= w as f64 - 0.5
-            && c[1] + r <= h as f64 - 0.5
-    });
     let centre = if full_disk {
         reference.meta.sun_center_px
     } else {
@@ -146,6 +158,17 @@ pub(crate) fn derotate(
             },
         )
     };
+    if profile == Profile::None {
+        return Rotation::Removed(Derotated {
+            carried: None,
+            coarse: coarse_eff,
+            fields: SolarRotationFields {
+                tracked: true,
+                ..nothing(motion.dt_s())
+            },
+            notes: Vec::new(),
+        });
+    }
     let eff_inverse = coarse_eff.inverse();
     // S(p) − p on the reference grid: C_eff⁻¹(F(p)) on the disk, C_eff⁻¹(C(p)) on the sky.
     let displacement = |p: [f64; 2]| -> [f64; 2] {
@@ -171,7 +194,7 @@ pub(crate) fn derotate(
             .push("solar rotation: observer keywords missing, the Earth's position assumed".into());
     }
     Rotation::Removed(Derotated {
-        carried: Carried::new(grid),
+        carried: Some(Carried::new(grid)),
         coarse: coarse_eff,
         fields: SolarRotationFields {
             profile,
@@ -355,11 +378,17 @@ mod tests {
         };
         assert!(d.fields.tracked);
         let centre = [9.5, 127.5];
-        let (x, y) = d.carried.at(centre[0], centre[1]);
+        let (x, y) = d.carried.expect("carried").at(centre[0], centre[1]);
         // Zero up to the grid's reading of the motion (cubic convolution, about 1e-4 px).
         assert!((x - centre[0]).hypot(y - centre[1]) < 1e-3, "({x}, {y})");
         // The coarse map moved by the centre's rotation: west, a fraction of a pixel per hour
         // at 38″/px (synth's plate scale at 256²: 9.6″, times the disk's 100/25 px ratio).
         assert!(d.coarse.dx > 0.0, "{:?}", d.coarse);
+        // Leaving the rotation in the answer still predicts the tracking, and removes nothing.
+        let Rotation::Removed(n) = derotate(&s, &f, coarse, Profile::None) else {
+            panic!("tracking predicted")
+        };
+        assert!(n.carried.is_none() && n.fields.tracked && n.fields.dx_px == 0.0);
+        assert_eq!(n.coarse, d.coarse);
     }
 }

@@ -444,7 +444,7 @@ fn align_inner(
     let (carried, coarse, solar_rotation) = match rotation {
         derotate::Rotation::Removed(d) => {
             notes.extend(d.notes);
-            (Some(d.carried), d.coarse, Some(d.fields))
+            (d.carried, d.coarse, Some(d.fields))
         }
         derotate::Rotation::Kept { fields, note } => {
             notes.extend(note);
@@ -452,379 +452,410 @@ fn align_inner(
         }
         derotate::Rotation::Refused(why) => return Err(why),
     };
-    let carried = carried.as_ref();
     tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");
+    let partial = solar_rotation.is_some_and(|r| r.tracked);
+    let measure = |coarse: Similarity,
+                   carried: Option<&derotate::Carried>,
+                   solar_rotation: Option<crate::record::SolarRotationFields>,
+                   mut notes: Vec<String>|
+     -> Result<AlignOutcome, String> {
+        // Resolution matching: degrade the sharper image to the other's resolution.
+        let plate = work.reference_check.meta.plate_scale_arcsec[0].abs();
+        let grid_plate = plate;
+        let frame_plate_on_grid = frame_meta.plate_scale_arcsec[0].abs();
+        let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
+            preprocess::nyquist_fwhm_arcsec(plate),
+            preprocess::nyquist_fwhm_arcsec(frame_plate_on_grid),
+            grid_plate,
+        );
+        let matched = work.matched(sig_ref);
+        let ref_matched = matched.view(work);
 
-    // Resolution matching: degrade the sharper image to the other's resolution.
-    let plate = work.reference_check.meta.plate_scale_arcsec[0].abs();
-    let grid_plate = plate;
-    let frame_plate_on_grid = frame_meta.plate_scale_arcsec[0].abs();
-    let (sig_ref, sig_frame) = preprocess::resolution_matching_sigmas(
-        preprocess::nyquist_fwhm_arcsec(plate),
-        preprocess::nyquist_fwhm_arcsec(frame_plate_on_grid),
-        grid_plate,
-    );
-    let matched = work.matched(sig_ref);
-    let ref_matched = matched.view(work);
-
-    let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
-    // Between channels the limb is no common structure: each channel brightens towards it by
-    // its own amount and shows it at its own height (EIT 171 and 195, one telescope, fit
-    // disks 2.3 % apart). Windows that reach it measured that as a scale change (EIT 195 →
-    // 171: 0.9927 ± 0.0020, 3.7σ from 1; with the windows clear of it 0.9975 ± 0.0038).
-    let limb_clear = match work.reference_check.disk_px {
-        Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
-            Some((centre, radius - flow_reach_px(winsize, cfg.poly_n)))
-        }
-        _ => None,
-    };
-    let flow_from = |start: Similarity, max_passes: usize| {
-        fine_alignment(
-            ref_matched,
-            &frame_data,
-            FlowRegion {
-                mask,
-                sample_within: limb_clear,
-            },
-            start,
-            winsize,
-            sig_frame,
-            max_passes,
-            carried,
-            cfg,
-        )
-        .map_err(|e| e.to_string())
-    };
-    let full_stage = || flow_from(coarse, cfg.max_passes);
-    // When the refinement follows, the flow only seeds it, on binned copies of a large
-    // frame; should the refinement not be taken, the flow runs at full resolution after all.
-    let seed_level = if refining {
-        seed_level(mask_box, cfg)
-    } else {
-        0
-    };
-    let mut fine = if seed_level > 0 {
-        let binned = matched
-            .binned
-            .get_or_init(|| Binned::new(ref_matched, mask, seed_level, work.trend_px()));
-        seed_alignment(
-            binned,
-            work.cleaned.dim(),
-            &frame_data,
-            coarse,
-            winsize,
-            sig_frame,
-            carried,
-            cfg,
-        )
-        // Binned copies can lack what the full frame has (too few vectors, say).
-        .or_else(|_| full_stage())?
-    } else {
-        full_stage()?
-    };
-    let mut refine_note = None;
-    let mut methods_disagree = false;
-    let mut refinement_accepted = false;
-    let mut refinement_ran_off = false;
-    if refining {
-        let prepared = matched
-            .refine_reference
-            .get_or_init(|| refine::RefineReference::new(ref_matched, &refine::settings(cfg, 0.0)));
-        let blur_of = |fine: &FineResult| {
-            let centre = [
-                mask_box.x as f64 + (mask_box.width as f64 - 1.0) / 2.0,
-                mask_box.y as f64 + (mask_box.height as f64 - 1.0) / 2.0,
-            ];
-            let side = mask_box.width.min(mask_box.height);
-            let reference = matched
-                .spectrum
-                .get_or_init(|| crate::blur::RadialSpectrum::around(ref_matched, centre, side))
-                .as_ref()?;
-            let at = match carried {
-                Some(c) => {
-                    let (x, y) = c.then(&fine.transform)(centre[0], centre[1]);
-                    [x, y]
-                }
-                None => fine.transform.apply(centre),
-            };
-            let frame = crate::blur::RadialSpectrum::moved(
-                frame_data.view(),
-                reference,
-                [at[0] - centre[0], at[1] - centre[1]],
-            )?;
-            crate::blur::blur_difference(reference, &frame, fine.transform.scale)
+        let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
+        // Between channels the limb is no common structure: each channel brightens towards it by
+        // its own amount and shows it at its own height (EIT 171 and 195, one telescope, fit
+        // disks 2.3 % apart). Windows that reach it measured that as a scale change (EIT 195 →
+        // 171: 0.9927 ± 0.0020, 3.7σ from 1; with the windows clear of it 0.9975 ± 0.0038).
+        let limb_clear = match work.reference_check.disk_px {
+            Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
+                Some((centre, radius - flow_reach_px(winsize, cfg.poly_n)))
+            }
+            _ => None,
         };
-        let try_refine = |fine: &mut FineResult| {
-            let measured = Instant::now();
-            let blur = blur_of(fine);
-            tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
-            refine::apply(
-                &mut fine.transform,
-                &mut fine.covariance,
+        let flow_from = |start: Similarity, max_passes: usize| {
+            fine_alignment(
                 ref_matched,
-                prepared,
-                frame_data.view(),
-                mask,
-                fine.sample_box,
-                &fine.inliers,
-                sig_frame,
-                blur,
-                fine.seed_level.map_or(0.0, seed_slack_px),
-                carried,
-                |settings| {
-                    *matched.self_test.get_or_init(|| {
-                        refine::self_test_floor(ref_matched, prepared, mask, cfg.sample, settings)
-                    })
+                &frame_data,
+                FlowRegion {
+                    mask,
+                    sample_within: limb_clear,
                 },
+                start,
+                winsize,
+                sig_frame,
+                max_passes,
+                carried,
                 cfg,
             )
+            .map_err(|e| e.to_string())
         };
-        let mut outcome = try_refine(&mut fine);
-        if outcome.is_err() {
-            if fine.seed_level.is_some() {
-                fine = full_stage()?;
-            }
-            // A flow still moving by more than its σ when its passes ran out is mostly
-            // converging slowly: weak or noisy structure lowers its gain, and each pass
-            // recovers only part of what is left. More passes, then the refinement again
-            // (LASCO C3 102² at 3× noise, 30 pairs: 26 `ok` and 4 `degraded`, all within
-            // 3.04σ, against 14 `ok`, 13 `degraded` with 7 up to 9.3σ off, and 3 `failed`).
-            // Only here: on real frames that the refinement accepts after the first passes,
-            // more passes can wander off (IRIS 1400 frames 22–24 under a brightening).
-            if fine.unsettled_px.is_some() {
-                let mut more = flow_from(
-                    fine.transform,
-                    cfg.max_passes.max(1) * (UNSETTLED_PASS_FACTOR - 1),
-                )?;
-                more.passes += fine.passes;
-                fine = more;
-                outcome = try_refine(&mut fine);
-            }
-        }
-        match outcome {
-            Ok(note) => {
-                refine_note = Some(note);
-                fine.unsettled_px = None;
-                refinement_accepted = true;
-            }
-            Err(rejected) => {
-                refine_note = Some(rejected.note);
-                refinement_ran_off = rejected.ran_off;
-                // Two measurements of one motion that disagree beyond their σ: the flow's
-                // answer stays, and its σ grow to cover the refinement's (LASCO C3 with noise:
-                // the flow 8σ off, the rejected refinement right).
-                if let Some(refined) = rejected.disagreeing {
-                    let (a, b) = (fine.transform.params(), refined.params());
-                    for k in 0..4 {
-                        fine.covariance[k][k] += (a[k] - b[k]).powi(2);
+        let full_stage = || flow_from(coarse, cfg.max_passes);
+        // When the refinement follows, the flow only seeds it, on binned copies of a large
+        // frame; should the refinement not be taken, the flow runs at full resolution after all.
+        let seed_level = if refining {
+            seed_level(mask_box, cfg)
+        } else {
+            0
+        };
+        let mut fine = if seed_level > 0 {
+            let binned = matched
+                .binned
+                .get_or_init(|| Binned::new(ref_matched, mask, seed_level, work.trend_px()));
+            seed_alignment(
+                binned,
+                work.cleaned.dim(),
+                &frame_data,
+                coarse,
+                winsize,
+                sig_frame,
+                carried,
+                cfg,
+            )
+            // Binned copies can lack what the full frame has (too few vectors, say).
+            .or_else(|_| full_stage())?
+        } else {
+            full_stage()?
+        };
+        let mut refine_note = None;
+        let mut methods_disagree = false;
+        let mut refinement_accepted = false;
+        let mut refinement_ran_off = false;
+        if refining {
+            let prepared = matched.refine_reference.get_or_init(|| {
+                refine::RefineReference::new(ref_matched, &refine::settings(cfg, 0.0))
+            });
+            let blur_of = |fine: &FineResult| {
+                let centre = [
+                    mask_box.x as f64 + (mask_box.width as f64 - 1.0) / 2.0,
+                    mask_box.y as f64 + (mask_box.height as f64 - 1.0) / 2.0,
+                ];
+                let side = mask_box.width.min(mask_box.height);
+                let reference = matched
+                    .spectrum
+                    .get_or_init(|| crate::blur::RadialSpectrum::around(ref_matched, centre, side))
+                    .as_ref()?;
+                let at = match carried {
+                    Some(c) => {
+                        let (x, y) = c.then(&fine.transform)(centre[0], centre[1]);
+                        [x, y]
                     }
-                    methods_disagree = true;
+                    None => fine.transform.apply(centre),
+                };
+                let frame = crate::blur::RadialSpectrum::moved(
+                    frame_data.view(),
+                    reference,
+                    [at[0] - centre[0], at[1] - centre[1]],
+                )?;
+                crate::blur::blur_difference(reference, &frame, fine.transform.scale)
+            };
+            let try_refine = |fine: &mut FineResult| {
+                let measured = Instant::now();
+                let blur = blur_of(fine);
+                tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
+                refine::apply(
+                    &mut fine.transform,
+                    &mut fine.covariance,
+                    ref_matched,
+                    prepared,
+                    frame_data.view(),
+                    mask,
+                    fine.sample_box,
+                    &fine.inliers,
+                    sig_frame,
+                    blur,
+                    fine.seed_level.map_or(0.0, seed_slack_px),
+                    carried,
+                    |settings| {
+                        *matched.self_test.get_or_init(|| {
+                            refine::self_test_floor(
+                                ref_matched,
+                                prepared,
+                                mask,
+                                cfg.sample,
+                                settings,
+                            )
+                        })
+                    },
+                    cfg,
+                )
+            };
+            let mut outcome = try_refine(&mut fine);
+            if outcome.is_err() {
+                if fine.seed_level.is_some() {
+                    fine = full_stage()?;
+                }
+                // A flow still moving by more than its σ when its passes ran out is mostly
+                // converging slowly: weak or noisy structure lowers its gain, and each pass
+                // recovers only part of what is left. More passes, then the refinement again
+                // (LASCO C3 102² at 3× noise, 30 pairs: 26 `ok` and 4 `degraded`, all within
+                // 3.04σ, against 14 `ok`, 13 `degraded` with 7 up to 9.3σ off, and 3 `failed`).
+                // Only here: on real frames that the refinement accepts after the first passes,
+                // more passes can wander off (IRIS 1400 frames 22–24 under a brightening).
+                if fine.unsettled_px.is_some() {
+                    let mut more = flow_from(
+                        fine.transform,
+                        cfg.max_passes.max(1) * (UNSETTLED_PASS_FACTOR - 1),
+                    )?;
+                    more.passes += fine.passes;
+                    fine = more;
+                    outcome = try_refine(&mut fine);
+                }
+            }
+            match outcome {
+                Ok(note) => {
+                    refine_note = Some(note);
+                    fine.unsettled_px = None;
+                    refinement_accepted = true;
+                }
+                Err(rejected) => {
+                    refine_note = Some(rejected.note);
+                    refinement_ran_off = rejected.ran_off;
+                    // Two measurements of one motion that disagree beyond their σ: the flow's
+                    // answer stays, and its σ grow to cover the refinement's (LASCO C3 with noise:
+                    // the flow 8σ off, the rejected refinement right).
+                    if let Some(refined) = rejected.disagreeing {
+                        let (a, b) = (fine.transform.params(), refined.params());
+                        for k in 0..4 {
+                            fine.covariance[k][k] += (a[k] - b[k]).powi(2);
+                        }
+                        methods_disagree = true;
+                    }
                 }
             }
         }
-    }
-    // The flow's answer is final: its σ must cover its own interpolation bias, which the
-    // scatter of its vectors does not show (see `flow_check`).
-    if !refining && cfg.sigma == SigmaMethod::Calibrated {
-        let checked = Instant::now();
-        let region = FlowRegion {
-            mask,
-            sample_within: limb_clear,
-        };
-        match flow_check::flow_interpolation_check(
-            ref_matched,
-            region,
-            &fine.transform,
-            &coarse,
-            winsize,
-            cfg,
-        ) {
-            Some(term) => {
-                for (k, t) in term.iter().enumerate() {
-                    fine.covariance[k][k] += t * t;
-                }
-                notes.push(format!(
-                    "flow interpolation check {:.1e} / {:.3}″ / {:.1e} / {:.1e} px",
-                    term[0],
-                    term[1] * crate::geometry::ARCSEC_PER_RAD,
-                    term[2],
-                    term[3]
-                ));
-            }
-            None => notes.push("flow interpolation check could not run".to_string()),
-        }
-        tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
-    }
-    if !fine.converged {
-        notes.push(format!(
-            "fine alignment did not converge to {} px in {} passes",
-            cfg.convergence_px, fine.passes
-        ));
-    }
-    notes.extend(refine_note);
-    let fine_at = started.elapsed();
-    // Quality of the final match: on the full grid, or for a seed on binned copies on theirs
-    // (the refinement moves the seed's answer by a small fraction of a binned pixel).
-    let (similarity, correlation) = match (fine.seed_level, matched.binned.get()) {
-        (Some(_), Some(binned)) => quality_of(
-            &QualityGrid {
-                reference: binned.reference.view(),
-                mask: &binned.mask,
-                mask_box: binned.mask_box,
-                high_pass: &binned.high_pass,
-                quality_crop: &binned.quality_crop,
-                trend_px: work.trend_px(),
-            },
-            &fine,
-        ),
-        _ => quality_of(
-            &QualityGrid {
-                reference: ref_data.view(),
+        // The flow's answer is final: its σ must cover its own interpolation bias, which the
+        // scatter of its vectors does not show (see `flow_check`).
+        if !refining && cfg.sigma == SigmaMethod::Calibrated {
+            let checked = Instant::now();
+            let region = FlowRegion {
                 mask,
-                mask_box,
-                high_pass: &matched.high_pass,
-                quality_crop: &matched.quality_crop,
-                trend_px: work.trend_px(),
-            },
-            &fine,
-        ),
-    };
-
-    tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
-    let t = fine.transform;
-    let sig = sigmas(&fine.covariance);
-    let usig = sigmas(&fine.uabjm_covariance);
-    let header_residual = coarse.inverse().after(&t);
-    let inlier_fraction = fine.fit.n_inliers as f64 / fine.points.max(1) as f64;
-
-    let mut status = Status::Ok;
-    let mut reasons: Vec<String> = Vec::new();
-    if let Some(c) = correlation {
-        if c < cfg.min_correlation / 3.0 {
-            return Err(format!(
-                "no common structure: correlation {c:.3} after alignment (frame unrelated to the reference?)"
+                sample_within: limb_clear,
+            };
+            match flow_check::flow_interpolation_check(
+                ref_matched,
+                region,
+                &fine.transform,
+                &coarse,
+                winsize,
+                cfg,
+            ) {
+                Some(term) => {
+                    for (k, t) in term.iter().enumerate() {
+                        fine.covariance[k][k] += t * t;
+                    }
+                    notes.push(format!(
+                        "flow interpolation check {:.1e} / {:.3}″ / {:.1e} / {:.1e} px",
+                        term[0],
+                        term[1] * crate::geometry::ARCSEC_PER_RAD,
+                        term[2],
+                        term[3]
+                    ));
+                }
+                None => notes.push("flow interpolation check could not run".to_string()),
+            }
+            tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
+        }
+        if !fine.converged {
+            notes.push(format!(
+                "fine alignment did not converge to {} px in {} passes",
+                cfg.convergence_px, fine.passes
             ));
         }
-        if c < cfg.min_correlation {
-            status = Status::Degraded;
-            reasons.push(format!("weak common structure (correlation {c:.3})"));
+        notes.extend(refine_note);
+        let fine_at = started.elapsed();
+        // Quality of the final match: on the full grid, or for a seed on binned copies on theirs
+        // (the refinement moves the seed's answer by a small fraction of a binned pixel).
+        let (similarity, correlation) = match (fine.seed_level, matched.binned.get()) {
+            (Some(_), Some(binned)) => quality_of(
+                &QualityGrid {
+                    reference: binned.reference.view(),
+                    mask: &binned.mask,
+                    mask_box: binned.mask_box,
+                    high_pass: &binned.high_pass,
+                    quality_crop: &binned.quality_crop,
+                    trend_px: work.trend_px(),
+                },
+                &fine,
+            ),
+            _ => quality_of(
+                &QualityGrid {
+                    reference: ref_data.view(),
+                    mask,
+                    mask_box,
+                    high_pass: &matched.high_pass,
+                    quality_crop: &matched.quality_crop,
+                    trend_px: work.trend_px(),
+                },
+                &fine,
+            ),
+        };
+
+        tracing::debug!(?fine_at, quality_at = ?started.elapsed(), "frame aligned");
+        let t = fine.transform;
+        let sig = sigmas(&fine.covariance);
+        let usig = sigmas(&fine.uabjm_covariance);
+        let header_residual = coarse.inverse().after(&t);
+        let inlier_fraction = fine.fit.n_inliers as f64 / fine.points.max(1) as f64;
+
+        let mut status = Status::Ok;
+        let mut reasons: Vec<String> = Vec::new();
+        if let Some(c) = correlation {
+            if c < cfg.min_correlation / 3.0 {
+                return Err(format!(
+                "no common structure: correlation {c:.3} after alignment (frame unrelated to the reference?)"
+            ));
+            }
+            if c < cfg.min_correlation {
+                status = Status::Degraded;
+                reasons.push(format!("weak common structure (correlation {c:.3})"));
+            }
         }
-    }
-    if let Some(s) = similarity {
-        if s < cfg.min_similarity {
-            status = Status::Degraded;
-            reasons.push(format!("low histogram similarity {s:.3}"));
+        if let Some(s) = similarity {
+            if s < cfg.min_similarity {
+                status = Status::Degraded;
+                reasons.push(format!("low histogram similarity {s:.3}"));
+            }
         }
-    }
-    // A flow that needed more than `max_passes`, or was still moving when its passes ran out,
-    // had a low gain. With weak common structure, or a flow field most of which fits no one
-    // similarity, it may also settle on a wrong match far outside its σ, or stop short of the
-    // right one (LASCO C3 102² at 3× noise: 7 of 30 pairs `degraded` 3.4–9.3σ off after 4
-    // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled sky: one
-    // settled after extra passes with 177/380 inliers, 18σ off). Without the refinement's
-    // confirmation there is no reliable answer. Nor when the flow settled but the refinement
-    // from its answer ran off: then both checks of that answer fail (HMI 100² with a zero
-    // sky: two flows settled within 4 passes at almost no motion, 164–174/375 inliers, 26–27σ
-    // from the truth, and the refinement from there left the frame or went singular).
-    let slow_flow = fine.unsettled_px.is_some() || fine.passes > cfg.max_passes.max(1);
-    let weak = correlation
-        .filter(|&c| c < cfg.min_correlation)
-        .map(|c| format!("the common structure is weak (correlation {c:.3})"));
-    let incoherent = (inlier_fraction < cfg.min_inlier_fraction).then(|| {
-        format!(
-            "only {}/{} flow vectors agree with one similarity",
-            fine.fit.n_inliers, fine.points
-        )
-    });
-    if let (false, Some(why)) = (refinement_accepted, weak.or(incoherent)) {
-        let unconfirmed = match fine.unsettled_px {
-            Some(moved) => Some(format!(
+        // A flow that needed more than `max_passes`, or was still moving when its passes ran out,
+        // had a low gain. With weak common structure, or a flow field most of which fits no one
+        // similarity, it may also settle on a wrong match far outside its σ, or stop short of the
+        // right one (LASCO C3 102² at 3× noise: 7 of 30 pairs `degraded` 3.4–9.3σ off after 4
+        // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled sky: one
+        // settled after extra passes with 177/380 inliers, 18σ off). Without the refinement's
+        // confirmation there is no reliable answer. Nor when the flow settled but the refinement
+        // from its answer ran off: then both checks of that answer fail (HMI 100² with a zero
+        // sky: two flows settled within 4 passes at almost no motion, 164–174/375 inliers, 26–27σ
+        // from the truth, and the refinement from there left the frame or went singular).
+        let slow_flow = fine.unsettled_px.is_some() || fine.passes > cfg.max_passes.max(1);
+        let weak = correlation
+            .filter(|&c| c < cfg.min_correlation)
+            .map(|c| format!("the common structure is weak (correlation {c:.3})"));
+        let incoherent = (inlier_fraction < cfg.min_inlier_fraction).then(|| {
+            format!(
+                "only {}/{} flow vectors agree with one similarity",
+                fine.fit.n_inliers, fine.points
+            )
+        });
+        if let (false, Some(why)) = (refinement_accepted, weak.or(incoherent)) {
+            let unconfirmed = match fine.unsettled_px {
+                Some(moved) => Some(format!(
                 "the fine alignment was still moving after {} passes ({moved:.3} px in the last)",
                 fine.passes
             )),
-            None if slow_flow => Some(format!(
-                "the fine alignment needed {} passes to settle",
-                fine.passes
-            )),
-            None if refinement_ran_off => {
-                Some("the intensity refinement from the flow's answer ran off".to_string())
+                None if slow_flow => Some(format!(
+                    "the fine alignment needed {} passes to settle",
+                    fine.passes
+                )),
+                None if refinement_ran_off => {
+                    Some("the intensity refinement from the flow's answer ran off".to_string())
+                }
+                None => None,
+            };
+            if let Some(unconfirmed) = unconfirmed {
+                return Err(format!("no reliable answer: {why}, and {unconfirmed}"));
             }
-            None => None,
-        };
-        if let Some(unconfirmed) = unconfirmed {
-            return Err(format!("no reliable answer: {why}, and {unconfirmed}"));
         }
-    }
-    if let Some(moved) = fine.unsettled_px {
-        status = Status::Degraded;
-        reasons.push(format!(
-            "the fine alignment was still moving ({moved:.3} px in its last pass); σ include \
+        if let Some(moved) = fine.unsettled_px {
+            status = Status::Degraded;
+            reasons.push(format!(
+                "the fine alignment was still moving ({moved:.3} px in its last pass); σ include \
              that step"
-        ));
-    }
-    if methods_disagree {
-        status = Status::Degraded;
-        reasons.push(
-            "the flow and the intensity refinement disagree; σ include their difference".into(),
-        );
-    }
-    if inlier_fraction < cfg.min_inlier_fraction {
-        status = Status::Degraded;
-        reasons.push(format!(
-            "only {}/{} flow vectors agree with one similarity",
-            fine.fit.n_inliers, fine.points
-        ));
-    }
-    reasons.extend(notes);
-    reasons.push(match fine.seed_level {
-        Some(level) if level > 0 => format!(
-            "window {winsize} px, {} passes finished on pyramid level {level}",
-            fine.passes
-        ),
-        _ => format!("window {winsize} px, {} passes", fine.passes),
-    });
+            ));
+        }
+        if methods_disagree {
+            status = Status::Degraded;
+            reasons.push(
+                "the flow and the intensity refinement disagree; σ include their difference".into(),
+            );
+        }
+        if inlier_fraction < cfg.min_inlier_fraction {
+            status = Status::Degraded;
+            reasons.push(format!(
+                "only {}/{} flow vectors agree with one similarity",
+                fine.fit.n_inliers, fine.points
+            ));
+        }
+        reasons.extend(notes);
+        reasons.push(match fine.seed_level {
+            Some(level) if level > 0 => format!(
+                "window {winsize} px, {} passes finished on pyramid level {level}",
+                fine.passes
+            ),
+            _ => format!("window {winsize} px, {} passes", fine.passes),
+        });
 
-    let ps = work.meta.plate_scale_arcsec;
-    let result = AlignResult {
-        reference: work.meta.file.display().to_string(),
-        frame: frame.meta.file.display().to_string(),
-        scale: Some(t.scale),
-        rotation_arcsec: Some(t.rotation_arcsec()),
-        dx_px: Some(t.dx),
-        dy_px: Some(t.dy),
-        dx_arcsec: Some(t.dx * ps[0]),
-        dy_arcsec: Some(t.dy * ps[1]),
-        sigma_scale: Some(sig[0]),
-        sigma_rotation_arcsec: Some(sig[1] * crate::geometry::ARCSEC_PER_RAD),
-        sigma_dx_px: Some(sig[2]),
-        sigma_dy_px: Some(sig[3]),
-        uabjm_sigma_scale: Some(usig[0]),
-        uabjm_sigma_rotation_arcsec: Some(usig[1] * crate::geometry::ARCSEC_PER_RAD),
-        uabjm_sigma_dx_px: Some(usig[2]),
-        uabjm_sigma_dy_px: Some(usig[3]),
-        header_residual: Some(TransformFields {
-            scale: header_residual.scale,
-            rotation_arcsec: header_residual.rotation_arcsec(),
-            dx_px: header_residual.dx,
-            dy_px: header_residual.dy,
-        }),
-        solar_rotation,
-        points: fine.points,
-        inliers: fine.fit.n_inliers,
-        residual_rms_px: Some(fine.fit.residual_rms_px),
-        similarity,
-        status,
-        message: reasons.join("; "),
-        elapsed_ms: 0.0,
+        let ps = work.meta.plate_scale_arcsec;
+        let result = AlignResult {
+            reference: work.meta.file.display().to_string(),
+            frame: frame.meta.file.display().to_string(),
+            scale: Some(t.scale),
+            rotation_arcsec: Some(t.rotation_arcsec()),
+            dx_px: Some(t.dx),
+            dy_px: Some(t.dy),
+            dx_arcsec: Some(t.dx * ps[0]),
+            dy_arcsec: Some(t.dy * ps[1]),
+            sigma_scale: Some(sig[0]),
+            sigma_rotation_arcsec: Some(sig[1] * crate::geometry::ARCSEC_PER_RAD),
+            sigma_dx_px: Some(sig[2]),
+            sigma_dy_px: Some(sig[3]),
+            uabjm_sigma_scale: Some(usig[0]),
+            uabjm_sigma_rotation_arcsec: Some(usig[1] * crate::geometry::ARCSEC_PER_RAD),
+            uabjm_sigma_dx_px: Some(usig[2]),
+            uabjm_sigma_dy_px: Some(usig[3]),
+            header_residual: Some(TransformFields {
+                scale: header_residual.scale,
+                rotation_arcsec: header_residual.rotation_arcsec(),
+                dx_px: header_residual.dx,
+                dy_px: header_residual.dy,
+            }),
+            solar_rotation,
+            points: fine.points,
+            inliers: fine.fit.n_inliers,
+            residual_rms_px: Some(fine.fit.residual_rms_px),
+            similarity,
+            status,
+            message: reasons.join("; "),
+            elapsed_ms: 0.0,
+        };
+        Ok(AlignOutcome {
+            result,
+            transform: Some(t),
+            coarse: Some(coarse),
+            covariance: Some(fine.covariance),
+            uabjm_covariance: Some(fine.uabjm_covariance),
+            mask: Some(mask.clone()),
+        })
     };
-    Ok(AlignOutcome {
-        result,
-        transform: Some(t),
-        coarse: Some(coarse),
-        covariance: Some(fine.covariance),
-        uabjm_covariance: Some(fine.uabjm_covariance),
-        mask: Some(mask.clone()),
-    })
+    let first = measure(coarse, carried.as_ref(), solar_rotation, notes.clone());
+    // A partial field has no disk to check its header pointing against: where that pointing
+    // leads to no match, the frame is measured from the reference's pointing instead.
+    let (h, w) = work.cleaned.dim();
+    let moved = max_motion_px(&coarse.recentered(Similarity::array_center(w, h)), 0.0);
+    match first {
+        Err(why) if partial && moved > 1.0 => {
+            let still = Similarity {
+                dx: 0.0,
+                dy: 0.0,
+                ..coarse.recentered(Similarity::array_center(w, h))
+            };
+            notes.push(format!(
+                "the header pointing ({moved:.1} px from the reference's) led to no match ({why}); \
+                 measured from the reference's pointing, the Sun's rotation not removed"
+            ));
+            measure(still, None, None, notes).map_err(|_| why)
+        }
+        other => other,
+    }
 }
 
 /// The grid the quality checks compare on: the reference's, or binned copies of it.
