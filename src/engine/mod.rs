@@ -453,7 +453,8 @@ fn align_inner(
         derotate::Rotation::Refused(why) => return Err(why),
     };
     tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");
-    let partial = solar_rotation.is_some_and(|r| r.tracked);
+    let (h, w) = work.cleaned.dim();
+    let partial = !derotate::holds_the_disk(work.reference_check.disk_px, w, h);
     let measure = |coarse: Similarity,
                    carried: Option<&derotate::Carried>,
                    solar_rotation: Option<crate::record::SolarRotationFields>,
@@ -839,7 +840,6 @@ fn align_inner(
     let first = measure(coarse, carried.as_ref(), solar_rotation, notes.clone());
     // A partial field has no disk to check its header pointing against: where that pointing
     // leads to no match, the frame is measured from the reference's pointing instead.
-    let (h, w) = work.cleaned.dim();
     let moved = max_motion_px(&coarse.recentered(Similarity::array_center(w, h)), 0.0);
     match first {
         Err(why) if partial && moved > 1.0 => {
