@@ -423,32 +423,6 @@ impl DisplacementGrid {
         sum
     }
 
-    /// Largest change of the displacement per px between neighbouring nodes at which
-    /// `inside` holds (both finite).
-    pub fn max_gradient(&self, inside: impl Fn([f64; 2]) -> bool) -> f64 {
-        let mut worst = 0.0f64;
-        for y in 0..self.ny {
-            for x in 0..self.nx {
-                let a = self.nodes[y * self.nx + x];
-                let here = [(x as f64 - 1.0) * self.step, (y as f64 - 1.0) * self.step];
-                if !(a[0].is_finite() && inside(here)) {
-                    continue;
-                }
-                for (x2, y2) in [(x + 1, y), (x, y + 1)] {
-                    if x2 >= self.nx || y2 >= self.ny {
-                        continue;
-                    }
-                    let b = self.nodes[y2 * self.nx + x2];
-                    let there = [(x2 as f64 - 1.0) * self.step, (y2 as f64 - 1.0) * self.step];
-                    if b[0].is_finite() && inside(there) {
-                        worst = worst.max((b[0] - a[0]).hypot(b[1] - a[1]) / self.step);
-                    }
-                }
-            }
-        }
-        worst
-    }
-
     /// Largest finite displacement, px.
     pub fn max_norm(&self) -> f64 {
         self.nodes

@@ -6,7 +6,7 @@
 //! on the reference grid is `S = C⁻¹∘F`. Every stage samples the frame at `T(S(p))` where it
 //! sampled `T(p)`; for a frame moved by the telescope `J` on top of the headers
 //! (`frame(J(F(p))) = ref(p)`) the answer is `T = J∘C` exactly. The surface motion costs a
-//! few thousand evaluations of the model per pair, read bilinearly between them.
+//! few thousand evaluations of the model per pair, read by cubic convolution between them.
 //!
 //! A field that does not hold the whole disk (IRIS, TRACE, DKIST) is taken to follow the
 //! Sun at its centre, as such instruments do: the headers' pointing (per frame where they give
@@ -23,8 +23,7 @@ use std::sync::Arc;
 /// A pair with the rotation to take out: the surface motion, the coarse map to start from,
 /// and what was done.
 pub(crate) struct Derotated {
-    /// `None`: the field's tracking only (profile `none` on a partial field).
-    pub carried: Option<Carried>,
+    pub carried: Carried,
     pub coarse: Similarity,
     pub fields: SolarRotationFields,
     pub notes: Vec<String>,
@@ -56,7 +55,8 @@ pub(crate) struct ReferenceSide<'a> {
     pub mask_fraction: f64,
 }
 
-/// Take the rotation between the reference's time and the frame's out of `frame`.
+/// The Sun's motion between the reference's time and the frame's, and the coarse map that
+/// goes with it (see the module documentation).
 pub(crate) fn derotate(
     reference: &ReferenceSide,
     frame_meta: &FrameMeta,
@@ -167,7 +167,7 @@ pub(crate) fn derotate(
             .push("solar rotation: observer keywords missing, the Earth's position assumed".into());
     }
     Rotation::Removed(Derotated {
-        carried: Some(Carried::new(grid)),
+        carried: Carried::new(grid),
         coarse: coarse_eff,
         fields: SolarRotationFields {
             profile,
@@ -361,7 +361,7 @@ mod tests {
         };
         assert!(d.fields.tracked);
         let centre = [9.5, 127.5];
-        let (x, y) = d.carried.expect("carried").at(centre[0], centre[1]);
+        let (x, y) = d.carried.at(centre[0], centre[1]);
         // Zero up to the grid's reading of the motion (cubic convolution, about 1e-4 px).
         assert!((x - centre[0]).hypot(y - centre[1]) < 1e-3, "({x}, {y})");
         // The coarse map moved by the centre's rotation: west, a fraction of a pixel per hour

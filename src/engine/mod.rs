@@ -444,7 +444,7 @@ fn align_inner(
     let (carried, coarse, solar_rotation) = match rotation {
         derotate::Rotation::Removed(d) => {
             notes.extend(d.notes);
-            (d.carried, d.coarse, Some(d.fields))
+            (Some(d.carried), d.coarse, Some(d.fields))
         }
         derotate::Rotation::Kept { fields, note } => {
             notes.extend(note);
