@@ -7,9 +7,10 @@ cd "$(dirname "$0")"
 out=${1:-out/demo}
 rm -rf "$out"
 cargo build --release --quiet
-./target/release/sunjitter replay \
+bin="${CARGO_TARGET_DIR:-target}/release/sunjitter"
+"$bin" replay \
   data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits \
   data/real/iris_l2_20140329_140938_3860258481_SJI_2796_t000_deconvolved.fits \
   --config examples/demo.toml --out "$out"
-./target/release/sunjitter inspect "$out" --plot "$out/jitter.png" --csv "$out/jitter.csv"
+"$bin" inspect "$out" --plot "$out/jitter.png" --csv "$out/jitter.csv"
 echo "log: $out/*.mcap   figure: $out/jitter.png   series: $out/jitter.csv"

@@ -52,6 +52,11 @@ pub struct AlignResult {
     pub sigma_rotation_arcsec: Option<f64>,
     pub sigma_dx_px: Option<f64>,
     pub sigma_dy_px: Option<f64>,
+    /// `sigma_dx_px`, `sigma_dy_px` times the plate scale used, arcsec.
+    #[serde(default)]
+    pub sigma_dx_arcsec: Option<f64>,
+    #[serde(default)]
+    pub sigma_dy_arcsec: Option<f64>,
     pub uabjm_sigma_scale: Option<f64>,
     pub uabjm_sigma_rotation_arcsec: Option<f64>,
     pub uabjm_sigma_dx_px: Option<f64>,

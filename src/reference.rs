@@ -890,6 +890,8 @@ impl ChannelState {
             sigma_rotation_arcsec: zero,
             sigma_dx_px: zero,
             sigma_dy_px: zero,
+            sigma_dx_arcsec: zero,
+            sigma_dy_arcsec: zero,
             uabjm_sigma_scale: zero,
             uabjm_sigma_rotation_arcsec: zero,
             uabjm_sigma_dx_px: zero,

@@ -113,6 +113,16 @@ fn eit_195_to_171_one_hour_apart_measures_the_telescope_not_the_suns_rotation() 
     assert!(within(r.rotation_arcsec, 0.0, r.sigma_rotation_arcsec));
     // One telescope, one plate scale: 1 within 3σ (each channel's limb is its own).
     assert!(within(r.scale, 1.0, r.sigma_scale));
+    // Arcseconds use the plate scale the alignment used: the images were rebinned 1024² → 128²
+    // without updating CDELT (2.63″/px in the header, 8 × 2.63 = 21.04″/px in fact).
+    for (arcsec, px) in [
+        (r.dx_arcsec, r.dx_px),
+        (r.sigma_dx_arcsec, r.sigma_dx_px),
+        (r.sigma_dy_arcsec, r.sigma_dy_px),
+    ] {
+        let scale = arcsec.unwrap() / px.unwrap();
+        assert!((scale.abs() / 21.04 - 1.0).abs() < 0.05, "{scale}″/px");
+    }
     let removed = r.solar_rotation.expect("rotation removed");
     assert!((removed.dt_s - 3605.66).abs() < 0.01, "{removed:?}");
     // Howard's rate against the tool's Snodgrass & Ulrich: 1.5 % apart at the equator.

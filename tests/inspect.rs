@@ -52,6 +52,8 @@ fn record(
                 sigma_rotation_arcsec: v(0.5),
                 sigma_dx_px: v(sigma),
                 sigma_dy_px: v(sigma),
+                sigma_dx_arcsec: v(sigma),
+                sigma_dy_arcsec: v(sigma),
                 uabjm_sigma_scale: v(1e-6),
                 uabjm_sigma_rotation_arcsec: v(0.3),
                 uabjm_sigma_dx_px: v(sigma / 2.0),

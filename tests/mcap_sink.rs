@@ -59,6 +59,8 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         sigma_rotation_arcsec: v(0.1).map(f64::abs),
         sigma_dx_px: v(0.01).map(f64::abs),
         sigma_dy_px: v(0.01).map(f64::abs),
+        sigma_dx_arcsec: v(0.01).map(f64::abs),
+        sigma_dy_arcsec: v(0.01).map(f64::abs),
         uabjm_sigma_scale: v(1e-7).map(f64::abs),
         uabjm_sigma_rotation_arcsec: v(0.05),
         uabjm_sigma_dx_px: v(1e-3),

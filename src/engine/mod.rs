@@ -795,7 +795,9 @@ fn align_inner(
             _ => format!("window {winsize} px, {} passes", fine.passes),
         });
 
-        let ps = work.meta.plate_scale_arcsec;
+        // The plate scale the alignment used: the header's, or the disk-checked one where the
+        // header's was refused.
+        let ps = work.reference_check.meta.plate_scale_arcsec;
         let result = AlignResult {
             reference: work.meta.file.display().to_string(),
             frame: frame.meta.file.display().to_string(),
@@ -809,6 +811,8 @@ fn align_inner(
             sigma_rotation_arcsec: Some(sig[1] * crate::geometry::ARCSEC_PER_RAD),
             sigma_dx_px: Some(sig[2]),
             sigma_dy_px: Some(sig[3]),
+            sigma_dx_arcsec: Some(sig[2] * ps[0].abs()),
+            sigma_dy_arcsec: Some(sig[3] * ps[1].abs()),
             uabjm_sigma_scale: Some(usig[0]),
             uabjm_sigma_rotation_arcsec: Some(usig[1] * crate::geometry::ARCSEC_PER_RAD),
             uabjm_sigma_dx_px: Some(usig[2]),
@@ -1609,6 +1613,8 @@ impl AlignOutcome {
                 sigma_rotation_arcsec: None,
                 sigma_dx_px: None,
                 sigma_dy_px: None,
+                sigma_dx_arcsec: None,
+                sigma_dy_arcsec: None,
                 uabjm_sigma_scale: None,
                 uabjm_sigma_rotation_arcsec: None,
                 uabjm_sigma_dx_px: None,
@@ -1658,6 +1664,8 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
             sigma_rotation_arcsec: Some(0.0),
             sigma_dx_px: Some(0.0),
             sigma_dy_px: Some(0.0),
+            sigma_dx_arcsec: Some(0.0),
+            sigma_dy_arcsec: Some(0.0),
             uabjm_sigma_scale: Some(0.0),
             uabjm_sigma_rotation_arcsec: Some(0.0),
             uabjm_sigma_dx_px: Some(0.0),

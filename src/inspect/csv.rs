@@ -27,6 +27,8 @@ pub const COLUMNS: &[&str] = &[
     "sigma_dy_px",
     "sigma_rotation_arcsec",
     "sigma_scale",
+    "sigma_dx_arcsec",
+    "sigma_dy_arcsec",
     "uabjm_sigma_dx_px",
     "uabjm_sigma_dy_px",
     "uabjm_sigma_rotation_arcsec",

@@ -627,6 +627,8 @@ pub(crate) mod testdata {
                     sigma_rotation_arcsec: v(0.1),
                     sigma_dx_px: v(0.01),
                     sigma_dy_px: v(0.01),
+                    sigma_dx_arcsec: v(0.01),
+                    sigma_dy_arcsec: v(0.01),
                     uabjm_sigma_scale: v(1e-6),
                     uabjm_sigma_rotation_arcsec: v(0.1),
                     uabjm_sigma_dx_px: v(0.01),

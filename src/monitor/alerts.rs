@@ -544,6 +544,8 @@ mod tests {
                 sigma_rotation_arcsec: num(0.0),
                 sigma_dx_px: num(sigma),
                 sigma_dy_px: num(sigma / 2.0),
+                sigma_dx_arcsec: num(sigma),
+                sigma_dy_arcsec: num(sigma / 2.0),
                 uabjm_sigma_scale: None,
                 uabjm_sigma_rotation_arcsec: None,
                 uabjm_sigma_dx_px: None,

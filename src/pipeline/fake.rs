@@ -261,6 +261,8 @@ pub fn outcome(
             sigma_rotation_arcsec: sd(1).map(|s| s * arcsec),
             sigma_dx_px: sd(2),
             sigma_dy_px: sd(3),
+            sigma_dx_arcsec: sd(2),
+            sigma_dy_arcsec: sd(3),
             uabjm_sigma_scale: sd(0),
             uabjm_sigma_rotation_arcsec: sd(1).map(|s| s * arcsec),
             uabjm_sigma_dx_px: sd(2),

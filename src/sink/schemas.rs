@@ -201,13 +201,20 @@ pub fn frame_alignment_schema() -> Value {
     );
     put(
         "dx_arcsec",
-        number_or_null("dx_px times the reference plate scale"),
+        number_or_null("dx_px times the plate scale used (the header's, or the disk-checked one)"),
     );
     put(
         "dy_arcsec",
-        number_or_null("dy_px times the reference plate scale"),
+        number_or_null("dy_px times the plate scale used (the header's, or the disk-checked one)"),
     );
-    for p in ["scale", "rotation_arcsec", "dx_px", "dy_px"] {
+    for p in [
+        "scale",
+        "rotation_arcsec",
+        "dx_px",
+        "dy_px",
+        "dx_arcsec",
+        "dy_arcsec",
+    ] {
         put(
             &format!("sigma_{p}"),
             number_or_null("Calibrated 1-σ standard error"),

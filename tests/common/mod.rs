@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 /// `align --json`: the contract's fields plus the paper's plain-UABJM σ.
-pub const ALIGN_FIELDS: [&str; 25] = [
+pub const ALIGN_FIELDS: [&str; 27] = [
     "reference",
     "frame",
     "scale",
@@ -15,6 +15,8 @@ pub const ALIGN_FIELDS: [&str; 25] = [
     "sigma_rotation_arcsec",
     "sigma_dx_px",
     "sigma_dy_px",
+    "sigma_dx_arcsec",
+    "sigma_dy_arcsec",
     "uabjm_sigma_scale",
     "uabjm_sigma_rotation_arcsec",
     "uabjm_sigma_dx_px",
