@@ -524,6 +524,12 @@ impl ChannelState {
         sequence: u64,
         records: &mut Vec<Record>,
     ) -> Emitted {
+        // A frame without usable pixels would fail every frame after it.
+        if let Err(why) = crate::engine::usable_as_reference(&frame.image) {
+            let why = format!("cannot start a reference: {why}");
+            let outcome = failed_outcome(&frame.key, &frame.key, &why);
+            return self.emit(frame, sequence, "self", &frame.key, outcome, None, records);
+        }
         let reason = self
             .restart_reason
             .take()
@@ -640,7 +646,7 @@ impl ChannelState {
             && self.frames_on_reference + 1 >= self.policy.keyframe_every_frames;
         let age_s = (frame.obs_time_ns - keyframe.obs_time_ns) as f64 * 1e-9;
         let due_time = self.policy.keyframe_every_s > 0.0 && age_s >= self.policy.keyframe_every_s;
-        if due_count || due_time {
+        if (due_count || due_time) && outcome.result.status != Status::Failed {
             // This frame becomes the keyframe: logged aligned to itself, its chain goes on.
             let chain = chain_after(keyframe.chain.as_ref(), &outcome);
             let reason = if due_count {

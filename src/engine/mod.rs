@@ -1554,6 +1554,11 @@ fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f
     (var > 0.0 && grad > 0.0).then(|| (var / grad).sqrt())
 }
 
+/// Whether an image can serve as a reference at all (size, finite pixels, structure).
+pub fn usable_as_reference(image: &Image) -> Result<(), String> {
+    check_usable("reference", &image.data)
+}
+
 fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
     let (h, w) = data.dim();
     if h < 16 || w < 16 {
