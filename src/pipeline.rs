@@ -150,6 +150,10 @@ pub trait FrameReader: Send + Sync {
 /// Aligns one image to another: `engine::align_images` in production.
 pub trait Aligner: Send + Sync {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+    /// Why `image` cannot serve as a reference, if it cannot.
+    fn usable_as_reference(&self, _image: &Image) -> std::result::Result<(), String> {
+        Ok(())
+    }
 }
 
 /// Where records go: the MCAP sink in production. Called from the one writer thread.
@@ -284,6 +288,10 @@ impl Aligner for EngineAligner {
         let profile = self.rotation.by_channel.get(name).copied();
         self.prepared(reference)
             .align_with(frame, profile.unwrap_or(self.config.solar_rotation))
+    }
+
+    fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
+        crate::engine::usable_as_reference(image)
     }
 }
 
@@ -618,6 +626,9 @@ pub struct JobContext {
 impl StepContext for JobContext {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
         self.aligner.align(reference, frame)
+    }
+    fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
+        self.aligner.usable_as_reference(image)
     }
     fn load(&self, spec: &FrameSpec) -> Result<Image> {
         self.reader.read_frame(spec)

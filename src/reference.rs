@@ -239,6 +239,10 @@ impl ReferenceChange {
 pub trait StepContext {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
     fn load(&self, spec: &FrameSpec) -> crate::Result<Image>;
+    /// Why `image` cannot start a reference, if it cannot (the aligner's requirements).
+    fn usable_as_reference(&self, _image: &Image) -> Result<(), String> {
+        Ok(())
+    }
 }
 
 /// A frame ready to be aligned.
@@ -522,10 +526,11 @@ impl ChannelState {
         &mut self,
         frame: &LoadedFrame,
         sequence: u64,
+        ctx: &dyn StepContext,
         records: &mut Vec<Record>,
     ) -> Emitted {
         // A frame without usable pixels would fail every frame after it.
-        if let Err(why) = crate::engine::usable_as_reference(&frame.image) {
+        if let Err(why) = ctx.usable_as_reference(&frame.image) {
             let why = format!("cannot start a reference: {why}");
             let outcome = failed_outcome(&frame.key, &frame.key, &why);
             return self.emit(frame, sequence, "self", &frame.key, outcome, None, records);
@@ -551,7 +556,7 @@ impl ChannelState {
         records: &mut Vec<Record>,
     ) -> Emitted {
         let Some(mut reference) = self.reference.take() else {
-            return self.start_chain(frame, sequence, records);
+            return self.start_chain(frame, sequence, ctx, records);
         };
         if reference.key == frame.key {
             let chain = reference.chain;
@@ -563,7 +568,7 @@ impl ChannelState {
             Err(e) => {
                 self.restart_reason =
                     Some(format!("previous reference unreadable ({e}): new chain"));
-                return self.start_chain(frame, sequence, records);
+                return self.start_chain(frame, sequence, ctx, records);
             }
         };
         let outcome = ctx.align(&ref_image, &frame.image);
@@ -597,7 +602,7 @@ impl ChannelState {
         records: &mut Vec<Record>,
     ) -> Emitted {
         let Some(mut keyframe) = self.reference.take() else {
-            return self.start_chain(frame, sequence, records);
+            return self.start_chain(frame, sequence, ctx, records);
         };
         if keyframe.key == frame.key {
             let chain = keyframe.chain;
@@ -608,7 +613,7 @@ impl ChannelState {
             Ok(image) => image,
             Err(e) => {
                 self.restart_reason = Some(format!("keyframe unreadable ({e}): new chain"));
-                return self.start_chain(frame, sequence, records);
+                return self.start_chain(frame, sequence, ctx, records);
             }
         };
         let outcome = ctx.align(&key_image, &frame.image);
