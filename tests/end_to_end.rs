@@ -2,6 +2,9 @@
 //! 80 frames of 256² with a 0.3 px sinusoid of period 10 frames (120 s at the 12 s cadence)
 //! plus a 0.05 px random walk.
 
+mod common;
+
+use common::read_csv;
 use std::collections::HashMap;
 use std::path::Path;
 use std::process::Command;
@@ -17,22 +20,6 @@ fn sunjitter(args: &[&str]) -> std::process::Output {
         String::from_utf8_lossy(&out.stderr)
     );
     out
-}
-
-/// Rows of a simple CSV (no quoted commas in the columns read here) keyed by header name.
-fn read_csv(path: &Path) -> Vec<HashMap<String, String>> {
-    let text = std::fs::read_to_string(path).expect("csv written");
-    let mut lines = text.lines();
-    let header: Vec<String> = lines.next().unwrap().split(',').map(String::from).collect();
-    lines
-        .map(|l| {
-            header
-                .iter()
-                .cloned()
-                .zip(l.split(',').map(String::from))
-                .collect()
-        })
-        .collect()
 }
 
 #[test]

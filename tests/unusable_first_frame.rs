@@ -2,10 +2,11 @@
 //! `failed` with its reason, and the next usable frame starts the reference: the frames after
 //! it are measured (replay through the binary, read back with `inspect --csv`).
 
+mod common;
 mod faults;
 
+use common::read_csv;
 use faults::*;
-use std::collections::HashMap;
 use std::path::Path;
 use std::process::Command;
 
@@ -19,23 +20,6 @@ fn sunjitter(args: &[&str]) {
         "sunjitter {args:?}: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-}
-
-fn rows(csv: &Path) -> Vec<HashMap<String, String>> {
-    let text = std::fs::read_to_string(csv).unwrap();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    lines
-        .map(|l| {
-            // The message (last but a few columns) may hold commas; the columns read here
-            // come before it.
-            header
-                .iter()
-                .map(|h| h.to_string())
-                .zip(l.split(',').map(String::from))
-                .collect()
-        })
-        .collect()
 }
 
 #[test]
@@ -71,7 +55,7 @@ fn an_unusable_first_frame_never_becomes_the_reference() {
         "--csv",
         csv.to_str().unwrap(),
     ]);
-    let rows = rows(&csv);
+    let rows = read_csv(&csv);
     let by_name = |name: &str| {
         rows.iter()
             .find(|r| Path::new(&r["frame"]).file_name().unwrap() == name)

@@ -1,5 +1,9 @@
-//! Shared by the integration tests: the contract's field lists (CONTRACT.md), written once.
+//! Shared by the integration tests: the contract's field lists (CONTRACT.md), written once,
+//! and the reader of `inspect --csv` output.
 #![allow(dead_code)]
+
+use std::collections::HashMap;
+use std::path::Path;
 
 /// `align --json`: the contract's fields plus the paper's plain-UABJM σ.
 pub const ALIGN_FIELDS: [&str; 27] = [
@@ -54,5 +58,21 @@ pub fn jitter_fields() -> Vec<&'static str> {
         .iter()
         .chain(STREAM_FIELDS.iter())
         .copied()
+        .collect()
+}
+
+/// Rows of a simple CSV (no quoted commas in the columns read here) keyed by header name.
+pub fn read_csv(path: &Path) -> Vec<HashMap<String, String>> {
+    let text = std::fs::read_to_string(path).expect("csv written");
+    let mut lines = text.lines();
+    let header: Vec<String> = lines.next().unwrap().split(',').map(String::from).collect();
+    lines
+        .map(|l| {
+            header
+                .iter()
+                .cloned()
+                .zip(l.split(',').map(String::from))
+                .collect()
+        })
         .collect()
 }
