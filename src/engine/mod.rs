@@ -12,6 +12,7 @@ pub mod quality;
 pub mod derotate;
 mod flow_check;
 mod geometry_check;
+mod photometry;
 pub mod refine;
 mod sigma;
 
@@ -407,7 +408,7 @@ fn align_inner(
     let mut notes: Vec<String> = work.notes.clone();
 
     let started = Instant::now();
-    let frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
+    let mut frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
     let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
@@ -453,6 +454,14 @@ fn align_inner(
         derotate::Rotation::Refused(why) => return Err(why),
     };
     tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");
+    // An exposure change is no motion: the frame in the reference's intensity units.
+    let photometry =
+        photometry::Photometry::estimate(ref_data.view(), mask, frame_data.view(), &coarse);
+    if let Some(p) = photometry {
+        p.remove(&mut frame_data);
+    }
+    tracing::debug!(?photometry, "frame intensities matched");
+    let frame_data = frame_data;
     let (h, w) = work.cleaned.dim();
     let partial = !derotate::holds_the_disk(work.reference_check.disk_px, w, h);
     let measure = |coarse: Similarity,
