@@ -66,6 +66,11 @@ pub struct DaemonConfig {
     pub rescan_interval_s: f64,
     /// When idle, flush the log (and rotate segments by time) at least this often.
     pub flush_interval_s: f64,
+    /// Pixels one image (one frame of a cube) may have; larger ones are refused on `/log`
+    /// before anything is allocated.
+    pub max_frame_pixels: u64,
+    /// Channels tracked at once; frames of further channels are named on `/log`, not measured.
+    pub max_channels: usize,
 }
 
 impl Default for DaemonConfig {
@@ -92,6 +97,8 @@ impl Default for DaemonConfig {
             retry_max_s: 8.0,
             rescan_interval_s: 300.0,
             flush_interval_s: 5.0,
+            max_frame_pixels: crate::fits::DEFAULT_MAX_FRAME_PIXELS,
+            max_channels: 64,
         }
     }
 }

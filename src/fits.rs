@@ -98,22 +98,31 @@ fn split_frame_suffix(arg: &str) -> Option<(&str, usize)> {
 
 /// Read one image (or one frame of a cube) as f32, with its metadata.
 pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
-    let plain = PlainFile::of(&spec.path)?;
+    read_frame_with(spec, &ReadLimits::default())
+}
+
+/// [`read_frame`] with other limits on what the file may claim.
+pub fn read_frame_with(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
+    let plain = PlainFile::of(&spec.path, limits)?;
     let mut image = plain.read(|path| {
-        read_plain_frame(&FrameSpec {
-            path: path.to_path_buf(),
-            frame: spec.frame,
-        })
+        read_plain_frame(
+            &FrameSpec {
+                path: path.to_path_buf(),
+                frame: spec.frame,
+            },
+            limits,
+        )
     })?;
     image.meta.file = spec.path.clone();
     Ok(image)
 }
 
-fn read_plain_frame(spec: &FrameSpec) -> Result<Image> {
+fn read_plain_frame(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
     let path = spec.path.as_path();
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
+    limits.check(path, geometry)?;
     let frame = resolve_frame(path, geometry, spec.frame)?;
     let mut meta = layout.base_meta(path, hdu)?;
     meta.frame = frame;
@@ -127,16 +136,28 @@ fn read_plain_frame(spec: &FrameSpec) -> Result<Image> {
 
 /// Metadata of every image (every frame of a cube) in a file.
 pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
-    let plain = PlainFile::of(path)?;
-    let mut metas = plain.read(read_plain_meta)?;
+    // No pixels are read: any size may be described.
+    read_meta_with(
+        path,
+        &ReadLimits {
+            max_frame_pixels: u64::MAX,
+        },
+    )
+}
+
+/// [`read_meta`] with other limits on what the file may claim.
+pub fn read_meta_with(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
+    let plain = PlainFile::of(path, limits)?;
+    let mut metas = plain.read(|plain| read_plain_meta(plain, limits))?;
     metas.iter_mut().for_each(|m| m.file = path.to_path_buf());
     Ok(metas)
 }
 
-fn read_plain_meta(path: &Path) -> Result<Vec<FrameMeta>> {
+fn read_plain_meta(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
+    limits.check(path, geometry)?;
     let base = layout.base_meta(path, hdu)?;
     if !geometry.is_cube() {
         return Ok(vec![base]);
@@ -157,7 +178,7 @@ fn read_plain_meta(path: &Path) -> Result<Vec<FrameMeta>> {
 /// The header of the HDU holding the image (with primary cards merged in when `INHERIT = T`),
 /// and that HDU's index. For tools that copy a file's header (e.g. splitting a cube).
 pub fn read_image_header(path: &Path) -> Result<(usize, Header)> {
-    PlainFile::of(path)?.read(read_plain_image_header)
+    PlainFile::of(path, &ReadLimits::default())?.read(read_plain_image_header)
 }
 
 fn read_plain_image_header(path: &Path) -> Result<(usize, Header)> {
@@ -340,16 +361,81 @@ fn scan(path: &Path) -> Result<Layout> {
 /// an observation (a 4096² × 64-frame f64 cube is 8 GiB).
 const MAX_GUNZIPPED_BYTES: u64 = 16 << 30;
 
+/// What a file may claim before its pixels are read: a header is free to announce any size,
+/// and a sparse file occupies nothing on disk whatever length it reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReadLimits {
+    /// Pixels in one image (one frame of a cube).
+    pub max_frame_pixels: u64,
+}
+
+/// Admits any frame of today's solar imagers (4096² and their cubes) with margin: 8192².
+pub const DEFAULT_MAX_FRAME_PIXELS: u64 = 8192 * 8192;
+
+impl Default for ReadLimits {
+    fn default() -> Self {
+        ReadLimits {
+            max_frame_pixels: DEFAULT_MAX_FRAME_PIXELS,
+        }
+    }
+}
+
+impl ReadLimits {
+    fn check(&self, path: &Path, g: &ImageGeometry) -> Result<()> {
+        let pixels = g.width() as u64 * g.height() as u64;
+        if pixels > self.max_frame_pixels {
+            return Err(Error::bad_input(
+                path,
+                format!(
+                    "the header announces {}×{} = {pixels} pixels per image, more than the limit of {} (`[daemon] max_frame_pixels`)",
+                    g.width(),
+                    g.height(),
+                    self.max_frame_pixels
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Prefix of the decompressed copies of gzip-compressed inputs in the temporary directory.
+const GUNZIPPED_PREFIX: &str = "sunjitter-gunzipped-";
+
+/// Remove decompressed copies left in the temporary directory by a process that was killed
+/// (a copy is otherwise removed as soon as its frame is read). Copies of live processes are
+/// kept: each name carries its process id.
+pub fn remove_stale_gunzipped_copies() {
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(rest) = name.to_str().and_then(|n| n.strip_prefix(GUNZIPPED_PREFIX)) else {
+            continue;
+        };
+        let Some(pid) = rest.split('-').next().and_then(|p| p.parse::<u32>().ok()) else {
+            continue;
+        };
+        let alive = pid == std::process::id() || Path::new(&format!("/proc/{pid}")).exists();
+        // Only plain files this user owns: never follow a link planted under the prefix.
+        let ours = entry.file_type().is_ok_and(|t| t.is_file());
+        if !alive && ours {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
 /// A file as the readers see it: the file itself, or for a gzip-compressed one (`.fits.gz`,
-/// as archives ship them) a private decompressed copy in the temporary directory, removed
-/// when this is dropped. Errors about the copy name the original file.
+/// as archives ship them) a private decompressed copy in the temporary directory, created
+/// exclusively under an unpredictable name and removed when this is dropped. Errors about the
+/// copy name the original file.
 struct PlainFile {
     original: PathBuf,
-    copy: Option<PathBuf>,
+    copy: Option<tempfile::TempPath>,
 }
 
 impl PlainFile {
-    fn of(path: &Path) -> Result<PlainFile> {
+    fn of(path: &Path, limits: &ReadLimits) -> Result<PlainFile> {
         let mut magic = [0u8; 2];
         let gzip = File::open(path)
             .and_then(|mut f| f.read_exact(&mut magic))
@@ -361,50 +447,26 @@ impl PlainFile {
                 copy: None,
             });
         }
-        static COPIES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        let n = COPIES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        // Named after the original, so that warnings about the copy are recognisable.
-        let name = path
-            .file_name()
-            .map_or_else(String::new, |n| n.to_string_lossy().into());
-        let copy = std::env::temp_dir().join(format!(
-            "sunjitter-{}-{n}-{}",
-            std::process::id(),
-            name.strip_suffix(".gz").unwrap_or(&name)
-        ));
-        let plain = PlainFile {
-            original: path.to_path_buf(),
-            copy: Some(copy.clone()),
-        };
         let source = open(path)?;
-        let mut decoder = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(source))
-            .take(MAX_GUNZIPPED_BYTES + 1);
         let unwritable = |e: std::io::Error| {
             Error::bad_input(
                 path,
-                format!(
-                    "gzip-compressed; cannot write its decompressed copy {}: {e}",
-                    copy.display()
-                ),
+                format!("gzip-compressed; cannot write its decompressed copy: {e}"),
             )
         };
-        let mut out = std::io::BufWriter::new(File::create(&copy).map_err(unwritable)?);
-        let written = std::io::copy(&mut decoder, &mut out).map_err(|e| {
-            Error::bad_input(
-                path,
-                format!("gzip-compressed, and cannot be decompressed: {e}"),
-            )
-        })?;
+        let (file, copy) = tempfile::Builder::new()
+            .prefix(&format!("{GUNZIPPED_PREFIX}{}-", std::process::id()))
+            .suffix(".fits")
+            .tempfile()
+            .map_err(unwritable)?
+            .into_parts();
+        let plain = PlainFile {
+            original: path.to_path_buf(),
+            copy: Some(copy),
+        };
+        let mut out = std::io::BufWriter::new(file);
+        gunzip_checked(path, source, &mut out, limits)?;
         std::io::Write::flush(&mut out).map_err(unwritable)?;
-        if written > MAX_GUNZIPPED_BYTES {
-            return Err(Error::bad_input(
-                path,
-                format!(
-                    "gzip-compressed, and expands to more than {} GiB",
-                    MAX_GUNZIPPED_BYTES >> 30
-                ),
-            ));
-        }
         Ok(plain)
     }
 
@@ -413,25 +475,124 @@ impl PlainFile {
         let Some(copy) = &self.copy else {
             return reader(&self.original);
         };
+        let copy: &Path = copy;
         reader(copy).map_err(|e| match e {
-            Error::BadInput { path, reason } if &path == copy => {
+            Error::BadInput { path, reason } if path == copy => {
                 Error::bad_input(&self.original, reason)
             }
-            Error::BadHeader { path, reason } if &path == copy => {
+            Error::BadHeader { path, reason } if path == copy => {
                 Error::bad_header(&self.original, reason)
             }
-            Error::Io { path, source } if &path == copy => Error::io(&self.original, source),
+            Error::Io { path, source } if path == copy => Error::io(&self.original, source),
             other => other,
         })
     }
 }
 
-impl Drop for PlainFile {
-    fn drop(&mut self) {
-        if let Some(copy) = &self.copy {
-            let _ = std::fs::remove_file(copy);
+/// Decompress `source` into `out` one HDU at a time: each header is read and checked (image
+/// size against `limits`, the total against [`MAX_GUNZIPPED_BYTES`]) before the data it
+/// announces is decompressed, and nothing after the last HDU is. What the headers do not
+/// allow to be judged here (a missing `END`, a truncated HDU) is written as found, for the
+/// plain reader to name.
+fn gunzip_checked(
+    path: &Path,
+    source: File,
+    out: &mut impl std::io::Write,
+    limits: &ReadLimits,
+) -> Result<()> {
+    let corrupt = |e: std::io::Error| {
+        Error::bad_input(
+            path,
+            format!("gzip-compressed, and cannot be decompressed: {e}"),
+        )
+    };
+    let unwritable = |e: std::io::Error| {
+        Error::bad_input(
+            path,
+            format!("gzip-compressed; cannot write its decompressed copy: {e}"),
+        )
+    };
+    let mut decoder = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(source));
+    let mut block = vec![0u8; BLOCK];
+    let mut written = 0u64;
+    for index in 0..MAX_HDUS {
+        let is_primary = index == 0;
+        let mut header = Header::new();
+        let mut complete = false;
+        for blocks in 0..MAX_HEADER_BLOCKS {
+            let n = read_up_to(&mut decoder, &mut block).map_err(corrupt)?;
+            if n == 0 && !is_primary {
+                return Ok(());
+            }
+            if blocks == 0 && !starts_like_a_header(&block[..n.max(1)], is_primary) {
+                if is_primary {
+                    return Err(Error::bad_input(
+                        path,
+                        format!("gzip-compressed, and {}", not_fits_reason(&block[..n])),
+                    ));
+                }
+                // Whatever follows the last HDU is not needed.
+                return Ok(());
+            }
+            out.write_all(&block[..n]).map_err(unwritable)?;
+            written += n as u64;
+            if n < BLOCK {
+                return Ok(());
+            }
+            if header.push_block(&block) {
+                complete = true;
+                break;
+            }
+        }
+        if !complete {
+            return Ok(());
+        }
+        let Ok(kind) = header::hdu_kind(&header, is_primary) else {
+            return Ok(());
+        };
+        if let Ok(Some(g)) = header::image_geometry(&header, &kind) {
+            limits.check(path, &g)?;
+        }
+        let Ok(data_len) = header::data_size_bytes(&header) else {
+            return Ok(());
+        };
+        let padded = data_len.div_ceil(BLOCK as u64) * BLOCK as u64;
+        if written.saturating_add(padded) > MAX_GUNZIPPED_BYTES {
+            return Err(Error::bad_input(
+                path,
+                format!(
+                    "gzip-compressed, and its headers announce more than {} GiB of data",
+                    MAX_GUNZIPPED_BYTES >> 30
+                ),
+            ));
+        }
+        let mut left = padded;
+        while left > 0 {
+            let want = left.min(BLOCK as u64) as usize;
+            let n = read_up_to(&mut decoder, &mut block[..want]).map_err(corrupt)?;
+            out.write_all(&block[..n]).map_err(unwritable)?;
+            written += n as u64;
+            left -= n as u64;
+            if n < want {
+                return Ok(());
+            }
         }
     }
+    Ok(())
+}
+
+/// Fill `buf` from `r` unless it ends first; the number of bytes read.
+fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(n)
 }
 
 fn open(path: &Path) -> Result<File> {
@@ -1566,6 +1727,46 @@ mod tests {
         }
         assert!((m.rotation_deg - frame.meta.rotation_deg).abs() < 1e-12);
         assert!((m.exptime_s.unwrap() - frame.meta.exptime_s.unwrap()).abs() < 1e-12);
+    }
+
+    /// Only what the headers announce is decompressed (FITS standard: header blocks, then
+    /// |BITPIX|/8 · ΠNAXISn bytes padded to 2880), not the 20 MB that follow in the stream.
+    #[test]
+    fn a_gzip_stream_is_decompressed_only_as_far_as_its_headers_announce() {
+        use std::io::Write;
+        let mut header: Vec<u8> = [
+            "SIMPLE  =                    T",
+            "BITPIX  =                  -32",
+            "NAXIS   =                    2",
+            "NAXIS1  =                  100",
+            "NAXIS2  =                  100",
+            "END",
+        ]
+        .iter()
+        .flat_map(|c| format!("{c:<80}").into_bytes())
+        .collect();
+        header.resize(BLOCK, b' ');
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bomb.fits.gz");
+        let mut gz = flate2::write::GzEncoder::new(
+            File::create(&path).unwrap(),
+            flate2::Compression::fast(),
+        );
+        gz.write_all(&header).unwrap();
+        gz.write_all(&vec![0u8; 20 << 20]).unwrap();
+        gz.finish().unwrap();
+        let mut out = Vec::new();
+        gunzip_checked(
+            &path,
+            File::open(&path).unwrap(),
+            &mut out,
+            &ReadLimits::default(),
+        )
+        .unwrap();
+        assert_eq!(
+            out.len(),
+            BLOCK + (100 * 100 * 4usize).div_ceil(BLOCK) * BLOCK
+        );
     }
 
     #[test]

@@ -51,6 +51,8 @@ fn main() {
             std::process::exit(code);
         }
     };
+    // Decompressed copies a killed run left behind (their names carry the dead process's id).
+    sunjitter::fits::remove_stale_gunzipped_copies();
     let outcome = match &cli.command {
         Command::Info(a) => commands::info::run(a),
         Command::Align(a) => commands::align::run(a),

@@ -167,16 +167,28 @@ pub trait RecordSink: Send {
     fn note_lag(&mut self, _frame: &str, _lag_s: f64) {}
 }
 
-/// The FITS reader.
+/// The FITS reader, with the configured limits on what a file may claim.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct FitsReader;
+pub struct FitsReader {
+    pub limits: crate::fits::ReadLimits,
+}
+
+impl FitsReader {
+    pub fn from_config(config: &Config) -> FitsReader {
+        FitsReader {
+            limits: crate::fits::ReadLimits {
+                max_frame_pixels: config.daemon.max_frame_pixels,
+            },
+        }
+    }
+}
 
 impl FrameReader for FitsReader {
     fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
-        crate::fits::read_meta(path)
+        crate::fits::read_meta_with(path, &self.limits)
     }
     fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
-        crate::fits::read_frame(spec)
+        crate::fits::read_frame_with(spec, &self.limits)
     }
 }
 
@@ -846,10 +858,25 @@ impl Scheduler {
         self.pipe_empty = empty;
     }
 
-    pub fn offer(&mut self, item: FrameItem) {
+    /// Take a frame; a frame of one channel more than `[daemon] max_channels` is not taken,
+    /// and the `/log` record naming it comes back instead.
+    pub fn offer(&mut self, item: FrameItem) -> Option<Record> {
+        let cap = self.config.daemon.max_channels;
+        if !self.lanes.contains_key(&item.channel) && self.lanes.len() >= cap {
+            return Some(Record::log(
+                LogLevel::Error,
+                &item.key,
+                format!(
+                    "channel {}: {cap} channels are tracked already (`[daemon] max_channels`); not measured",
+                    item.channel
+                ),
+                item.obs_time_ns,
+            ));
+        }
         let lane = self.lanes.entry(item.channel.clone()).or_default();
         lane.buffer
             .insert((item.obs_time_ns, item.key.clone()), item);
+        None
     }
 
     /// No more input will come (replay: everything is known; frames are released).
@@ -1347,7 +1374,14 @@ async fn drive(
                 .is_none_or(|p| p.load(Ordering::SeqCst) == 0);
             while accepting {
                 match input.try_recv() {
-                    Ok(Input::Frame(item)) => scheduler.offer(item),
+                    Ok(Input::Frame(item)) => {
+                        if let Some(refused) = scheduler.offer(item) {
+                            writer
+                                .send(WriterMsg::Record(refused))
+                                .await
+                                .map_err(|_| gone())?;
+                        }
+                    }
                     Ok(Input::Record(record)) => {
                         writer
                             .send(WriterMsg::Record(record))
@@ -1413,7 +1447,11 @@ async fn drive(
             }
             received = input.recv(), if accepting => {
                 match received {
-                    Some(Input::Frame(item)) => scheduler.offer(item),
+                    Some(Input::Frame(item)) => {
+                        if let Some(refused) = scheduler.offer(item) {
+                            writer.send(WriterMsg::Record(refused)).await.map_err(|_| gone())?;
+                        }
+                    }
                     Some(Input::Record(record)) => {
                         writer.send(WriterMsg::Record(record)).await.map_err(|_| gone())?;
                     }

@@ -352,3 +352,38 @@ fn noise_without_a_measurable_background_is_refused() {
         "{stderr}"
     );
 }
+
+/// A file claiming more pixels per image than `[daemon] max_frame_pixels` (default 8192²) is
+/// refused on its header, even when it is sparse (20 KB on disk, 1 GiB by its length).
+#[test]
+fn a_sparse_file_claiming_a_huge_image_is_refused_before_reading() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "SIMPLE  =                    T",
+        "BITPIX  =                  -32",
+        "NAXIS   =                    2",
+        "NAXIS1  =                16384",
+        "NAXIS2  =                16384",
+    ];
+    let path = temp_file(&dir, "sparse.fits", &fits_bytes(&cards, &[0u8; 20_000]));
+    std::fs::File::options()
+        .write(true)
+        .open(&path)
+        .unwrap()
+        .set_len(2880 + 16384 * 16384 * 4)
+        .unwrap();
+    let reference = format!("{REAL}trace_171_19980519T222143_1024.fits");
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(["align", &reference])
+        .arg(&path)
+        .output()
+        .expect("run sunjitter");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(
+        stderr.starts_with(&format!("sunjitter: {}: ", path.display()))
+            && stderr.contains("16384×16384 = 268435456 pixels per image"),
+        "{stderr}"
+    );
+}

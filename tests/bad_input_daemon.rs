@@ -27,10 +27,10 @@ impl FrameReader for DeletingReader {
         if path.ends_with(&self.victim) && !self.done.swap(true, Ordering::SeqCst) {
             std::fs::remove_file(path).unwrap();
         }
-        FitsReader.read_meta(path)
+        FitsReader::default().read_meta(path)
     }
     fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
-        FitsReader.read_frame(spec)
+        FitsReader::default().read_frame(spec)
     }
 }
 

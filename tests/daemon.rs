@@ -518,7 +518,7 @@ mod real {
         let parts = RunParts {
             aligner: Arc::new(EngineAligner::new(config.engine.clone())),
             config: Arc::new(config),
-            reader: Arc::new(FitsReader),
+            reader: Arc::new(FitsReader::default()),
             sink,
             history,
             progress: progress_tx,
@@ -758,4 +758,53 @@ async fn real_restart_after_a_crash_logs_every_frame_exactly_once() {
         .map(|m| m.json["sequence"].as_u64().unwrap())
         .collect();
     assert_eq!(sequences, (0..54).collect::<Vec<u64>>());
+}
+
+/// At most `[daemon] max_channels` channels are tracked: each frame of a channel beyond them
+/// is named on `/log` and not measured; the tracked channels lose nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn frames_of_a_channel_beyond_the_cap_are_named_not_measured() {
+    let dir = tempfile::tempdir().unwrap();
+    let watched = dir.path();
+    for channel in ["A", "B", "C"] {
+        for t in 0..3 {
+            std::fs::write(
+                watched.join(format!("{channel}{t}.fits")),
+                frame(channel, t).to_fits(),
+            )
+            .unwrap();
+        }
+    }
+    let mut config = quick_config();
+    config.daemon.max_channels = 2;
+    let mut daemon = start(watched, config, History::default());
+    daemon.watching().await;
+    daemon.wait_finished(9).await;
+    let (_, records) = daemon.shutdown().await;
+
+    let counts: Vec<usize> = ["A", "B", "C"]
+        .iter()
+        .map(|c| messages(&records, c).len())
+        .collect();
+    let mut sorted = counts.clone();
+    sorted.sort();
+    assert_eq!(sorted, [0, 3, 3], "two channels measured whole: {counts:?}");
+    let refused = ["A", "B", "C"][counts.iter().position(|&n| n == 0).unwrap()];
+    let mut errors = error_logs(&records);
+    errors.sort();
+    let expected: Vec<String> = (0..3)
+        .map(|t| key(watched, &format!("{refused}{t}.fits")))
+        .collect();
+    assert_eq!(
+        errors.iter().map(|e| e.0.clone()).collect::<Vec<_>>(),
+        expected
+    );
+    for (_, message) in &errors {
+        assert!(
+            message.contains(&format!(
+                "channel {refused}: 2 channels are tracked already"
+            )),
+            "{message}"
+        );
+    }
 }

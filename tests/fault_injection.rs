@@ -19,7 +19,7 @@ fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, Memo
     let daemon = start(
         dir,
         config,
-        Arc::new(FitsReader),
+        Arc::new(FitsReader::default()),
         Arc::new(HeaderShiftAligner),
         Box::new(sink.clone()),
     );
@@ -224,7 +224,7 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
     let daemon = start(
         dir.path(),
         config,
-        Arc::new(FitsReader),
+        Arc::new(FitsReader::default()),
         Arc::new(HeaderShiftAligner),
         Box::new(McapRecordSink(sink)),
     );

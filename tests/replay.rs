@@ -251,7 +251,7 @@ async fn replay_writes_what_watch_wrote_for_the_same_frames() {
     let parts = RunParts {
         aligner: Arc::new(EngineAligner::new(config.engine.clone())),
         config: Arc::new(config),
-        reader: Arc::new(FitsReader),
+        reader: Arc::new(FitsReader::default()),
         sink,
         history,
         progress: progress_tx,

@@ -40,7 +40,7 @@ pub fn run(args: &Args) -> Result<i32> {
     )?;
     let files = expand_inputs(&args.paths, &config)?;
     let (sink, history) = open_output(&args.out, &config)?;
-    let reader = FitsReader;
+    let reader = FitsReader::from_config(&config);
     let inputs = replay_inputs(&files, &config, &reader, &history);
     let total = inputs
         .iter()

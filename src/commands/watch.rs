@@ -83,7 +83,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let config = Arc::new(config);
     let parts = RunParts {
         config: config.clone(),
-        reader: Arc::new(FitsReader),
+        reader: Arc::new(FitsReader::from_config(&config)),
         aligner: Arc::new(EngineAligner::from_config(&config)),
         sink: Box::new(sink),
         history,
