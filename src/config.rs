@@ -111,6 +111,7 @@ pub struct ReferenceConfig {
     pub policy: PolicySpec,
     pub keyframe_every_frames: u32,
     pub keyframe_every_s: f64,
+    pub keyframe_min_frames: u32,
     pub refresh_below_similarity: f64,
     pub restart_after_failures: u32,
     pub tolerance_s: f64,
@@ -123,6 +124,7 @@ impl Default for ReferenceConfig {
             policy: PolicySpec::Keyframe,
             keyframe_every_frames: 50,
             keyframe_every_s: 600.0,
+            keyframe_min_frames: 4,
             refresh_below_similarity: 0.0,
             restart_after_failures: 5,
             tolerance_s: 30.0,
@@ -138,6 +140,7 @@ pub struct ChannelConfig {
     pub policy: Option<PolicySpec>,
     pub keyframe_every_frames: Option<u32>,
     pub keyframe_every_s: Option<f64>,
+    pub keyframe_min_frames: Option<u32>,
     pub refresh_below_similarity: Option<f64>,
     pub restart_after_failures: Option<u32>,
     pub tolerance_s: Option<f64>,
@@ -259,6 +262,7 @@ impl Config {
             policy,
             keyframe_every_frames: c.keyframe_every_frames.unwrap_or(r.keyframe_every_frames),
             keyframe_every_s: c.keyframe_every_s.unwrap_or(r.keyframe_every_s),
+            keyframe_min_frames: c.keyframe_min_frames.unwrap_or(r.keyframe_min_frames),
             refresh_below_similarity: c
                 .refresh_below_similarity
                 .unwrap_or(r.refresh_below_similarity),

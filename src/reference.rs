@@ -119,6 +119,9 @@ pub struct ChannelPolicy {
     pub keyframe_every_frames: u32,
     /// Keyframe: refresh when the frame is this much later than the keyframe (0 = never).
     pub keyframe_every_s: f64,
+    /// Keyframe: frames a keyframe serves before its age can refresh it, so that at a
+    /// cadence sparser than `keyframe_every_s` frames are still measured against a keyframe.
+    pub keyframe_min_frames: u32,
     /// Keyframe: a match with a similarity below this counts as degraded (0 = engine status only).
     pub refresh_below_similarity: f64,
     /// After this many consecutive failed frames the next frame starts a new chain.
@@ -650,7 +653,9 @@ impl ChannelState {
         let due_count = self.policy.keyframe_every_frames > 0
             && self.frames_on_reference + 1 >= self.policy.keyframe_every_frames;
         let age_s = (frame.obs_time_ns - keyframe.obs_time_ns) as f64 * 1e-9;
-        let due_time = self.policy.keyframe_every_s > 0.0 && age_s >= self.policy.keyframe_every_s;
+        let due_time = self.policy.keyframe_every_s > 0.0
+            && age_s >= self.policy.keyframe_every_s
+            && self.frames_on_reference >= self.policy.keyframe_min_frames;
         if (due_count || due_time) && outcome.result.status != Status::Failed {
             // This frame becomes the keyframe: logged aligned to itself, its chain goes on.
             let chain = chain_after(keyframe.chain.as_ref(), &outcome);
@@ -1127,6 +1132,7 @@ mod tests {
             policy: spec,
             keyframe_every_frames: 0,
             keyframe_every_s: 0.0,
+            keyframe_min_frames: 0,
             refresh_below_similarity: 0.0,
             restart_after_failures: 3,
             tolerance_s: 30.0,
@@ -1285,6 +1291,53 @@ mod tests {
         // Each change carries the keyframe's chain (what a restart continues from).
         let c8 = ch[2].chain().unwrap();
         assert!((c8.transform.dx - frames[8].1.truth.dx).abs() < 1e-9);
+    }
+
+    #[test]
+    fn at_a_cadence_sparser_than_the_refresh_age_a_keyframe_still_serves_frames() {
+        // Frames 800 s apart, refresh by age after 600 s: each keyframe serves 4 frames before
+        // its age counts, so frames 0, 5, 10 are keyframes and the rest are measured against
+        // them; without the minimum, every frame would start its own reference.
+        let frames: Vec<(String, FakeFrame)> = series(12)
+            .into_iter()
+            .enumerate()
+            .map(|(i, (key, f))| {
+                let t = f.truth;
+                let f = FakeFrame::new(
+                    "C",
+                    i as i64 * 800_000_000_000,
+                    t.scale,
+                    t.rotation_rad,
+                    t.dx,
+                    t.dy,
+                );
+                (key, f)
+            })
+            .collect();
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        for (min_frames, keyframes) in [(4, vec![0, 5, 10]), (0, (0..12).collect())] {
+            let mut p = policy(PolicySpec::Keyframe);
+            p.keyframe_every_s = 600.0;
+            p.keyframe_min_frames = min_frames;
+            let mut state = ChannelState::new("C", p);
+            let records = run(&mut state, &world, &keys);
+            let msgs = messages(&records);
+            let selves: Vec<usize> = msgs
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| m.reference_kind == "self")
+                .map(|(i, _)| i)
+                .collect();
+            assert_eq!(selves, keyframes, "minimum {min_frames}");
+            for (i, m) in msgs.iter().enumerate() {
+                assert_chained_is_truth(m, &frames[i].1.truth);
+                if !keyframes.contains(&i) {
+                    let keyframe = keyframes.iter().rev().find(|&&k| k < i).unwrap();
+                    assert_eq!(m.align.reference, keys[*keyframe], "frame {i}");
+                }
+            }
+        }
     }
 
     #[test]
