@@ -55,11 +55,15 @@ impl OutputLock {
     }
 }
 
-/// `Some(pid)` when a running process holds `dir`'s lock (`Some(None)`: pid unreadable).
+/// `Some(pid)` when another running process holds `dir`'s lock (`Some(None)`: pid unreadable).
 fn holder(dir: &Path) -> Option<Option<u32>> {
     let mut file = File::open(dir.join(LOCK_FILE)).ok()?;
     match file.try_lock_shared() {
-        Err(TryLockError::WouldBlock) => Some(read_pid(&mut file)),
+        Err(TryLockError::WouldBlock) => match read_pid(&mut file) {
+            // This process: a daemon's own files (its status file) go there.
+            Some(pid) if pid == std::process::id() => None,
+            pid => Some(pid),
+        },
         // Unlocked (the shared lock is released with the file) or not lockable: no holder.
         _ => None,
     }
@@ -210,8 +214,11 @@ mod tests {
 
         let out = d.join("out");
         let lock = OutputLock::acquire(&out).unwrap();
+        check_outputs(&[&out.join("status.json")], &[]).unwrap();
+        // As another process would see it.
+        std::fs::write(out.join(LOCK_FILE), "1\n").unwrap();
         let err = check_outputs(&[&out.join("x.csv")], &[]).unwrap_err();
-        assert!(err.to_string().contains("held by"), "{err}");
+        assert!(err.to_string().contains("held by sunjitter pid 1"), "{err}");
         drop(lock);
         check_outputs(&[&out.join("x.csv")], &[]).unwrap();
     }

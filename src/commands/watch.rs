@@ -64,11 +64,11 @@ pub fn run(args: &Args) -> Result<i32> {
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
+    // Before reading (and recovering) the log: another daemon may be writing it.
+    let lock = OutputLock::acquire(&args.out)?;
     let status_file = config.health.status_path(&args.out);
     let config_file: Vec<&std::path::Path> = args.config.as_deref().into_iter().collect();
     check_outputs(&[&status_file], &config_file)?;
-    // Before reading (and recovering) the log: another daemon may be writing it.
-    let lock = OutputLock::acquire(&args.out)?;
     let history = read_history(&args.out)?;
     let mcap =
         crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?
