@@ -76,13 +76,19 @@ fn read_pid(file: &mut File) -> Option<u32> {
 }
 
 fn held(dir: &Path, pid: Option<u32>) -> Error {
-    let who = match pid {
-        Some(pid) => format!("sunjitter pid {pid}"),
-        None => "another sunjitter process".to_string(),
-    };
     Error::Refused {
         path: dir.to_path_buf(),
-        reason: format!("output directory held by {who} (one watch or replay per directory)"),
+        reason: format!(
+            "output directory held by {} (one watch or replay per directory)",
+            holder_name(pid)
+        ),
+    }
+}
+
+fn holder_name(pid: Option<u32>) -> String {
+    match pid {
+        Some(pid) => format!("sunjitter pid {pid}"),
+        None => "another sunjitter process".to_string(),
     }
 }
 
@@ -127,7 +133,11 @@ pub fn check_outputs(outputs: &[&Path], inputs: &[&Path]) -> Result<()> {
             .flatten();
         if let Some(dir) = canonical.as_deref().and_then(Path::parent) {
             if let Some(pid) = holder(dir) {
-                return Err(held(dir, pid));
+                return refuse(format!(
+                    "inside {}, the output directory held by {}; write elsewhere",
+                    dir.display(),
+                    holder_name(pid)
+                ));
             }
         }
         let twice = seen.iter().any(|(path, seen_id)| {

@@ -177,7 +177,7 @@ fn nothing_is_written_into_a_directory_a_running_daemon_holds() {
 
     let png = out.join("q.png");
     let run = sunjitter(&args(&[&"align", &reference, &frame, &"--quicklook", &png]));
-    assert_refused(run, &out.canonicalize().unwrap(), &held);
+    assert_refused(run, &png, &held);
     assert!(!png.exists());
 
     let run = sunjitter(&args(&[
@@ -189,7 +189,7 @@ fn nothing_is_written_into_a_directory_a_running_daemon_holds() {
         &"--size",
         &"64",
     ]));
-    assert_refused(run, &out.canonicalize().unwrap(), &held);
+    assert_refused(run, &out.join("truth.csv"), &held);
     assert!(!out.join("truth.csv").exists());
 
     assert!(daemon.terminate().success());
