@@ -28,6 +28,11 @@ pub enum Error {
     #[error("{}: {reason}", path.display())]
     Output { path: PathBuf, reason: String },
 
+    /// An output that would destroy what the user did not ask to lose (an input, a log), or
+    /// would write where a running daemon writes.
+    #[error("{}: {reason}", path.display())]
+    Refused { path: PathBuf, reason: String },
+
     /// Other I/O on a named path.
     #[error("{}: {source}", path.display())]
     Io {
@@ -69,7 +74,10 @@ impl Error {
     /// The contract's exit code for this error.
     pub fn exit_code(&self) -> i32 {
         match self {
-            Error::BadInput { .. } | Error::BadHeader { .. } | Error::Usage(_) => 2,
+            Error::BadInput { .. }
+            | Error::BadHeader { .. }
+            | Error::Usage(_)
+            | Error::Refused { .. } => 2,
             Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => 2,
             Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => 1,
         }

@@ -37,6 +37,7 @@ pub mod simulate;
 pub mod config;
 pub mod daemon;
 pub mod monitor;
+pub mod outputs;
 pub mod pipeline;
 pub mod reference;
 pub mod sink;

@@ -1502,13 +1502,12 @@ async fn sleep_until_opt(deadline: Option<Instant>) {
 /// Open the MCAP output in `out` for a new run, with what earlier runs already logged there.
 /// Unfinished segments (a crash) are first rewritten as finished files so every MCAP reader
 /// opens them; what they held counts as logged.
+/// Locks `out` first: nothing is recovered or written while another process holds it.
 pub fn open_output(out: &Path, config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
-    let history = if out.is_dir() {
-        read_history(out)?
-    } else {
-        History::default()
-    };
-    let sink = crate::sink::McapSink::new(out, config.sink.clone(), config.to_json().to_string())?;
+    let lock = crate::outputs::OutputLock::acquire(out)?;
+    let history = read_history(out)?;
+    let sink = crate::sink::McapSink::new(out, config.sink.clone(), config.to_json().to_string())?
+        .holding(lock);
     Ok((Box::new(McapRecordSink(sink)), history))
 }
 

@@ -1296,7 +1296,7 @@ mod tests {
             state = state
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
-            if (state >> 33) % 13 == 0 {
+            if (state >> 33).is_multiple_of(13) {
                 f32::NAN
             } else {
                 ((state >> 40) % 9) as f32

@@ -39,7 +39,7 @@ impl Rng {
 /// Frame `i` of `channel`: varied values, a failed frame every 7th (numbers null).
 fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
     let failed = i % 7 == 6;
-    let header_residual = (!failed && i % 2 == 0).then(|| TransformFields {
+    let header_residual = (!failed && i.is_multiple_of(2)).then(|| TransformFields {
         scale: 1.0 + rng.f(1e-5),
         rotation_arcsec: rng.f(1.0),
         dx_px: rng.f(0.5),
@@ -553,7 +553,7 @@ fn crashed_segment(dir: &Path, n: u64, every: u64) -> (Vec<FrameAlignment>, Vec<
         sink.write_frame(f, obs, publish).unwrap();
         let path = &sink.segment_paths()[0];
         let len = std::fs::metadata(path).unwrap().len();
-        if (i + 1) as u64 % every == 0 {
+        if ((i + 1) as u64).is_multiple_of(every) {
             flushes.push((len, i + 1));
         }
     }

@@ -27,9 +27,18 @@ pub struct Args {
 }
 
 pub fn run(args: &Args) -> Result<i32> {
+    let reference_spec = FrameSpec::parse(&args.reference);
+    let frame_spec = FrameSpec::parse(&args.frame);
+    let outputs: Vec<&std::path::Path> = [&args.aligned, &args.quicklook]
+        .into_iter()
+        .filter_map(|p| p.as_deref())
+        .collect();
+    let mut inputs = vec![reference_spec.path.as_path(), frame_spec.path.as_path()];
+    inputs.extend(args.config.as_deref());
+    crate::outputs::check_outputs(&outputs, &inputs)?;
     let cfg = load_engine_config(args.config.as_deref())?;
-    let reference = fits::read_frame(&FrameSpec::parse(&args.reference))?;
-    let frame = fits::read_frame(&FrameSpec::parse(&args.frame))?;
+    let reference = fits::read_frame(&reference_spec)?;
+    let frame = fits::read_frame(&frame_spec)?;
     let outcome = engine::align_images(&reference, &frame, &cfg);
     let mut result = outcome.result.clone();
     result.reference = args.reference.clone();

@@ -70,6 +70,12 @@ pub fn run(args: &Args) -> Result<i32> {
         }
     }
     let files = log_files(&args.logs)?;
+    let outputs: Vec<&std::path::Path> = [&args.csv, &args.plot]
+        .into_iter()
+        .filter_map(|p| p.as_deref())
+        .collect();
+    let inputs: Vec<&std::path::Path> = files.iter().map(PathBuf::as_path).collect();
+    crate::outputs::check_outputs(&outputs, &inputs)?;
     let (frames, log) = read_frames(&files)?;
     let analyses = inspect::analyse(&frames, &InspectOptions::default());
     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();

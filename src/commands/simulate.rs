@@ -69,7 +69,13 @@ pub fn run(args: &Args) -> Result<i32> {
     if args.window_px.is_some() {
         cfg.window_px = args.window_px;
     }
-    let mut reference = fits::read_frame(&FrameSpec::parse(&args.image))?;
+    let spec = FrameSpec::parse(&args.image);
+    if let Some(out) = &args.trials_out {
+        let mut inputs = vec![spec.path.as_path()];
+        inputs.extend(args.config.as_deref());
+        crate::outputs::check_outputs(&[out], &inputs)?;
+    }
+    let mut reference = fits::read_frame(&spec)?;
     // Clean cosmic-ray hits and hot pixels before making frames: a spike smeared by the warp
     // is no longer recognisable as one, and would be a difference no real pair has. Every
     // suspect goes, also those the engine keeps as possibly real.

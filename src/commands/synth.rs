@@ -80,9 +80,15 @@ pub fn run(args: &Args) -> Result<i32> {
     let began = Instant::now();
     let model = SunModel::new(&cfg)?;
     let truth = synth::jitter_truth(&spec, args.frames, args.cadence, args.seed, args.size);
+    let digits = (args.frames - 1).to_string().len().max(4);
+    let frame_name = |k: usize| format!("synth_{k:0digits$}.fits");
+    let truth_path = args.out.join("truth.csv");
+    let mut outputs = vec![truth_path.clone()];
+    outputs.extend((0..args.frames).map(|k| args.out.join(frame_name(k))));
+    let outputs: Vec<&Path> = outputs.iter().map(PathBuf::as_path).collect();
+    crate::outputs::check_outputs(&outputs, &[])?;
     std::fs::create_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
 
-    let truth_path = args.out.join("truth.csv");
     let mut truth_csv =
         std::fs::File::create(&truth_path).map_err(|e| Error::io(&truth_path, e))?;
     let csv_err = |e: std::io::Error| Error::io(&truth_path, e);
@@ -92,14 +98,13 @@ pub fn run(args: &Args) -> Result<i32> {
     )
     .map_err(csv_err)?;
 
-    let digits = (args.frames - 1).to_string().len().max(4);
     let wall_start = Instant::now();
     let mut files = Vec::with_capacity(args.frames);
     for (k, motion) in truth.iter().enumerate() {
         let time_s = k as f64 * args.cadence;
         let obs_ns = start_ns + (time_s * 1e9).round() as i64;
         let image = model.render(motion, time_s, k as u64);
-        let name = format!("synth_{k:0digits$}.fits");
+        let name = frame_name(k);
         let path = args.out.join(&name);
         if args.realtime {
             let due = wall_start + Duration::from_secs_f64(time_s);

@@ -2,7 +2,8 @@
 
 use crate::config::{Config, Overrides};
 use crate::monitor::{Monitor, MonitorSetup};
-use crate::pipeline::{read_history, EngineAligner, FitsReader, History, Progress, RunParts};
+use crate::outputs::{check_outputs, OutputLock};
+use crate::pipeline::{read_history, EngineAligner, FitsReader, Progress, RunParts};
 use crate::{Error, Result};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -63,13 +64,15 @@ pub fn run(args: &Args) -> Result<i32> {
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
-    let history = if args.out.is_dir() {
-        read_history(&args.out)?
-    } else {
-        History::default()
-    };
+    // Before reading (and recovering) the log: another daemon may be writing it.
+    let lock = OutputLock::acquire(&args.out)?;
+    let status_file = config.health.status_path(&args.out);
+    let config_file: Vec<&std::path::Path> = args.config.as_deref().into_iter().collect();
+    check_outputs(&[&status_file], &config_file)?;
+    let history = read_history(&args.out)?;
     let mcap =
-        crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?;
+        crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?
+            .holding(lock);
     let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
     let runtime = runtime()?;
     let setup = MonitorSetup {

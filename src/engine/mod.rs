@@ -1502,7 +1502,7 @@ fn choose_window(
 ) -> usize {
     let odd = |n: f64| -> usize {
         let n = n.round().max(3.0) as usize;
-        if n % 2 == 0 {
+        if n.is_multiple_of(2) {
             n + 1
         } else {
             n

@@ -1692,7 +1692,7 @@ fn self_test_case(k: usize) -> (f64, f64, f64, f64) {
     let n = k as f64 + 1.0;
     let (dx, dy) = ((0.5 + n / G).fract(), (0.5 + n / (G * G)).fract());
     let sign = |b: bool| if b { 1.0 } else { -1.0 };
-    let turn = sign(k % 2 == 0) * (0.3 + 0.2 * ((k / 2) % 2) as f64);
+    let turn = sign(k.is_multiple_of(2)) * (0.3 + 0.2 * ((k / 2) % 2) as f64);
     let stretch = sign(k % 4 < 2) * (0.5 - 0.2 * ((k / 2) % 2) as f64);
     (dx, dy, turn, stretch)
 }

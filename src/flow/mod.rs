@@ -172,7 +172,7 @@ pub fn winsize_from_arcsec(window_arcsec: f64, plate_scale_arcsec: f64) -> usize
         return MIN_WINSIZE;
     }
     let n = px.round().min(1e6) as usize;
-    let odd = if n % 2 == 0 {
+    let odd = if n.is_multiple_of(2) {
         // Round to the nearer odd neighbour.
         if px >= n as f64 {
             n + 1

@@ -37,7 +37,9 @@
 //! and [`McapSink::finish`] at shutdown. On restart: [`read_logs`] on the output directory,
 //! [`recover_segment`] for each segment that is not `complete` (optional: this reader reads
 //! them anyway, the official readers need it), then [`LogContents::logged_frames`] gives the
-//! frames not to process again. [`McapSink::abandon`] simulates a crash in tests.
+//! frames not to process again. [`McapSink::abandon`] simulates a crash in tests. Take the
+//! directory's [`crate::outputs::OutputLock`] before any of this and give it to the sink
+//! ([`McapSink::holding`]), so no other process recovers or writes segments meanwhile.
 
 mod reader;
 mod schemas;
@@ -194,6 +196,8 @@ pub struct McapSink {
     sequences: HashMap<String, u32>,
     budget: Arc<AtomicU64>,
     paths: Vec<PathBuf>,
+    /// Released when the sink is dropped, after its last write.
+    lock: Option<crate::outputs::OutputLock>,
 }
 
 impl McapSink {
@@ -227,7 +231,14 @@ impl McapSink {
             sequences: HashMap::new(),
             budget: Arc::new(AtomicU64::new(UNLIMITED)),
             paths: Vec::new(),
+            lock: None,
         })
+    }
+
+    /// The sink keeps the output directory's lock for as long as it lives.
+    pub fn holding(mut self, lock: crate::outputs::OutputLock) -> McapSink {
+        self.lock = Some(lock);
+        self
     }
 
     /// Logs one frame on `/jitter/<record.channel>`. `log_time_ns` is the frame's observation

@@ -76,3 +76,120 @@ pub fn read_csv(path: &Path) -> Vec<HashMap<String, String>> {
         })
         .collect()
 }
+
+/// Daemon settings that keep binary tests quick (the defaults are for real instruments).
+pub const QUICK_DAEMON_CONFIG: &str = r#"
+[daemon]
+settle_s = 0.1
+reorder_window_s = 0.2
+flush_interval_s = 0.1
+"#;
+
+/// Run the binary to completion: exit code, stdout, stderr.
+pub fn sunjitter<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (i32, String, String) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(args)
+        .env("SUNJITTER_LOG", "warn")
+        .output()
+        .expect("runs");
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// A `sunjitter watch` process, its stderr in a file.
+pub struct WatchProcess {
+    pub child: std::process::Child,
+    pub stderr: std::path::PathBuf,
+}
+
+impl WatchProcess {
+    pub fn spawn(watched: &Path, out: &Path, config: &Path, stderr: &Path) -> WatchProcess {
+        let file = std::fs::File::create(stderr).unwrap();
+        let child = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+            .arg("watch")
+            .arg(watched)
+            .arg("--out")
+            .arg(out)
+            .arg("--config")
+            .arg(config)
+            .env("SUNJITTER_LOG", "info")
+            .stdout(std::process::Stdio::null())
+            .stderr(file)
+            .spawn()
+            .unwrap();
+        WatchProcess {
+            child,
+            stderr: stderr.to_path_buf(),
+        }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub fn stderr_text(&self) -> String {
+        std::fs::read_to_string(&self.stderr).unwrap_or_default()
+    }
+
+    /// Wait (bounded) until `ready` holds, failing if the process exits meanwhile.
+    pub fn wait_until(&mut self, what: &str, mut ready: impl FnMut(&Self) -> bool) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+        while !ready(self) {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                panic!("the daemon exited ({status}): {}", self.stderr_text());
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "timed out waiting for {what}: {}",
+                self.stderr_text()
+            );
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+
+    /// Wait until the daemon watches its directory (its `watching` log line).
+    pub fn wait_watching(&mut self) {
+        self.wait_until("the daemon to start watching", |d| {
+            d.stderr_text().contains("watching")
+        });
+    }
+
+    /// SIGTERM, then the exit status (a clean stop is success).
+    pub fn terminate(mut self) -> std::process::ExitStatus {
+        let term = std::process::Command::new("kill")
+            .arg("-TERM")
+            .arg(self.pid().to_string())
+            .status()
+            .unwrap();
+        assert!(term.success());
+        self.child.wait().unwrap()
+    }
+
+    /// SIGKILL, then wait for the process to be gone.
+    pub fn kill(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+}
+
+/// Wait (bounded) for a process started by a test to exit, killing it if it does not.
+pub fn exit_status_within(
+    child: &mut std::process::Child,
+    secs: u64,
+) -> Option<std::process::ExitStatus> {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        if std::time::Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            return None;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
