@@ -35,7 +35,11 @@ enum Command {
 }
 
 fn main() {
+    // Colour only for a person at a terminal, and never when NO_COLOR is set (no-color.org).
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
+        .with_ansi(colour)
         .with_writer(sunjitter::commands::replay::BarAwareStderr)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")

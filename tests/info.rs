@@ -551,3 +551,22 @@ fn a_bad_file_among_good_ones() {
         "{stderr}"
     );
 }
+
+/// Warnings written to a file or a pipe carry no terminal escape codes (ECMA-48 CSI starts
+/// with ESC): the bundled 1400 cube's resampled per-frame table is warned about.
+#[test]
+fn warnings_into_a_pipe_are_plain_text() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("info")
+        .arg(format!("{REAL}{SJI_1400}"))
+        .env_remove("NO_COLOR")
+        .output()
+        .expect("run sunjitter info");
+    assert!(out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("per-frame table has 540 rows"), "{stderr}");
+    assert!(
+        !stderr.contains('\u{1b}'),
+        "escape codes in a pipe: {stderr:?}"
+    );
+}
