@@ -90,13 +90,19 @@ fn print_human(r: &crate::record::AlignResult) {
     println!("{} → {}: {status}", r.reference, r.frame);
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
     {
-        let sig = |v: Option<f64>| v.map_or("?".to_string(), |v| format!("{v:.2e}"));
-        println!("  scale     {s:.7} ± {}", sig(r.sigma_scale));
-        println!("  rotation  {rot:.3}″ ± {}", sig(r.sigma_rotation_arcsec));
-        println!("  dx        {dx:.4} px ± {}", sig(r.sigma_dx_px));
-        println!("  dy        {dy:.4} px ± {}", sig(r.sigma_dy_px));
+        println!("  scale     {}", value_pm(s, r.sigma_scale, ""));
+        println!(
+            "  rotation  {}",
+            value_pm(rot, r.sigma_rotation_arcsec, "″")
+        );
+        println!("  dx        {}", value_pm(dx, r.sigma_dx_px, " px"));
+        println!("  dy        {}", value_pm(dy, r.sigma_dy_px, " px"));
         if let (Some(ax), Some(ay)) = (r.dx_arcsec, r.dy_arcsec) {
-            println!("  shift     ({ax:.3}″, {ay:.3}″)");
+            println!(
+                "  shift     {}, {}",
+                value_pm(ax, r.sigma_dx_arcsec, "″"),
+                value_pm(ay, r.sigma_dy_arcsec, "″")
+            );
         }
     }
     println!(
@@ -109,5 +115,33 @@ fn print_human(r: &crate::record::AlignResult) {
     );
     if !r.message.is_empty() {
         println!("  {}", r.message);
+    }
+}
+
+/// `value ± σ` in one notation, to the σ's second significant digit (`0.0770 ± 0.0957 px`).
+fn value_pm(value: f64, sigma: Option<f64>, unit: &str) -> String {
+    match sigma {
+        Some(s) if s.is_finite() && s > 0.0 => {
+            let decimals = (1 - s.log10().floor() as i32).clamp(0, 12) as usize;
+            format!("{value:.decimals$} ± {s:.decimals$}{unit}")
+        }
+        _ => format!("{value}{unit}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::value_pm;
+
+    #[test]
+    fn value_and_sigma_share_a_notation_to_the_sigmas_second_digit() {
+        assert_eq!(value_pm(0.07701, Some(0.09573), " px"), "0.077 ± 0.096 px");
+        assert_eq!(value_pm(-376.855, Some(800.4), "″"), "-377 ± 800″");
+        assert_eq!(value_pm(0.9978772, Some(3.87e-3), ""), "0.9979 ± 0.0039");
+        assert_eq!(
+            value_pm(0.25008, Some(5.96e-4), " px"),
+            "0.25008 ± 0.00060 px"
+        );
+        assert_eq!(value_pm(0.0, Some(0.0), " px"), "0 px");
     }
 }

@@ -675,7 +675,9 @@ fn align_inner(
             }
             tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
         }
-        if !fine.converged {
+        // Once the refinement has the last word, the flow only seeded it: its convergence is
+        // no news to the user.
+        if !fine.converged && !refinement_accepted {
             notes.push(format!(
                 "fine alignment did not converge to {} px in {} passes",
                 cfg.convergence_px, fine.passes

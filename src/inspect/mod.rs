@@ -492,7 +492,7 @@ pub fn render_text(report: &Report) -> String {
             ("dx [px]", &c.raw.dx_px, chained.map(|x| &x.dx_px), 1.0),
             ("dy [px]", &c.raw.dy_px, chained.map(|x| &x.dy_px), 1.0),
             (
-                "rotation [\"]",
+                "rotation [″]",
                 &c.raw.rotation_arcsec,
                 chained.map(|x| &x.rotation_arcsec),
                 1.0,
@@ -530,8 +530,10 @@ pub fn render_text(report: &Report) -> String {
                         .iter()
                         .map(|pk| {
                             format!(
-                                "{:.1} s (power {:.2}, FAP {:.1e})",
-                                pk.period_s, pk.power, pk.false_alarm_probability
+                                "{:.1} s (power {:.2}, FAP {})",
+                                pk.period_s,
+                                pk.power,
+                                probability(pk.false_alarm_probability)
                             )
                         })
                         .collect::<Vec<_>>()
@@ -662,6 +664,15 @@ pub(crate) mod testdata {
                 pixel_checksum: None,
             },
         }
+    }
+}
+
+/// A probability as people read one: two decimals, or powers of ten below 0.01.
+fn probability(p: f64) -> String {
+    if p >= 0.01 {
+        format!("{p:.2}")
+    } else {
+        format!("{p:.1e}")
     }
 }
 
