@@ -28,6 +28,9 @@ pub struct Args {
 
 pub fn run(args: &Args) -> Result<i32> {
     let cfg = load_engine_config(args.config.as_deref())?;
+    for path in args.aligned.iter().chain(&args.quicklook) {
+        crate::error::check_writable(path)?;
+    }
     let reference = fits::read_frame(&FrameSpec::parse(&args.reference))?;
     let frame = fits::read_frame(&FrameSpec::parse(&args.frame))?;
     let outcome = engine::align_images(&reference, &frame, &cfg);
@@ -78,7 +81,8 @@ fn print_human(r: &crate::record::AlignResult) {
         Status::Degraded => "degraded",
         Status::Failed => "failed",
     };
-    println!("{} → {}: {status}", r.reference, r.frame);
+    use crate::text::escape;
+    println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
     {
         let sig = |v: Option<f64>| v.map_or("?".to_string(), |v| format!("{v:.2e}"));
@@ -99,6 +103,6 @@ fn print_human(r: &crate::record::AlignResult) {
         r.similarity.map_or("-".into(), |v| format!("{v:.3}"))
     );
     if !r.message.is_empty() {
-        println!("  {}", r.message);
+        println!("  {}", escape(&r.message));
     }
 }

@@ -1,0 +1,50 @@
+//! `sunjitter status` on a daemon that is alive but cannot write its output: it says so,
+//! naming the directory, instead of calling the status stale.
+
+mod monitor_support;
+
+use monitor_support::*;
+use std::process::Command;
+
+const CONFIG: &str = r#"
+[health]
+interval_s = 0.05
+"#;
+
+#[test]
+fn status_of_a_live_daemon_with_an_unwritable_output_names_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().canonicalize().unwrap();
+    let (watched, out, moved) = (root.join("in"), root.join("out"), root.join("moved"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = root.join("sunjitter.toml");
+    std::fs::write(&config, CONFIG).unwrap();
+    let mut daemon = Daemon::start(&watched, &out, &config, &[]);
+    daemon.expect_stderr(&["watching"]);
+    wait_for("the status file", || read_status(&out));
+
+    // The output directory goes away and a plain file takes its name: from now on the daemon
+    // can write nothing there. Its last status, moved along, says it was running long ago.
+    std::fs::rename(&out, &moved).unwrap();
+    std::fs::write(&out, b"in the way").unwrap();
+    let mut last = read_status(&moved).unwrap();
+    assert_eq!(last["pid"], daemon.child.id());
+    last["updated"] = "2014-03-29T14:09:38Z".into();
+    std::fs::write(moved.join("status.json"), last.to_string()).unwrap();
+
+    let shown = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("status")
+        .arg(&moved)
+        .output()
+        .unwrap();
+    assert_eq!(shown.status.code(), Some(0));
+    let text = String::from_utf8(shown.stdout).unwrap();
+    let first = text.lines().next().unwrap();
+    assert!(!first.contains("STALE"), "{text}");
+    assert!(
+        first.contains("OUTPUT UNWRITABLE")
+            && first.contains(&format!("{}: cannot write here: ", out.display())),
+        "{text}"
+    );
+    drop(daemon);
+}
