@@ -48,3 +48,35 @@ fn status_of_a_live_daemon_with_an_unwritable_output_names_the_problem() {
     );
     drop(daemon);
 }
+
+/// A `running` status whose process is gone (no process can have pid 2³² − 1): `status`
+/// says it is not running rather than only stale.
+#[test]
+fn status_of_a_daemon_that_is_gone_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("status.json");
+    let doc = serde_json::json!({
+        "program": "sunjitter", "version": "0", "pid": u32::MAX, "state": "running",
+        "started": "2014-03-29T14:09:38Z", "updated": "2014-03-29T14:09:38Z",
+        "uptime_s": 1.0, "interval_s": 2.0, "watching": "/in", "out": "/out",
+        "live": null, "frames": 0, "ok": 0, "degraded": 0, "failed": 0, "skipped": 0,
+        "queue_depth": 0, "write_errors": 0, "last_error": null,
+        "live_dropped": 0, "alerts_raised": 0, "alert_command_failures": 0,
+        "active_alerts": [], "channels": {}
+    });
+    std::fs::write(&path, doc.to_string()).unwrap();
+    let shown = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("status")
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert_eq!(shown.status.code(), Some(0));
+    let text = String::from_utf8(shown.stdout).unwrap();
+    assert!(
+        text.lines()
+            .next()
+            .unwrap()
+            .contains("NOT RUNNING: pid 4294967295 is gone without a clean stop"),
+        "{text}"
+    );
+}
