@@ -76,7 +76,7 @@ pub async fn run_daemon(
     watcher
         .watch(&root, mode)
         .map_err(|e| Error::output(&root, format!("cannot watch: {e}")))?;
-    tracing::info!(dir = %root.display(), recursive = config.daemon.recursive, "watching");
+    tracing::info!(dir = %crate::text::path(&root), recursive = config.daemon.recursive, "watching");
 
     let (input_tx, input_rx) = mpsc::channel::<Input>(capacity);
     let mut ingest = Ingest::new(
@@ -344,14 +344,14 @@ impl Ingest {
                     self.rescan(Some(path)).await;
                 } else {
                     return Some(Record::note(
-                        &path.display().to_string(),
+                        &crate::reference::frame_key(&path, None),
                         "directory not watched (set daemon.recursive or --recursive)",
                         crate::pipeline::now_ns(),
                     ));
                 }
             }
             Signal::Rescan(why) => {
-                tracing::warn!("{why}: rescanning {}", self.root.display());
+                tracing::warn!("{why}: rescanning {}", crate::text::path(&self.root));
                 self.rescan(None).await;
             }
         }
@@ -360,8 +360,9 @@ impl Ingest {
 
     /// A path seen by an event or a scan. Returns a `/log` note when a finished file changed.
     fn offer(&mut self, path: PathBuf, origin: Origin) -> Option<Record> {
-        let name = path.file_name().and_then(|n| n.to_str())?;
-        if !wanted_file(name, self.d()) {
+        // Names that are not UTF-8 are matched by their lossy rendering, and taken all the same.
+        let name = path.file_name()?.to_string_lossy();
+        if !wanted_file(&name, self.d()) {
             return None;
         }
         match self.files.get(&path).cloned() {
@@ -463,7 +464,7 @@ impl Ingest {
                     1
                 };
                 if attempts >= self.d().retry_attempts.max(1) {
-                    tracing::warn!(file = %path.display(), "giving up after {attempts} attempts: {reason}");
+                    tracing::warn!(file = %crate::text::path(&path), "giving up after {attempts} attempts: {reason}");
                     let record = unreadable_record(&path, &reason);
                     if input.send(Input::Record(record)).await.is_err() {
                         return false;
@@ -472,7 +473,7 @@ impl Ingest {
                     return true;
                 }
                 let delay = backoff(self.d(), attempts);
-                tracing::debug!(file = %path.display(), attempts, "not ready ({reason}); retry in {delay:?}");
+                tracing::debug!(file = %crate::text::path(&path), attempts, "not ready ({reason}); retry in {delay:?}");
                 let tries = Tries {
                     attempts,
                     last_stamp: stamp,
@@ -570,7 +571,7 @@ fn examine(
             .map(|s| s.to_string())
             .or_else(|| panic.downcast_ref::<String>().cloned())
             .unwrap_or_else(|| "unknown".into());
-        tracing::error!(file = %path.display(), "internal error while reading: {what}");
+        tracing::error!(file = %crate::text::path(path), "internal error while reading: {what}");
         FileOutcome::Skip(Some(unreadable_record(
             path,
             &format!("internal error while reading: {what}"),
@@ -601,8 +602,8 @@ pub fn wanted_file(name: &str, d: &DaemonConfig) -> bool {
 
 fn wanted_dir(path: &Path, d: &DaemonConfig) -> bool {
     path.file_name()
-        .and_then(|n| n.to_str())
-        .is_some_and(|n| !d.ignore.iter().any(|p| name_matches(p, n)))
+        .map(|n| n.to_string_lossy())
+        .is_some_and(|n| !d.ignore.iter().any(|p| name_matches(p, &n)))
 }
 
 /// Every wanted file under `root` (recursively if asked), sorted. Symbolic links to files
@@ -637,8 +638,8 @@ pub fn scan_tree(
                 }
                 continue;
             }
-            if let Some(name) = path.file_name().and_then(|n| n.to_str()) {
-                if wanted_file(name, d) {
+            if let Some(name) = path.file_name().map(|n| n.to_string_lossy()) {
+                if wanted_file(&name, d) {
                     found.push(path);
                 }
             }

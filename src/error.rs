@@ -9,11 +9,11 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be read as the image we need (not FITS, truncated, absurd header...).
-    #[error("{}: {reason}", path.display())]
+    #[error("{}: {reason}", crate::text::path(path))]
     BadInput { path: PathBuf, reason: String },
 
     /// A required header keyword is missing or unusable.
-    #[error("{}: header: {reason}", path.display())]
+    #[error("{}: header: {reason}", crate::text::path(path))]
     BadHeader { path: PathBuf, reason: String },
 
     /// The command line or configuration asked for something impossible.
@@ -24,8 +24,13 @@ pub enum Error {
     #[error("alignment failed: {0}")]
     AlignmentFailed(String),
 
+    /// An output cannot be created where it was asked for (read-only or missing directory, a
+    /// file in the way): the command line's or configuration's to fix, found before any work.
+    #[error("{}: cannot write here: {reason}", crate::text::path(path))]
+    Unwritable { path: PathBuf, reason: String },
+
     /// Writing output (MCAP, CSV, PNG, FITS) failed.
-    #[error("{}: {reason}", path.display())]
+    #[error("{}: {reason}", crate::text::path(path))]
     Output { path: PathBuf, reason: String },
 
     /// An output that would destroy what the user did not ask to lose (an input, a log), or
@@ -34,7 +39,7 @@ pub enum Error {
     Refused { path: PathBuf, reason: String },
 
     /// Other I/O on a named path.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {source}", crate::text::path(path))]
     Io {
         path: PathBuf,
         #[source]
@@ -64,6 +69,13 @@ impl Error {
         }
     }
 
+    pub fn unwritable(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Unwritable {
+            path: path.into(),
+            reason: source.to_string(),
+        }
+    }
+
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),
@@ -77,7 +89,8 @@ impl Error {
             Error::BadInput { .. }
             | Error::BadHeader { .. }
             | Error::Usage(_)
-            | Error::Refused { .. } => 2,
+            | Error::Refused { .. }
+            | Error::Unwritable { .. } => 2,
             Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => 2,
             Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => 1,
         }
@@ -85,3 +98,32 @@ impl Error {
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// Check, before any work, that the file `path` can be written: an existing file is opened
+/// for writing (not truncated), a new one is created and removed again.
+pub fn check_writable(path: &std::path::Path) -> Result<()> {
+    let opened = if path.exists() {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(path)
+            .map(|_| ())
+    } else {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(path)
+            .and_then(|_| std::fs::remove_file(path))
+    };
+    opened.map_err(|e| Error::unwritable(path, e))
+}
+
+/// Check, before any work, that files can be created in the directory `dir`.
+pub fn check_writable_dir(dir: &std::path::Path) -> Result<()> {
+    let probe = dir.join(format!(".sunjitter-write-check-{}", std::process::id()));
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+        .and_then(|_| std::fs::remove_file(&probe))
+        .map_err(|e| Error::unwritable(dir, e))
+}

@@ -79,8 +79,8 @@ impl FrameSpec {
 impl fmt::Display for FrameSpec {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.frame {
-            Some(n) => write!(f, "{}[{n}]", self.path.display()),
-            None => write!(f, "{}", self.path.display()),
+            Some(n) => write!(f, "{}[{n}]", crate::text::path(&self.path)),
+            None => write!(f, "{}", crate::text::path(&self.path)),
         }
     }
 }
@@ -287,15 +287,23 @@ impl Layout {
     }
 }
 
-/// The path as UTF-8 (cfitsio and the contract's JSON need text).
+/// The path as UTF-8 (cfitsio writes only text names).
 fn utf8_path(path: &Path) -> Result<&str> {
     path.to_str()
         .ok_or_else(|| Error::bad_input(path, "the path is not valid UTF-8"))
 }
 
+/// The path's bytes for cfitsio, which takes any name the file system does.
+fn c_path(path: &Path) -> Result<CString> {
+    #[cfg(unix)]
+    let bytes = std::os::unix::ffi::OsStrExt::as_bytes(path.as_os_str()).to_vec();
+    #[cfg(not(unix))]
+    let bytes = utf8_path(path)?.as_bytes().to_vec();
+    CString::new(bytes).map_err(|_| Error::bad_input(path, "the path contains a NUL byte"))
+}
+
 /// Walk every HDU header, checking the file's structure and sizes without reading pixel data.
 fn scan(path: &Path) -> Result<Layout> {
-    utf8_path(path)?;
     let mut file = open(path)?;
     let file_len = file
         .metadata()
@@ -843,8 +851,7 @@ fn read_compressed(
     g: &ImageGeometry,
     frame: usize,
 ) -> Result<Vec<f32>> {
-    let cpath = CString::new(utf8_path(path)?)
-        .map_err(|_| Error::bad_input(path, "the path contains a NUL byte"))?;
+    let cpath = c_path(path)?;
     let n = g.pixels_per_frame();
     let mut out = vec![0f32; n];
     let _guard = CFITSIO

@@ -486,12 +486,42 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
     check_sizes(&axes, prefix)?;
     if compressed {
         check_tiles(header, &axes)?;
+    } else {
+        check_scaling(header)?;
     }
     Ok(Some(ImageGeometry {
         bitpix: bitpix as i32,
         axes: axes.iter().map(|&a| a as usize).collect(),
         compressed,
     }))
+}
+
+/// `BSCALE` and `BZERO` (physical = BZERO + BSCALE · stored, FITS standard §5.3) must be finite
+/// numbers when present, and `BSCALE` not zero: any other value would silently change every
+/// pixel (or be silently ignored).
+fn check_scaling(header: &Header) -> Result<(), String> {
+    for key in ["BSCALE", "BZERO"] {
+        if !header.contains(key) {
+            continue;
+        }
+        let shown = match header.get(key) {
+            None => return Err(format!("{key} has no value")),
+            Some(v) => match v.as_f64() {
+                Some(0.0) if key == "BSCALE" => {
+                    return Err("BSCALE = 0 would make every pixel BZERO".into())
+                }
+                Some(_) => continue,
+                None => match v {
+                    HeaderValue::Str(s) => format!("'{s}'"),
+                    HeaderValue::Bool(b) => (if *b { "T" } else { "F" }).to_string(),
+                    HeaderValue::Int(i) => i.to_string(),
+                    HeaderValue::Float(f) => f.to_string(),
+                },
+            },
+        };
+        return Err(format!("{key} = {shown} is not a finite number"));
+    }
+    Ok(())
 }
 
 /// Refuse axes or frames too large to be a real image.

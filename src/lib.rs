@@ -13,6 +13,7 @@
 pub mod error;
 pub mod geometry;
 pub mod record;
+pub mod text;
 
 pub mod fits;
 pub mod header;

@@ -34,6 +34,21 @@ enum Command {
     Status(commands::status::Args),
 }
 
+/// Log fields as the default format writes them, with control characters escaped: a value
+/// (a file name, a reason) cannot start a fake log line or reach the terminal raw.
+fn escaped_fields() -> impl for<'w> tracing_subscriber::fmt::FormatFields<'w> {
+    use tracing_subscriber::field::MakeExt;
+    tracing_subscriber::fmt::format::debug_fn(|w, field, value| {
+        let text = format!("{value:?}");
+        let text = sunjitter::text::escape(&text);
+        match field.name() {
+            "message" => write!(w, "{text}"),
+            name => write!(w, "{name}={text}"),
+        }
+    })
+    .delimited(" ")
+}
+
 fn main() {
     // Colour only for a person at a terminal, and never when NO_COLOR is set (no-color.org).
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
@@ -41,6 +56,7 @@ fn main() {
     tracing_subscriber::fmt()
         .with_ansi(colour)
         .with_writer(sunjitter::commands::replay::BarAwareStderr)
+        .fmt_fields(escaped_fields())
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
@@ -70,7 +86,7 @@ fn main() {
     match outcome {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            eprintln!("sunjitter: {e}");
+            eprintln!("sunjitter: {}", sunjitter::text::escape(&e.to_string()));
             std::process::exit(e.exit_code());
         }
     }

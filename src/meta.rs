@@ -191,6 +191,11 @@ impl Zenithal {
     }
 }
 
+/// Plate scales any solar image can have, with margin: from a hundredth of the finest
+/// (DKIST, about 0.01″/px) to some hundred times the coarsest (LASCO C3, 56″/px). A value
+/// outside is a broken header, and every arcsecond reported from it would be wrong.
+const PLATE_SCALE_ARCSEC: std::ops::RangeInclusive<f64> = 1e-4..=1e4;
+
 impl CelestialWcs {
     /// Read `CRPIX`/`CRVAL`/`CDELT`/`CUNIT` and the rotation (`PCi_j`, `CDi_j`, `CROTA2`, or
     /// `SC_ROLL` for raw SOHO files that carry none of those).
@@ -216,6 +221,17 @@ impl CelestialWcs {
             Some(cd) => from_cd(cd, unit)?,
             None => from_cdelt_and_rotation(h, unit)?,
         };
+        for (axis, scale) in cdelt_arcsec.iter().enumerate() {
+            if !PLATE_SCALE_ARCSEC.contains(&scale.abs()) {
+                return Err(format!(
+                    "a plate scale of {scale:e} arcsec/px along axis {} is not physical \
+                     (CDELT{0}/CD{0}_{0}; expected {:e} to {:e} arcsec/px)",
+                    axis + 1,
+                    PLATE_SCALE_ARCSEC.start(),
+                    PLATE_SCALE_ARCSEC.end()
+                ));
+            }
+        }
         Ok(CelestialWcs {
             crpix,
             crval_arcsec,

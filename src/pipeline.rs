@@ -102,8 +102,8 @@ impl Record {
     ) -> Record {
         Record::Log {
             level,
-            file: file.to_string(),
-            message: message.into(),
+            file: crate::text::escape(file).into_owned(),
+            message: crate::text::escape(&message.into()).into_owned(),
             log_time_ns,
             finishes: level >= LogLevel::Error,
         }
@@ -113,8 +113,8 @@ impl Record {
     pub fn note(file: &str, message: impl Into<String>, log_time_ns: i64) -> Record {
         Record::Log {
             level: LogLevel::Warning,
-            file: file.to_string(),
-            message: message.into(),
+            file: crate::text::escape(file).into_owned(),
+            message: crate::text::escape(&message.into()).into_owned(),
             log_time_ns,
             finishes: false,
         }
@@ -607,7 +607,9 @@ pub fn inspect_file(
 /// The one-line reason of an error, without the path prefix (the `/log` entry names the file).
 pub fn error_reason(e: &Error) -> String {
     match e {
-        Error::BadInput { reason, .. } | Error::Output { reason, .. } => reason.clone(),
+        Error::BadInput { reason, .. }
+        | Error::Output { reason, .. }
+        | Error::Unwritable { reason, .. } => reason.clone(),
         Error::BadHeader { reason, .. } => format!("header: {reason}"),
         Error::Io { source, .. } => source.to_string(),
         other => other.to_string(),
@@ -1718,11 +1720,15 @@ fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
                         let Ok(entries) = std::fs::read_dir(dir) else {
                             continue;
                         };
-                        let mut names: Vec<String> = entries
+                        // Matched by their lossy rendering: names that are not UTF-8 are taken too.
+                        let mut names: Vec<std::ffi::OsString> = entries
                             .flatten()
-                            .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                            .filter(|n| !n.starts_with('.') || part.starts_with('.'))
-                            .filter(|n| crate::daemon::name_matches(&part, n))
+                            .map(|e| e.file_name())
+                            .filter(|n| {
+                                let n = n.to_string_lossy();
+                                (!n.starts_with('.') || part.starts_with('.'))
+                                    && crate::daemon::name_matches(&part, &n)
+                            })
                             .collect();
                         names.sort();
                         next.extend(names.into_iter().map(|n| base.join(n)));

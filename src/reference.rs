@@ -852,7 +852,7 @@ impl ChannelState {
         let chain = slot.chain;
         let change = ReferenceChange {
             channel: self.name.clone(),
-            file: slot.spec.path.display().to_string(),
+            file: crate::text::path(&slot.spec.path).into_owned(),
             frame: slot.spec.frame,
             obs_time: iso8601_utc(slot.obs_time_ns),
             reason,
@@ -1035,8 +1035,8 @@ pub fn failed_outcome(reference: &str, frame: &str, message: &str) -> AlignOutco
 /// The identity of a frame in logs: `PATH` for a 2-D image, `PATH[N]` for frame N of a cube.
 pub fn frame_key(path: &std::path::Path, frame: Option<usize>) -> String {
     match frame {
-        Some(n) => format!("{}[{n}]", path.display()),
-        None => path.display().to_string(),
+        Some(n) => format!("{}[{n}]", crate::text::path(path)),
+        None => crate::text::path(path).into_owned(),
     }
 }
 
@@ -1046,14 +1046,14 @@ pub fn parse_frame_key(key: &str) -> FrameSpec {
         if let Some((path, n)) = stripped.rsplit_once('[') {
             if let Ok(n) = n.parse::<usize>() {
                 return FrameSpec {
-                    path: path.into(),
+                    path: crate::text::unescape_path(path),
                     frame: Some(n),
                 };
             }
         }
     }
     FrameSpec {
-        path: key.into(),
+        path: crate::text::unescape_path(key),
         frame: None,
     }
 }

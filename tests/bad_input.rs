@@ -293,21 +293,6 @@ fn frame_out_of_range() {
     );
 }
 
-#[cfg(unix)]
-#[test]
-fn non_utf8_path() {
-    use std::os::unix::ffi::OsStrExt;
-    let dir = tempfile::tempdir().unwrap();
-    let name = OsStr::from_bytes(b"caf\xe9.fits");
-    let path = dir.path().join(name);
-    std::fs::copy(
-        PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits"),
-        &path,
-    )
-    .unwrap();
-    expect_bad(&path, "the path is not valid UTF-8");
-}
-
 /// `simulate --noise K` on an image with no varying 16×16 block (a constant frame): the noise
 /// has no unit, which is the input's fault: exit 2, one line naming the file.
 #[test]
@@ -386,4 +371,206 @@ fn a_sparse_file_claiming_a_huge_image_is_refused_before_reading() {
             && stderr.contains("16384×16384 = 268435456 pixels per image"),
         "{stderr}"
     );
+}
+
+/// A 4×4 image with a WCS and an observation time, plus `extra` cards.
+fn byte_image_with(extra: &[&'static str]) -> Vec<u8> {
+    let mut cards = vec![
+        "CRPIX1  =                  2.5",
+        "CRPIX2  =                  2.5",
+        "CDELT1  =                  0.6",
+        "CDELT2  =                  0.6",
+        "DATE-OBS= '2011-02-15T00:00:00'",
+    ];
+    cards.extend_from_slice(extra);
+    byte_image_4x4(&cards)
+}
+
+/// FITS standard §5.3: physical = BZERO + BSCALE · stored. A scaling that is not a finite
+/// number cannot be applied; ignoring it would report other pixel values than the file's.
+#[test]
+fn pixel_scaling_that_is_not_a_finite_number_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, card, problem) in [
+        (
+            "bscale.fits",
+            "BSCALE  = 'abc'",
+            "BSCALE = 'abc' is not a finite number",
+        ),
+        (
+            "bzero.fits",
+            "BZERO   = 'NaN'",
+            "BZERO = 'NaN' is not a finite number",
+        ),
+    ] {
+        let path = temp_file(&dir, name, &byte_image_with(&[card]));
+        expect_bad(&path, problem);
+        // `align` refuses it the same way.
+        let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+            .arg("align")
+            .arg(PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits"))
+            .arg(&path)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert_eq!(stderr.lines().count(), 1, "{stderr}");
+        assert!(
+            stderr.starts_with(&format!("sunjitter: {}: ", path.display()))
+                && stderr.contains(problem),
+            "{stderr}"
+        );
+    }
+}
+
+/// A plate scale of 1e-300″/px (the Sun would span 10^303 pixels) is no solar image's.
+#[test]
+fn a_plate_scale_that_is_not_physical_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cards = [
+        "CRPIX1  =                  2.5",
+        "CRPIX2  =                  2.5",
+        "CDELT1  =               1E-300",
+        "CDELT2  =                  0.6",
+    ];
+    expect_bad(
+        &temp_file(&dir, "tiny.fits", &byte_image_4x4(&cards)),
+        "header: a plate scale of 1e-300 arcsec/px along axis 1 is not physical",
+    );
+}
+
+/// `replay` (the daemon's pipeline) names a file with a broken scaling on `/log` and goes on
+/// with the others.
+#[test]
+fn replay_logs_a_broken_scaling_and_continues() {
+    let dir = tempfile::tempdir().unwrap();
+    let inputs = dir.path().canonicalize().unwrap().join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    std::fs::copy(
+        PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits"),
+        inputs.join("aia.fits"),
+    )
+    .unwrap();
+    let bad = inputs.join("bscale.fits");
+    std::fs::write(&bad, byte_image_with(&["BSCALE  = 'abc'"])).unwrap();
+    let out_dir = dir.path().join("out");
+    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("replay")
+        .arg(&inputs)
+        .arg("--out")
+        .arg(&out_dir)
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let files = sunjitter::commands::inspect::log_files(&[out_dir]).unwrap();
+    let contents = sunjitter::sink::read_logs(&files).unwrap();
+    let frames: Vec<&str> = contents
+        .jitter
+        .iter()
+        .map(|m| m.record.align.frame.as_str())
+        .collect();
+    assert_eq!(frames, [inputs.join("aia.fits").display().to_string()]);
+    let logs: Vec<(String, String)> = contents
+        .logs
+        .iter()
+        .map(|m| (m.entry.file.clone(), m.entry.message.clone()))
+        .collect();
+    assert_eq!(
+        logs,
+        [(
+            bad.display().to_string(),
+            "BSCALE = 'abc' is not a finite number".to_string()
+        )]
+    );
+}
+
+/// An output that cannot be created (here: a regular file stands where a directory must be)
+/// is the command line's fault: exit 2, one line naming the path, before any work.
+#[test]
+fn unwritable_outputs_exit_2_naming_the_path() {
+    let dir = tempfile::tempdir().unwrap();
+    let aia = PathBuf::from(REAL).join("aia_171_20110215T000000_128.fits");
+    let blocker = temp_file(&dir, "blocker", b"a file, not a directory");
+    let inputs = dir.path().join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    let good_log = dir.path().join("log");
+    let made = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("replay")
+        .arg(&aia)
+        .arg("--out")
+        .arg(&good_log)
+        .output()
+        .unwrap();
+    assert_eq!(made.status.code(), Some(0));
+    let under = blocker.join("x");
+    let cases: Vec<(Vec<&OsStr>, &Path)> = vec![
+        (
+            vec![
+                "replay".as_ref(),
+                aia.as_os_str(),
+                "--out".as_ref(),
+                under.as_os_str(),
+            ],
+            &under,
+        ),
+        (
+            vec![
+                "replay".as_ref(),
+                aia.as_os_str(),
+                "--out".as_ref(),
+                blocker.as_os_str(),
+            ],
+            &blocker,
+        ),
+        (
+            vec![
+                "watch".as_ref(),
+                inputs.as_os_str(),
+                "--out".as_ref(),
+                under.as_os_str(),
+            ],
+            &under,
+        ),
+        (
+            vec![
+                "inspect".as_ref(),
+                good_log.as_os_str(),
+                "--csv".as_ref(),
+                under.as_os_str(),
+            ],
+            &under,
+        ),
+        (
+            vec![
+                "align".as_ref(),
+                aia.as_os_str(),
+                aia.as_os_str(),
+                "--aligned".as_ref(),
+                under.as_os_str(),
+            ],
+            &under,
+        ),
+    ];
+    for (args, path) in cases {
+        let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+            .args(&args)
+            .env("SUNJITTER_LOG", "warn")
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert_eq!(stderr.lines().count(), 1, "{args:?}: {stderr}");
+        assert!(
+            stderr.starts_with(&format!(
+                "sunjitter: {}: cannot write here: ",
+                path.display()
+            )),
+            "{args:?}: {stderr}"
+        );
+    }
 }

@@ -37,6 +37,9 @@ pub fn run(args: &Args) -> Result<i32> {
     inputs.extend(args.config.as_deref());
     crate::outputs::check_outputs(&outputs, &inputs)?;
     let cfg = load_engine_config(args.config.as_deref())?;
+    for path in args.aligned.iter().chain(&args.quicklook) {
+        crate::error::check_writable(path)?;
+    }
     let reference = fits::read_frame(&reference_spec)?;
     let frame = fits::read_frame(&frame_spec)?;
     let outcome = engine::align_images(&reference, &frame, &cfg);
@@ -87,7 +90,8 @@ fn print_human(r: &crate::record::AlignResult) {
         Status::Degraded => "degraded",
         Status::Failed => "failed",
     };
-    println!("{} → {}: {status}", r.reference, r.frame);
+    use crate::text::escape;
+    println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
     {
         println!("  scale     {}", value_pm(s, r.sigma_scale, ""));
@@ -114,7 +118,7 @@ fn print_human(r: &crate::record::AlignResult) {
         r.similarity.map_or("-".into(), |v| format!("{v:.3}"))
     );
     if !r.message.is_empty() {
-        println!("  {}", r.message);
+        println!("  {}", escape(&r.message));
     }
 }
 

@@ -46,7 +46,7 @@ pub struct InfoRecord {
 impl From<&FrameMeta> for InfoRecord {
     fn from(m: &FrameMeta) -> Self {
         InfoRecord {
-            file: m.file.display().to_string(),
+            file: crate::text::path(&m.file).into_owned(),
             hdu: m.hdu,
             frame: m.frame,
             width: m.width,
@@ -72,7 +72,7 @@ pub fn run(args: &Args) -> Result<i32> {
         match describe(file) {
             Ok(metas) => records.extend(metas.iter().map(InfoRecord::from)),
             Err(e) => {
-                eprintln!("sunjitter: {e}");
+                eprintln!("sunjitter: {}", crate::text::escape(&e.to_string()));
                 failed += 1;
             }
         }
@@ -89,10 +89,11 @@ pub fn run(args: &Args) -> Result<i32> {
 
 /// Metadata of one command-line argument: every frame of a file, or the one frame named.
 pub fn describe(arg: &Path) -> Result<Vec<FrameMeta>> {
-    let text = arg
-        .to_str()
-        .ok_or_else(|| Error::bad_input(arg, "the path is not valid UTF-8"))?;
-    let spec = FrameSpec::parse(text);
+    // A name that is not UTF-8 cannot carry a `[N]` suffix typed as text: it names a file.
+    let spec = match arg.to_str() {
+        Some(text) => FrameSpec::parse(text),
+        None => FrameSpec::file(arg),
+    };
     let metas = fits::read_meta(&spec.path)?;
     let Some(n) = spec.frame else {
         return Ok(metas);
@@ -162,7 +163,7 @@ fn row(r: &InfoRecord) -> [String; 10] {
         file,
         format!("{}×{}", r.width, r.height),
         r.bitpix.to_string(),
-        r.channel.clone(),
+        crate::text::escape(&r.channel).into_owned(),
         r.obs_time.clone().unwrap_or_else(|| "-".into()),
         opt(r.exptime_s, 3),
         scale,

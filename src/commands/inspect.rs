@@ -69,6 +69,9 @@ pub fn run(args: &Args) -> Result<i32> {
             )));
         }
     }
+    for path in args.csv.iter().chain(&args.plot) {
+        crate::error::check_writable(path)?;
+    }
     let files = log_files(&args.logs)?;
     let outputs: Vec<&std::path::Path> = [&args.csv, &args.plot]
         .into_iter()
@@ -82,7 +85,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let report = inspect::report(&names, &analyses, log);
 
     if let Some(path) = &args.csv {
-        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        let file = std::fs::File::create(path).map_err(|e| Error::unwritable(path, e))?;
         let mut out = std::io::BufWriter::new(file);
         inspect::csv::write_csv(&mut out, &analyses)
             .and_then(|_| std::io::Write::flush(&mut out))

@@ -91,7 +91,7 @@ pub fn run(args: &Args) -> Result<i32> {
     eprintln!(
         "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped",
         progress.frames,
-        args.out.display(),
+        crate::text::path(&args.out),
         progress.ok,
         progress.degraded,
         progress.failed,

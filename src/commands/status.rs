@@ -22,7 +22,20 @@ pub fn run(args: &Args) -> Result<i32> {
             serde_json::to_string(&s).map_err(|e| crate::Error::output(&path, e.to_string()))?;
         println!("{text}");
     } else {
-        print!("{}", status::render(&s, crate::pipeline::now_ns()));
+        let now = crate::pipeline::now_ns();
+        let diagnosis = if status::is_stale(&s, now) {
+            let dir = match path.parent() {
+                Some(p) if !p.as_os_str().is_empty() => p,
+                _ => std::path::Path::new("."),
+            };
+            status::diagnose_stale(&s, dir)
+        } else {
+            None
+        };
+        print!(
+            "{}",
+            status::render_diagnosed(&s, now, diagnosis.as_deref())
+        );
     }
     Ok(0)
 }

@@ -153,8 +153,8 @@ pub fn run(args: &Args) -> Result<i32> {
             args.size,
             args.size,
             synth::CHANNEL,
-            args.out.display(),
-            truth_path.display(),
+            crate::text::path(&args.out),
+            crate::text::path(&truth_path),
             per_frame.map_or(String::new(), |s| format!("; {s:.2} s per frame"))
         );
     }

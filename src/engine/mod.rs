@@ -257,7 +257,7 @@ impl PreparedReference {
         crate::keep_freed_memory();
         PreparedReference {
             cfg: cfg.clone(),
-            file: reference.meta.file.display().to_string(),
+            file: crate::text::path(&reference.meta.file).into_owned(),
             work: ReferenceWork::new(reference, cfg),
         }
     }
@@ -288,7 +288,7 @@ impl PreparedReference {
             Err(reason) => Err(reason.clone()),
         };
         let mut outcome = result.unwrap_or_else(|reason| {
-            AlignOutcome::failed(&self.file, &frame.meta.file.display().to_string(), &reason)
+            AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
         });
         outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
         outcome
@@ -810,8 +810,8 @@ fn align_inner(
         // header's was refused.
         let ps = work.reference_check.meta.plate_scale_arcsec;
         let result = AlignResult {
-            reference: work.meta.file.display().to_string(),
-            frame: frame.meta.file.display().to_string(),
+            reference: crate::text::path(&work.meta.file).into_owned(),
+            frame: crate::text::path(&frame.meta.file).into_owned(),
             scale: Some(t.scale),
             rotation_arcsec: Some(t.rotation_arcsec()),
             dx_px: Some(t.dx),

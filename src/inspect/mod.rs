@@ -443,8 +443,9 @@ fn detrend(t: &[f64], y: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// The human summary (no `--json`).
+/// The human summary (no `--json`). Text from the logs is escaped: it may hold any file name.
 pub fn render_text(report: &Report) -> String {
+    use crate::text::escape;
     let mut s = String::new();
     if report.channels.is_empty() {
         let _ = writeln!(s, "no /jitter messages in {} file(s)", report.files.len());
@@ -453,7 +454,7 @@ pub fn render_text(report: &Report) -> String {
         let _ = writeln!(
             s,
             "{}: {} frames ({} ok, {} degraded, {} failed), {} to {} ({:.0} s{})",
-            c.channel,
+            escape(&c.channel),
             c.frames,
             c.ok,
             c.degraded,
@@ -467,7 +468,7 @@ pub fn render_text(report: &Report) -> String {
         let kinds: Vec<String> = c
             .reference_kinds
             .iter()
-            .map(|(k, n)| format!("{k} {n}"))
+            .map(|(k, n)| format!("{} {n}", escape(k)))
             .collect();
         let _ = writeln!(s, "  references: {}", kinds.join(", "));
         let _ = writeln!(
@@ -561,7 +562,12 @@ pub fn render_text(report: &Report) -> String {
                 let _ = writeln!(
                     s,
                     "    #{} {} {} = {:.4} (baseline {:.4}, z = {:.1})",
-                    o.sequence, o.obs_time, o.parameter, o.value, o.baseline, o.z
+                    o.sequence,
+                    escape(&o.obs_time),
+                    o.parameter,
+                    o.value,
+                    o.baseline,
+                    o.z
                 );
             }
             if c.outliers.len() > 10 {
@@ -574,6 +580,7 @@ pub fn render_text(report: &Report) -> String {
 }
 
 fn render_log(s: &mut String, log: &LogSummary) {
+    use crate::text::escape;
     let _ = writeln!(
         s,
         "/log: {} error(s), {} warning(s); {} input(s) with no alignment",
@@ -582,7 +589,7 @@ fn render_log(s: &mut String, log: &LogSummary) {
         log.unaligned.len()
     );
     for u in log.unaligned.iter().take(10) {
-        let _ = writeln!(s, "  {}: {}", u.file, u.message);
+        let _ = writeln!(s, "  {}: {}", escape(&u.file), escape(&u.message));
     }
     if log.unaligned.len() > 10 {
         let _ = writeln!(s, "  … {} more in --json", log.unaligned.len() - 10);

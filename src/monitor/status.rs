@@ -109,32 +109,87 @@ pub fn read(path: &Path) -> Result<Status> {
         .map_err(|e| Error::bad_input(path, format!("not a status file: {e}")))
 }
 
-/// The status for people.
-pub fn render(s: &Status, now_ns: i64) -> String {
-    use std::fmt::Write;
-    let mut out = String::new();
-    let stale = s.state == "running"
+/// Whether a `running` status has not been rewritten for three intervals.
+pub fn is_stale(s: &Status, now_ns: i64) -> bool {
+    s.state == "running"
         && crate::time::parse_fits_time(&s.updated, crate::time::TimeScale::Utc)
             .ok()
-            .is_some_and(|t| (now_ns - t) as f64 / 1e9 > 3.0 * s.interval_s.max(1.0));
-    let state = if stale {
-        format!("{} (STALE: not updated since {})", s.state, s.updated)
-    } else {
-        s.state.clone()
+            .is_some_and(|t| (now_ns - t) as f64 / 1e9 > 3.0 * s.interval_s.max(1.0))
+}
+
+/// Why a stale status is not rewritten, as far as this machine shows: the daemon's process is
+/// gone, or it is alive and the directories it writes (`status_dir`, its output) refuse new
+/// files. `None` when nothing is known (then it may be hung).
+pub fn diagnose_stale(s: &Status, status_dir: &Path) -> Option<String> {
+    let proc_dir = Path::new("/proc");
+    if !proc_dir.is_dir() {
+        return None;
+    }
+    let cmdline = std::fs::read(proc_dir.join(s.pid.to_string()).join("cmdline")).ok();
+    let is_daemon = cmdline.is_some_and(|c| {
+        let argv0 = c.split(|b| *b == 0).next().unwrap_or_default();
+        String::from_utf8_lossy(argv0).contains("sunjitter")
+    });
+    if !is_daemon {
+        return Some(format!(
+            "NOT RUNNING: pid {} is gone without a clean stop; last updated {}",
+            s.pid, s.updated
+        ));
+    }
+    let mut dirs = vec![status_dir.to_path_buf()];
+    if !s.out.is_empty() && Path::new(&s.out) != status_dir {
+        dirs.push(PathBuf::from(&s.out));
+    }
+    dirs.iter()
+        .find_map(|d| crate::error::check_writable_dir(d).err())
+        .map(|e| {
+            format!(
+                "OUTPUT UNWRITABLE: pid {} is alive but cannot write {e}; status last updated {}",
+                s.pid, s.updated
+            )
+        })
+}
+
+/// The status for people. Every text field is escaped: a status file names input files.
+pub fn render(s: &Status, now_ns: i64) -> String {
+    render_diagnosed(s, now_ns, None)
+}
+
+/// [`render`], with what [`diagnose_stale`] found shown instead of a bare STALE.
+pub fn render_diagnosed(s: &Status, now_ns: i64, diagnosis: Option<&str>) -> String {
+    use crate::text::escape;
+    use std::fmt::Write;
+    let mut out = String::new();
+    let state = match (is_stale(s, now_ns), diagnosis) {
+        (true, Some(why)) => format!("{} ({why})", s.state),
+        (true, None) => format!("{} (STALE: not updated since {})", s.state, s.updated),
+        (false, _) => s.state.clone(),
     };
-    let _ = writeln!(out, "sunjitter {} (pid {}): {state}", s.version, s.pid);
+    let _ = writeln!(
+        out,
+        "sunjitter {} (pid {}): {}",
+        escape(&s.version),
+        s.pid,
+        escape(&state)
+    );
     let _ = writeln!(
         out,
         "  started {}, up {}, updated {}",
-        s.started,
+        escape(&s.started),
         duration(s.uptime_s),
-        s.updated
+        escape(&s.updated)
     );
-    let _ = writeln!(out, "  watching {} → {}", s.watching, s.out);
+    let _ = writeln!(
+        out,
+        "  watching {} → {}",
+        escape(&s.watching),
+        escape(&s.out)
+    );
     if let Some(live) = &s.live {
         let _ = writeln!(
             out,
-            "  live view {live} ({} messages dropped)",
+            "  live view {} ({} messages dropped)",
+            escape(live),
             s.live_dropped
         );
     }
@@ -144,7 +199,7 @@ pub fn render(s: &Status, now_ns: i64) -> String {
         s.frames, s.ok, s.degraded, s.failed, s.skipped, s.queue_depth, s.write_errors
     );
     if let Some(e) = &s.last_error {
-        let _ = writeln!(out, "  last error: {e}");
+        let _ = writeln!(out, "  last error: {}", escape(e));
     }
     if s.active_alerts.is_empty() {
         let _ = writeln!(
@@ -156,7 +211,7 @@ pub fn render(s: &Status, now_ns: i64) -> String {
         let list: Vec<String> = s
             .active_alerts
             .iter()
-            .map(|a| format!("{} {}", a.channel, a.kind))
+            .map(|a| format!("{} {}", escape(&a.channel), escape(&a.kind)))
             .collect();
         let _ = writeln!(out, "  ALERTS ACTIVE: {}", list.join(", "));
     }
@@ -179,17 +234,17 @@ pub fn render(s: &Status, now_ns: i64) -> String {
         let _ = writeln!(
             out,
             "  {:<14} {:>7} {:>7} {:>8} {:>6} {:>6} {:>8}  {}",
-            name,
+            escape(name),
             c.frames,
             c.ok,
             c.degraded,
             c.failed,
             c.queued,
             lag,
-            c.last_obs_time.as_deref().unwrap_or("-")
+            escape(c.last_obs_time.as_deref().unwrap_or("-"))
         );
         if let Some(e) = &c.last_error {
-            let _ = writeln!(out, "  {:<14} last error: {e}", "");
+            let _ = writeln!(out, "  {:<14} last error: {}", "", escape(e));
         }
     }
     out

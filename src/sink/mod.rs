@@ -210,11 +210,15 @@ impl McapSink {
                 "sink: the run configuration is not JSON: {e}"
             )));
         }
-        std::fs::create_dir_all(dir)
-            .map_err(|e| Error::output(dir, format!("cannot create output directory: {e}")))?;
+        std::fs::create_dir_all(dir).map_err(|e| Error::unwritable(dir, e))?;
         if !dir.is_dir() {
-            return Err(Error::output(dir, "output is not a directory"));
+            return Err(Error::Unwritable {
+                path: dir.to_path_buf(),
+                reason: "not a directory".into(),
+            });
         }
+        // Segments are created when the first record comes: find out now, not then.
+        crate::error::check_writable_dir(dir)?;
         let last_key = segment::newest_existing(dir)
             .map_err(|e| Error::output(dir, format!("cannot list output directory: {e}")))?;
         Ok(McapSink {
