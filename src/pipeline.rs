@@ -475,11 +475,44 @@ pub enum FileOutcome {
     /// that cannot be processed (no observation time).
     Frames(Vec<FrameItem>, Vec<Record>),
     /// Not (yet) a complete FITS file; the reason is what `/log` will say if it stays so.
-    NotReady(String),
+    NotReady(Unready, String),
     /// Never to be taken; the record says why (`None`: silently irrelevant, e.g. a directory).
     Skip(Option<Record>),
     /// Gone before it could be read: a `/log` note, and the name stays open.
     Vanished(Record),
+}
+
+/// Why a file cannot be taken yet: decides how long the daemon keeps trying.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unready {
+    /// A fault of the moment, not of the file (out of file descriptors or memory,
+    /// interrupted): tried again until it reads.
+    Transient,
+    /// Ends early, is empty, or changed while being read: likely still being written.
+    Incomplete,
+    /// Anything else (not FITS, a bad header, no permission).
+    Unreadable,
+}
+
+impl Unready {
+    /// How a reader's refusal is taken.
+    pub fn of(e: &Error) -> Unready {
+        if e.is_transient() {
+            Unready::Transient
+        } else if crate::fits::is_incomplete(e) {
+            Unready::Incomplete
+        } else {
+            Unready::Unreadable
+        }
+    }
+
+    fn of_io(e: &std::io::Error) -> Unready {
+        if crate::error::transient_io(e) {
+            Unready::Transient
+        } else {
+            Unready::Unreadable
+        }
+    }
 }
 
 /// Identity of a file's content for de-duplication: (size, mtime).
@@ -521,7 +554,7 @@ pub fn inspect_file(
                 now_ns(),
             ));
         }
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     };
     if link_meta.file_type().is_symlink() && !follow_symlinks {
         return FileOutcome::Skip(Some(Record::log(
@@ -533,7 +566,7 @@ pub fn inspect_file(
     }
     let before = match std::fs::metadata(path) {
         Ok(m) => m,
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     };
     if before.is_dir() {
         return FileOutcome::Skip(None);
@@ -552,14 +585,19 @@ pub fn inspect_file(
     }
     // The reader refuses incomplete files (truncated headers or data) with the reason.
     let metas = match reader.read_meta(path) {
-        Ok(m) if m.is_empty() => return FileOutcome::NotReady("no image in file".into()),
+        // The image may be in an extension not yet written.
+        Ok(m) if m.is_empty() => {
+            return FileOutcome::NotReady(Unready::Incomplete, "no image in file".into())
+        }
         Ok(m) => m,
-        Err(e) => return FileOutcome::NotReady(error_reason(&e)),
+        Err(e) => return FileOutcome::NotReady(Unready::of(&e), error_reason(&e)),
     };
     match std::fs::metadata(path) {
         Ok(after) if file_stamp(&after) == file_stamp(&before) => {}
-        Ok(_) => return FileOutcome::NotReady("changed while being read".into()),
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Ok(_) => {
+            return FileOutcome::NotReady(Unready::Incomplete, "changed while being read".into())
+        }
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     }
     let arrived = Instant::now();
     let mut items = Vec::new();
@@ -611,6 +649,12 @@ pub fn unreadable_record(path: &Path, reason: &str) -> Record {
         reason,
         system_time_ns(mtime),
     )
+}
+
+/// A `/log` warning about a file not taken yet (it does not finish the file).
+pub fn waiting_record(path: &Path, message: String) -> Record {
+    let mtime = std::fs::metadata(path).ok().and_then(|m| m.modified().ok());
+    Record::note(&frame_key(path, None), message, system_time_ns(mtime))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1716,7 +1760,7 @@ pub fn replay_inputs(
                 inputs.extend(records.into_iter().map(Input::Record));
                 inputs.extend(items.into_iter().map(Input::Frame));
             }
-            FileOutcome::NotReady(reason) => {
+            FileOutcome::NotReady(_, reason) => {
                 inputs.push(Input::Record(unreadable_record(path, &reason)));
             }
             FileOutcome::Skip(Some(record)) | FileOutcome::Vanished(record) => {
