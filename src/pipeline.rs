@@ -660,6 +660,48 @@ pub fn waiting_record(path: &Path, message: String) -> Record {
 // ---------------------------------------------------------------------------------------------
 // Jobs
 
+/// Reads pixels again, with the `[daemon]` back-off, after a fault of the moment (too many open
+/// files, no memory): the front ends retry whole files, but the pixels are read later, by the
+/// job, and a frame must not fail for good over such a fault. `retry_attempts` reads at most.
+struct RetryingReader {
+    inner: Arc<dyn FrameReader>,
+    attempts: u32,
+    first: Duration,
+    longest: Duration,
+}
+
+impl RetryingReader {
+    fn new(inner: Arc<dyn FrameReader>, d: &crate::config::DaemonConfig) -> RetryingReader {
+        RetryingReader {
+            inner,
+            attempts: d.retry_attempts.max(1),
+            first: Duration::from_secs_f64(d.retry_initial_s),
+            longest: Duration::from_secs_f64(d.retry_max_s.max(d.retry_initial_s)),
+        }
+    }
+}
+
+impl FrameReader for RetryingReader {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        self.inner.read_meta(path)
+    }
+
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+        let mut delay = self.first;
+        for _ in 1..self.attempts {
+            match self.inner.read_frame(spec) {
+                Err(e) if e.is_transient() => {
+                    tracing::warn!("{e}: reading again in {delay:?}");
+                    std::thread::sleep(delay);
+                    delay = (delay * 2).min(self.longest);
+                }
+                done => return done,
+            }
+        }
+        self.inner.read_frame(spec)
+    }
+}
+
 /// The reader and aligner the jobs use.
 #[derive(Clone)]
 pub struct JobContext {
@@ -1333,7 +1375,10 @@ pub async fn run_pipeline(
     let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
     let settings = SchedulerSettings::from_config(&config, live);
     let scheduler = Scheduler::new(config.clone(), settings, &history);
-    let ctx = JobContext { reader, aligner };
+    let ctx = JobContext {
+        reader: Arc::new(RetryingReader::new(reader, &config.daemon)),
+        aligner,
+    };
     let flush_every = Duration::from_secs_f64(config.daemon.flush_interval_s.max(0.01));
     let driven = drive(
         input,

@@ -10,9 +10,13 @@ mod faults;
 use faults::*;
 use std::io::Write;
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use sunjitter::pipeline::{FitsReader, LogLevel, McapRecordSink, MemorySink};
+use sunjitter::engine::Image;
+use sunjitter::fits::FrameSpec;
+use sunjitter::meta::FrameMeta;
+use sunjitter::pipeline::{FitsReader, FrameReader, LogLevel, McapRecordSink, MemorySink};
 
 fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, MemorySink) {
     let sink = MemorySink::default();
@@ -252,6 +256,69 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
     let split = split(&records);
     assert_each_once_and_true(&split, &frames);
     assert_only_a_waiting_warning(&split, stalled);
+}
+
+/// The real reader, except that reading one frame's pixels first fails twice with "too many
+/// open files", the error the real reader gives when descriptors run out between the file
+/// check and the alignment job.
+struct OutOfDescriptorsOnce {
+    victim: String,
+    failures: AtomicUsize,
+}
+
+impl FrameReader for OutOfDescriptorsOnce {
+    fn read_meta(&self, path: &Path) -> sunjitter::Result<Vec<FrameMeta>> {
+        FitsReader.read_meta(path)
+    }
+    fn read_frame(&self, spec: &FrameSpec) -> sunjitter::Result<Image> {
+        if spec.path.ends_with(&self.victim) && self.failures.fetch_add(1, Ordering::SeqCst) < 2 {
+            let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
+            return Err(sunjitter::Error::io(&spec.path, emfile));
+        }
+        FitsReader.read_frame(spec)
+    }
+}
+
+/// Pixels that cannot be read for a moment (out of file descriptors) are read again: the
+/// frame is measured once, nothing is reported failed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pixels_unreadable_for_a_moment_are_read_again() {
+    let src = source();
+    let frames = crops(&src, "again", 3, 64, 9);
+    let dir = tempfile::tempdir().unwrap();
+    let root = canonical(dir.path());
+    let sink = MemorySink::default();
+    let reader = Arc::new(OutOfDescriptorsOnce {
+        victim: frames[1].name.clone(),
+        failures: AtomicUsize::new(0),
+    });
+    let daemon = start(
+        &root,
+        quick_config(),
+        reader.clone(),
+        Arc::new(HeaderShiftAligner),
+        Box::new(sink.clone()),
+    );
+    daemon.watching().await;
+    for f in &frames {
+        publish(&root, f);
+    }
+    daemon.wait_for("3 inputs", |p| p.finished >= 3).await;
+    let progress = daemon.shutdown().await;
+    assert_eq!(
+        reader.failures.load(Ordering::SeqCst),
+        3,
+        "read twice in vain"
+    );
+    let records = sink.records();
+    let split = split(&records);
+    assert_each_once_and_true(&split, &frames);
+    assert_eq!((progress.frames, progress.skipped), (3, 0));
+    assert!(
+        logs_besides_order_notes(&split).is_empty(),
+        "{:?}",
+        split.logs
+    );
 }
 
 /// Write-to-temp-then-rename (`.x.tmp`, `x.part`), moves from another directory on the same
