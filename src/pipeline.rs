@@ -1789,18 +1789,38 @@ fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
 }
 
 /// Check every file of a replay and list what goes into the pipeline: the frames (not yet
-/// in the log) and a terminal `/log` record for each file that cannot be taken. Files are
-/// checked once (no retries: an archive is complete), with the same reasons the daemon gives.
+/// in the log) and a terminal `/log` record for each file that cannot be taken, with the
+/// same reasons the daemon gives. An incomplete file is not waited for (an archive is
+/// complete); a fault of the moment (too many open files) is retried with the `[daemon]`
+/// back-off, and if it lasts, the file gets a `/log` warning only, so a later run takes it.
 pub fn replay_inputs(
     files: &[(std::path::PathBuf, bool)],
     config: &Config,
     reader: &dyn FrameReader,
     history: &History,
 ) -> Vec<Input> {
+    let d = &config.daemon;
     let mut inputs = Vec::new();
     for (path, explicit) in files {
         let follow = *explicit || config.daemon.follow_symlinks;
-        match inspect_file(path, reader, config, history, follow) {
+        let mut delay = Duration::from_secs_f64(d.retry_initial_s);
+        let mut outcome = inspect_file(path, reader, config, history, follow);
+        for _ in 1..d.retry_attempts.max(1) {
+            let FileOutcome::NotReady(Unready::Transient, reason) = &outcome else {
+                break;
+            };
+            tracing::warn!(file = %path.display(), "{reason}: reading again in {delay:?}");
+            std::thread::sleep(delay);
+            delay = (delay * 2).min(Duration::from_secs_f64(
+                d.retry_max_s.max(d.retry_initial_s),
+            ));
+            outcome = inspect_file(path, reader, config, history, follow);
+        }
+        match outcome {
+            FileOutcome::NotReady(Unready::Transient, reason) => {
+                let message = format!("cannot be read for now, left for a later run: {reason}");
+                inputs.push(Input::Record(waiting_record(path, message)));
+            }
             FileOutcome::Frames(items, records) => {
                 inputs.extend(records.into_iter().map(Input::Record));
                 inputs.extend(items.into_iter().map(Input::Frame));
@@ -2120,6 +2140,64 @@ mod tests {
         ] {
             assert_eq!(iso8601_utc(ns), s);
             assert_eq!(parse_iso8601_utc(s), Some(ns));
+        }
+    }
+
+    /// A reader out of file descriptors for its first `fails` checks, then the fake reader.
+    struct OutOfDescriptors {
+        fails: AtomicUsize,
+    }
+
+    impl FrameReader for OutOfDescriptors {
+        fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+            let left = self.fails.load(Ordering::SeqCst);
+            if left > 0 {
+                self.fails.store(left - 1, Ordering::SeqCst);
+                let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
+                return Err(Error::io(path, emfile));
+            }
+            FakeReader::default().read_meta(path)
+        }
+        fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+            FakeReader::default().read_frame(spec)
+        }
+    }
+
+    #[test]
+    fn replay_reads_again_after_a_fault_of_the_moment_and_never_fails_a_file_over_it() {
+        let dir = tempfile::tempdir().unwrap();
+        write(
+            dir.path(),
+            "f.fits",
+            &FakeFrame::new("A", S, 1.0, 0.0, 0.0, 0.0),
+        );
+        let mut config = Config::default();
+        config.daemon.retry_initial_s = 0.001;
+        config.daemon.retry_max_s = 0.002;
+        config.daemon.retry_attempts = 3;
+        let files = expand_inputs(&[dir.path().display().to_string()], &config).unwrap();
+        let inputs = |fails| {
+            let reader = OutOfDescriptors {
+                fails: AtomicUsize::new(fails),
+            };
+            replay_inputs(&files, &config, &reader, &History::default())
+        };
+        // Two faults, the third check reads: the frame goes in.
+        assert!(matches!(&inputs(2)[..], [Input::Frame(_)]));
+        // Still out of descriptors after every attempt: a warning, which does not finish the
+        // file (a later run takes it).
+        match &inputs(3)[..] {
+            [Input::Record(r @ Record::Log { message, .. })] => {
+                assert!(
+                    message.starts_with("cannot be read for now")
+                        && message.contains("Too many open files"),
+                    "{message}"
+                );
+                let mut history = History::default();
+                history.add(r);
+                assert!(history.done.is_empty());
+            }
+            other => panic!("{other:?}"),
         }
     }
 
