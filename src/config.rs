@@ -57,11 +57,15 @@ pub struct DaemonConfig {
     pub reorder_window_s: f64,
     /// A file found by a directory scan is taken only once unmodified for this long.
     pub settle_s: f64,
-    /// Attempts to open a file as complete FITS before it is reported on `/log`.
+    /// Attempts to open a file as complete FITS before it is reported on `/log` (an
+    /// incomplete one with a warning, then waited for; any other unreadable one as failed).
     pub retry_attempts: u32,
     /// First retry delay; it doubles up to `retry_max_s`.
     pub retry_initial_s: f64,
     pub retry_max_s: f64,
+    /// A file that ends early (a writer stalled half-way) is waited for until it has been
+    /// unchanged this long; then it is reported as failed (truncated).
+    pub incomplete_wait_s: f64,
     /// Rescan the watched directories this often as a safety net (0 = only on watcher errors).
     pub rescan_interval_s: f64,
     /// When idle, flush the log (and rotate segments by time) at least this often.
@@ -95,6 +99,7 @@ impl Default for DaemonConfig {
             retry_attempts: 6,
             retry_initial_s: 0.25,
             retry_max_s: 8.0,
+            incomplete_wait_s: 300.0,
             rescan_interval_s: 300.0,
             flush_interval_s: 5.0,
             max_frame_pixels: crate::fits::DEFAULT_MAX_FRAME_PIXELS,
@@ -202,6 +207,7 @@ impl Config {
             ("daemon.settle_s", d.settle_s),
             ("daemon.retry_initial_s", d.retry_initial_s),
             ("daemon.retry_max_s", d.retry_max_s),
+            ("daemon.incomplete_wait_s", d.incomplete_wait_s),
             ("daemon.rescan_interval_s", d.rescan_interval_s),
             ("sink.segment_minutes", self.sink.segment_minutes),
         ] {

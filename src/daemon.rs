@@ -13,7 +13,11 @@
 //!   `*.part`) and names without a configured extension are never taken.
 //! - A file that does not check as complete FITS is retried with doubling delays; attempts
 //!   count only while the file is not changing, so slow writers are never cut off. After
-//!   `retry_attempts` it is reported on `/log` (file, reason).
+//!   `retry_attempts`: a file that ends early gets a `/log` warning and is waited for until
+//!   unchanged for `incomplete_wait_s` (then reported failed, truncated); a fault of the
+//!   moment (too many open files, no memory) gets a warning and is retried until it reads;
+//!   any other unreadable file is reported failed on `/log` (file, reason). A warning does not
+//!   finish the file, so a restart takes it again.
 //! - Every path is taken at most once per run (and frames already in the log are never taken
 //!   again): scans and repeated events de-duplicate against the per-path state, and a
 //!   finished file whose (size, mtime) later changes gets one `/log` note.
@@ -22,8 +26,8 @@
 
 use crate::config::{Config, DaemonConfig};
 use crate::pipeline::{
-    file_stamp, inspect_file, run_pipeline, unreadable_record, FileOutcome, FileStamp, FrameReader,
-    History, Input, Progress, Record, RunParts,
+    file_stamp, inspect_file, run_pipeline, unreadable_record, waiting_record, FileOutcome,
+    FileStamp, FrameReader, History, Input, Progress, Record, RunParts, Unready,
 };
 use crate::{Error, Result};
 use notify::event::{AccessKind, AccessMode, CreateKind, EventKind, ModifyKind, RenameMode};
@@ -159,6 +163,10 @@ enum Origin {
 struct Tries {
     attempts: u32,
     last_stamp: Option<FileStamp>,
+    /// Since when the file has been seen with `last_stamp`.
+    unchanged_since: Option<Instant>,
+    /// `/log` already says the file is being waited for.
+    warned: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -375,12 +383,18 @@ impl Ingest {
             }
             Some(FileState::Queued(..)) | Some(FileState::Reading(_)) => {}
             Some(FileState::Waiting {
-                due, origin: was, ..
+                due,
+                origin: was,
+                tries,
             }) => {
                 // New activity: look again now, with a fresh attempt count.
                 self.waiting.remove(&(due, path.clone()));
                 let origin = if was == Origin::Event { was } else { origin };
-                self.set(path.clone(), FileState::Queued(origin, Tries::default()));
+                let tries = Tries {
+                    attempts: 0,
+                    ..tries
+                };
+                self.set(path.clone(), FileState::Queued(origin, tries));
                 self.ready.push_back(path);
             }
             Some(FileState::Done(stamp)) => {
@@ -456,15 +470,34 @@ impl Ingest {
                 self.set(path, FileState::Done(stamp));
                 true
             }
-            FileOutcome::NotReady(reason) => {
-                // Attempts count only while the file stands still.
-                let attempts = if stamp.is_some() && stamp == tries.last_stamp {
+            FileOutcome::NotReady(kind, reason) => {
+                let unchanged = stamp.is_some() && stamp == tries.last_stamp;
+                // Attempts count only while the file stands still; a fault of the moment
+                // is no sign of a writer at work.
+                let attempts = if unchanged || kind == Unready::Transient {
                     tries.attempts + 1
                 } else {
                     1
                 };
-                if attempts >= self.d().retry_attempts.max(1) {
+                let unchanged_since = match tries.unchanged_since {
+                    Some(since) if unchanged => since,
+                    _ => now,
+                };
+                let tried = attempts >= self.d().retry_attempts.max(1);
+                let wait = Duration::from_secs_f64(self.d().incomplete_wait_s);
+                let give_up = tried
+                    && match kind {
+                        Unready::Transient => false,
+                        Unready::Incomplete => now.duration_since(unchanged_since) >= wait,
+                        Unready::Unreadable => true,
+                    };
+                if give_up {
                     tracing::warn!(file = %crate::text::path(&path), "giving up after {attempts} attempts: {reason}");
+                    let reason = if kind == Unready::Incomplete && !wait.is_zero() {
+                        format!("{reason} (unchanged for {} s)", wait.as_secs_f64())
+                    } else {
+                        reason
+                    };
                     let record = unreadable_record(&path, &reason);
                     if input.send(Input::Record(record)).await.is_err() {
                         return false;
@@ -472,11 +505,29 @@ impl Ingest {
                     self.set(path, FileState::Done(stamp));
                     return true;
                 }
+                let mut warned = tries.warned;
+                if tried && !warned {
+                    warned = true;
+                    let message = match kind {
+                        Unready::Incomplete => format!(
+                            "incomplete, waiting for the rest (up to {} s unchanged): {reason}",
+                            wait.as_secs_f64()
+                        ),
+                        _ => format!("cannot be read for now, retrying: {reason}"),
+                    };
+                    tracing::warn!(file = %path.display(), "{message}");
+                    let note = waiting_record(&path, message);
+                    if input.send(Input::Record(note)).await.is_err() {
+                        return false;
+                    }
+                }
                 let delay = backoff(self.d(), attempts);
                 tracing::debug!(file = %crate::text::path(&path), attempts, "not ready ({reason}); retry in {delay:?}");
                 let tries = Tries {
                     attempts,
                     last_stamp: stamp,
+                    unchanged_since: Some(unchanged_since),
+                    warned,
                 };
                 self.wait(path, now + delay, Origin::Event, tries);
                 true

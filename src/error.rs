@@ -83,6 +83,11 @@ impl Error {
         }
     }
 
+    /// An I/O error that says nothing about the file: the same read may succeed later.
+    pub fn is_transient(&self) -> bool {
+        matches!(self, Error::Io { source, .. } if transient_io(source))
+    }
+
     /// The contract's exit code for this error.
     pub fn exit_code(&self) -> i32 {
         match self {
@@ -95,6 +100,21 @@ impl Error {
             Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => 1,
         }
     }
+}
+
+/// Errors of the moment (out of file descriptors or memory, interrupted, busy, timed out)
+/// rather than of the file: worth retrying.
+pub fn transient_io(e: &std::io::Error) -> bool {
+    use std::io::ErrorKind::*;
+    matches!(
+        e.kind(),
+        Interrupted | WouldBlock | OutOfMemory | ResourceBusy | TimedOut
+    ) || matches!(
+        e.raw_os_error(),
+        Some(
+            libc::EMFILE | libc::ENFILE | libc::ENOBUFS | libc::ENOMEM | libc::EAGAIN | libc::EINTR
+        )
+    )
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -307,7 +307,7 @@ fn scan(path: &Path) -> Result<Layout> {
     let mut file = open(path)?;
     let file_len = file
         .metadata()
-        .map_err(|e| Error::bad_input(path, format!("cannot stat: {e}")))?
+        .map_err(|e| read_failure(path, e, "cannot stat"))?
         .len();
     if file_len == 0 {
         return Err(Error::bad_input(path, "empty file (0 bytes)"));
@@ -445,10 +445,11 @@ struct PlainFile {
 impl PlainFile {
     fn of(path: &Path, limits: &ReadLimits) -> Result<PlainFile> {
         let mut magic = [0u8; 2];
-        let gzip = File::open(path)
-            .and_then(|mut f| f.read_exact(&mut magic))
-            .is_ok()
-            && magic == [0x1f, 0x8b];
+        let gzip = match File::open(path) {
+            Ok(mut f) => f.read_exact(&mut magic).is_ok() && magic == [0x1f, 0x8b],
+            Err(e) if crate::error::transient_io(&e) => return Err(Error::io(path, e)),
+            Err(_) => false,
+        };
         if !gzip {
             return Ok(PlainFile {
                 original: path.to_path_buf(),
@@ -509,10 +510,15 @@ fn gunzip_checked(
     limits: &ReadLimits,
 ) -> Result<()> {
     let corrupt = |e: std::io::Error| {
-        Error::bad_input(
-            path,
-            format!("gzip-compressed, and cannot be decompressed: {e}"),
-        )
+        if crate::error::transient_io(&e) {
+            return Error::io(path, e);
+        }
+        let what = if e.kind() == std::io::ErrorKind::UnexpectedEof {
+            "truncated"
+        } else {
+            "cannot be decompressed"
+        };
+        Error::bad_input(path, format!("gzip-compressed, and {what}: {e}"))
     };
     let unwritable = |e: std::io::Error| {
         Error::bad_input(
@@ -603,11 +609,35 @@ fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
     Ok(n)
 }
 
+/// A failed read: a transient one keeps its I/O error (so callers may retry), any other is
+/// bad input, `what: error`.
+fn read_failure(path: &Path, e: std::io::Error, what: &str) -> Error {
+    if crate::error::transient_io(&e) {
+        Error::io(path, e)
+    } else {
+        Error::bad_input(path, format!("{what}: {e}"))
+    }
+}
+
+/// Whether the reader refused a file only for ending early (a truncated header, data or
+/// compressed stream, or no byte yet): what a file still being written looks like.
+pub fn is_incomplete(e: &Error) -> bool {
+    match e {
+        Error::BadInput { reason, .. } => {
+            reason.starts_with("empty file") || reason.contains("truncated")
+        }
+        _ => false,
+    }
+}
+
 fn open(path: &Path) -> Result<File> {
     if path.is_dir() {
         return Err(Error::bad_input(path, "is a directory, not a FITS file"));
     }
     File::open(path).map_err(|e| {
+        if crate::error::transient_io(&e) {
+            return Error::io(path, e);
+        }
         let reason = match bad_frame_suffix(path) {
             Some(inner) if e.kind() == std::io::ErrorKind::NotFound => format!(
                 "no such file, and '[{inner}]' is not a frame index (FILE[N] takes N = 0, 1, 2, …)"
@@ -634,7 +664,7 @@ fn read_header(
     file_len: u64,
     is_primary: bool,
 ) -> Result<Option<(Header, u64)>> {
-    let io = |e: std::io::Error| Error::bad_input(path, format!("read error: {e}"));
+    let io = |e: std::io::Error| read_failure(path, e, "read error");
     file.seek(SeekFrom::Start(offset)).map_err(io)?;
     let mut header = Header::new();
     let mut block = vec![0u8; BLOCK];
@@ -755,10 +785,10 @@ fn read_uncompressed(path: &Path, hdu: &Hdu, frame: usize) -> Result<Vec<f32>> {
     file.seek(SeekFrom::Start(
         hdu.data_offset + frame as u64 * frame_bytes,
     ))
-    .map_err(|e| Error::bad_input(path, format!("read error: {e}")))?;
+    .map_err(|e| read_failure(path, e, "read error"))?;
     let mut bytes = vec![0u8; frame_bytes as usize];
     file.read_exact(&mut bytes)
-        .map_err(|e| Error::bad_input(path, format!("truncated while reading pixels: {e}")))?;
+        .map_err(|e| read_failure(path, e, "truncated while reading pixels"))?;
     // Decoded in parallel chunks: at 4096² this is tens of ms that would otherwise be serial.
     const CHUNK: usize = 1 << 16;
     let scaling = Scaling::of(&hdu.header, g.bitpix);
@@ -1114,10 +1144,10 @@ fn read_table_columns(path: &Path, hdu: &Hdu, columns: &[Option<usize>]) -> Resu
     let bytes_len = g.pixels_per_frame() * g.bytes_per_pixel();
     let mut file = open(path)?;
     file.seek(SeekFrom::Start(hdu.data_offset))
-        .map_err(|e| Error::bad_input(path, format!("read error: {e}")))?;
+        .map_err(|e| read_failure(path, e, "read error"))?;
     let mut bytes = vec![0u8; bytes_len];
     file.read_exact(&mut bytes)
-        .map_err(|e| Error::bad_input(path, format!("truncated table: {e}")))?;
+        .map_err(|e| read_failure(path, e, "truncated table"))?;
     let mut all = Vec::with_capacity(g.pixels_per_frame());
     decode_samples(&bytes, g.bitpix, Scaling::of(&hdu.header, g.bitpix), |v| {
         all.push(v)

@@ -487,11 +487,44 @@ pub enum FileOutcome {
     /// that cannot be processed (no observation time).
     Frames(Vec<FrameItem>, Vec<Record>),
     /// Not (yet) a complete FITS file; the reason is what `/log` will say if it stays so.
-    NotReady(String),
+    NotReady(Unready, String),
     /// Never to be taken; the record says why (`None`: silently irrelevant, e.g. a directory).
     Skip(Option<Record>),
     /// Gone before it could be read: a `/log` note, and the name stays open.
     Vanished(Record),
+}
+
+/// Why a file cannot be taken yet: decides how long the daemon keeps trying.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unready {
+    /// A fault of the moment, not of the file (out of file descriptors or memory,
+    /// interrupted): tried again until it reads.
+    Transient,
+    /// Ends early, is empty, or changed while being read: likely still being written.
+    Incomplete,
+    /// Anything else (not FITS, a bad header, no permission).
+    Unreadable,
+}
+
+impl Unready {
+    /// How a reader's refusal is taken.
+    pub fn of(e: &Error) -> Unready {
+        if e.is_transient() {
+            Unready::Transient
+        } else if crate::fits::is_incomplete(e) {
+            Unready::Incomplete
+        } else {
+            Unready::Unreadable
+        }
+    }
+
+    fn of_io(e: &std::io::Error) -> Unready {
+        if crate::error::transient_io(e) {
+            Unready::Transient
+        } else {
+            Unready::Unreadable
+        }
+    }
 }
 
 /// Identity of a file's content for de-duplication: (size, mtime).
@@ -533,7 +566,7 @@ pub fn inspect_file(
                 now_ns(),
             ));
         }
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     };
     if link_meta.file_type().is_symlink() && !follow_symlinks {
         return FileOutcome::Skip(Some(Record::log(
@@ -545,7 +578,7 @@ pub fn inspect_file(
     }
     let before = match std::fs::metadata(path) {
         Ok(m) => m,
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     };
     if before.is_dir() {
         return FileOutcome::Skip(None);
@@ -564,14 +597,19 @@ pub fn inspect_file(
     }
     // The reader refuses incomplete files (truncated headers or data) with the reason.
     let metas = match reader.read_meta(path) {
-        Ok(m) if m.is_empty() => return FileOutcome::NotReady("no image in file".into()),
+        // The image may be in an extension not yet written.
+        Ok(m) if m.is_empty() => {
+            return FileOutcome::NotReady(Unready::Incomplete, "no image in file".into())
+        }
         Ok(m) => m,
-        Err(e) => return FileOutcome::NotReady(error_reason(&e)),
+        Err(e) => return FileOutcome::NotReady(Unready::of(&e), error_reason(&e)),
     };
     match std::fs::metadata(path) {
         Ok(after) if file_stamp(&after) == file_stamp(&before) => {}
-        Ok(_) => return FileOutcome::NotReady("changed while being read".into()),
-        Err(e) => return FileOutcome::NotReady(format!("cannot read: {e}")),
+        Ok(_) => {
+            return FileOutcome::NotReady(Unready::Incomplete, "changed while being read".into())
+        }
+        Err(e) => return FileOutcome::NotReady(Unready::of_io(&e), format!("cannot read: {e}")),
     }
     let arrived = Instant::now();
     let mut items = Vec::new();
@@ -627,8 +665,56 @@ pub fn unreadable_record(path: &Path, reason: &str) -> Record {
     )
 }
 
+/// A `/log` warning about a file not taken yet (it does not finish the file).
+pub fn waiting_record(path: &Path, message: String) -> Record {
+    let mtime = std::fs::metadata(path).ok().and_then(|m| m.modified().ok());
+    Record::note(&frame_key(path, None), message, system_time_ns(mtime))
+}
+
 // ---------------------------------------------------------------------------------------------
 // Jobs
+
+/// Reads pixels again, with the `[daemon]` back-off, after a fault of the moment (too many open
+/// files, no memory): the front ends retry whole files, but the pixels are read later, by the
+/// job, and a frame must not fail for good over such a fault. `retry_attempts` reads at most.
+struct RetryingReader {
+    inner: Arc<dyn FrameReader>,
+    attempts: u32,
+    first: Duration,
+    longest: Duration,
+}
+
+impl RetryingReader {
+    fn new(inner: Arc<dyn FrameReader>, d: &crate::config::DaemonConfig) -> RetryingReader {
+        RetryingReader {
+            inner,
+            attempts: d.retry_attempts.max(1),
+            first: Duration::from_secs_f64(d.retry_initial_s),
+            longest: Duration::from_secs_f64(d.retry_max_s.max(d.retry_initial_s)),
+        }
+    }
+}
+
+impl FrameReader for RetryingReader {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        self.inner.read_meta(path)
+    }
+
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+        let mut delay = self.first;
+        for _ in 1..self.attempts {
+            match self.inner.read_frame(spec) {
+                Err(e) if e.is_transient() => {
+                    tracing::warn!("{e}: reading again in {delay:?}");
+                    std::thread::sleep(delay);
+                    delay = (delay * 2).min(self.longest);
+                }
+                done => return done,
+            }
+        }
+        self.inner.read_frame(spec)
+    }
+}
 
 /// The reader and aligner the jobs use.
 #[derive(Clone)]
@@ -1318,7 +1404,10 @@ pub async fn run_pipeline(
     let writer = spawn_writer(sink, writer_rx, progress, stopping.clone());
     let settings = SchedulerSettings::from_config(&config, live);
     let scheduler = Scheduler::new(config.clone(), settings, &history);
-    let ctx = JobContext { reader, aligner };
+    let ctx = JobContext {
+        reader: Arc::new(RetryingReader::new(reader, &config.daemon)),
+        aligner,
+    };
     let flush_every = Duration::from_secs_f64(config.daemon.flush_interval_s.max(0.01));
     let driven = drive(
         input,
@@ -1743,23 +1832,43 @@ fn glob(pattern: &str) -> Result<Vec<std::path::PathBuf>> {
 }
 
 /// Check every file of a replay and list what goes into the pipeline: the frames (not yet
-/// in the log) and a terminal `/log` record for each file that cannot be taken. Files are
-/// checked once (no retries: an archive is complete), with the same reasons the daemon gives.
+/// in the log) and a terminal `/log` record for each file that cannot be taken, with the
+/// same reasons the daemon gives. An incomplete file is not waited for (an archive is
+/// complete); a fault of the moment (too many open files) is retried with the `[daemon]`
+/// back-off, and if it lasts, the file gets a `/log` warning only, so a later run takes it.
 pub fn replay_inputs(
     files: &[(std::path::PathBuf, bool)],
     config: &Config,
     reader: &dyn FrameReader,
     history: &History,
 ) -> Vec<Input> {
+    let d = &config.daemon;
     let mut inputs = Vec::new();
     for (path, explicit) in files {
         let follow = *explicit || config.daemon.follow_symlinks;
-        match inspect_file(path, reader, config, history, follow) {
+        let mut delay = Duration::from_secs_f64(d.retry_initial_s);
+        let mut outcome = inspect_file(path, reader, config, history, follow);
+        for _ in 1..d.retry_attempts.max(1) {
+            let FileOutcome::NotReady(Unready::Transient, reason) = &outcome else {
+                break;
+            };
+            tracing::warn!(file = %path.display(), "{reason}: reading again in {delay:?}");
+            std::thread::sleep(delay);
+            delay = (delay * 2).min(Duration::from_secs_f64(
+                d.retry_max_s.max(d.retry_initial_s),
+            ));
+            outcome = inspect_file(path, reader, config, history, follow);
+        }
+        match outcome {
+            FileOutcome::NotReady(Unready::Transient, reason) => {
+                let message = format!("cannot be read for now, left for a later run: {reason}");
+                inputs.push(Input::Record(waiting_record(path, message)));
+            }
             FileOutcome::Frames(items, records) => {
                 inputs.extend(records.into_iter().map(Input::Record));
                 inputs.extend(items.into_iter().map(Input::Frame));
             }
-            FileOutcome::NotReady(reason) => {
+            FileOutcome::NotReady(_, reason) => {
                 inputs.push(Input::Record(unreadable_record(path, &reason)));
             }
             FileOutcome::Skip(Some(record)) | FileOutcome::Vanished(record) => {
@@ -2074,6 +2183,64 @@ mod tests {
         ] {
             assert_eq!(iso8601_utc(ns), s);
             assert_eq!(parse_iso8601_utc(s), Some(ns));
+        }
+    }
+
+    /// A reader out of file descriptors for its first `fails` checks, then the fake reader.
+    struct OutOfDescriptors {
+        fails: AtomicUsize,
+    }
+
+    impl FrameReader for OutOfDescriptors {
+        fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+            let left = self.fails.load(Ordering::SeqCst);
+            if left > 0 {
+                self.fails.store(left - 1, Ordering::SeqCst);
+                let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
+                return Err(Error::io(path, emfile));
+            }
+            FakeReader::default().read_meta(path)
+        }
+        fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+            FakeReader::default().read_frame(spec)
+        }
+    }
+
+    #[test]
+    fn replay_reads_again_after_a_fault_of_the_moment_and_never_fails_a_file_over_it() {
+        let dir = tempfile::tempdir().unwrap();
+        write(
+            dir.path(),
+            "f.fits",
+            &FakeFrame::new("A", S, 1.0, 0.0, 0.0, 0.0),
+        );
+        let mut config = Config::default();
+        config.daemon.retry_initial_s = 0.001;
+        config.daemon.retry_max_s = 0.002;
+        config.daemon.retry_attempts = 3;
+        let files = expand_inputs(&[dir.path().display().to_string()], &config).unwrap();
+        let inputs = |fails| {
+            let reader = OutOfDescriptors {
+                fails: AtomicUsize::new(fails),
+            };
+            replay_inputs(&files, &config, &reader, &History::default())
+        };
+        // Two faults, the third check reads: the frame goes in.
+        assert!(matches!(&inputs(2)[..], [Input::Frame(_)]));
+        // Still out of descriptors after every attempt: a warning, which does not finish the
+        // file (a later run takes it).
+        match &inputs(3)[..] {
+            [Input::Record(r @ Record::Log { message, .. })] => {
+                assert!(
+                    message.starts_with("cannot be read for now")
+                        && message.contains("Too many open files"),
+                    "{message}"
+                );
+                let mut history = History::default();
+                history.add(r);
+                assert!(history.done.is_empty());
+            }
+            other => panic!("{other:?}"),
         }
     }
 

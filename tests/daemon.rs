@@ -40,6 +40,9 @@ fn quick_config() -> Config {
     c.daemon.retry_initial_s = 0.05;
     c.daemon.retry_max_s = 0.2;
     c.daemon.retry_attempts = 3;
+    // A garbage file that starts like a FITS header reads as one still being written: it is
+    // reported after standing unchanged this long.
+    c.daemon.incomplete_wait_s = 0.5;
     c.daemon.flush_interval_s = 0.1;
     c.reference.keyframe_every_frames = 4;
     c

@@ -1,5 +1,5 @@
 //! Fault injection on the `watch` daemon (issue 7): bursts larger than every queue, slow
-//! writers, atomic publishing, a full disk. Real inotify, real files, the real FITS reader on
+//! writers, a writer stalled half-way (also across a restart), atomic publishing, a full disk. Real inotify, real files, the real FITS reader on
 //! real-derived frames (see `faults/mod.rs`); the aligner answers from the headers so a
 //! thousand frames take seconds. Every message must carry the checksum of its finished file's
 //! pixels and the true shift to its reference; synchronisation is on observable progress with
@@ -10,9 +10,13 @@ mod faults;
 use faults::*;
 use std::io::Write;
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use sunjitter::pipeline::{FitsReader, LogLevel, McapRecordSink, MemorySink, Record};
+use sunjitter::engine::Image;
+use sunjitter::fits::FrameSpec;
+use sunjitter::meta::FrameMeta;
+use sunjitter::pipeline::{FitsReader, FrameReader, LogLevel, McapRecordSink, MemorySink};
 
 fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, MemorySink) {
     let sink = MemorySink::default();
@@ -130,6 +134,191 @@ async fn slow_writers_are_never_read_half_written() {
         .filter(|l| l.0 == LogLevel::Error)
         .collect();
     assert!(errors.is_empty(), "{errors:?}");
+}
+
+/// The `/log` entries of a split, out-of-time-order notes aside (when they come depends on
+/// how the machine schedules the readers, not on the fault).
+fn logs_besides_order_notes<'a>(split: &'a Split<'_>) -> Vec<&'a (LogLevel, String, String)> {
+    split
+        .logs
+        .iter()
+        .filter(|l| !(l.0 == LogLevel::Warning && l.2.contains("out of time order")))
+        .collect()
+}
+
+/// The one `/log` entry a stalled file may get: a warning naming it, saying it is waited for.
+fn assert_only_a_waiting_warning(split: &Split<'_>, stalled: &Frame) {
+    let logs = logs_besides_order_notes(split);
+    assert_eq!(logs.len(), 1, "{logs:?}");
+    let (level, file, message) = logs[0];
+    assert_eq!(*level, LogLevel::Warning);
+    assert_eq!(*file, stalled.name);
+    assert!(
+        message.starts_with("incomplete, waiting") && message.contains("truncated"),
+        "{message}"
+    );
+}
+
+/// A writer that stops half-way with the file open, long enough for the daemon to look at it
+/// and find it truncated, then finishes it: the frame is measured once, from the whole file;
+/// `/log` only says it was seen incomplete and waited for.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_writer_stalled_half_way_is_measured_once_complete() {
+    let src = source();
+    let frames = crops(&src, "stall", 3, 64, 6);
+    let dir = tempfile::tempdir().unwrap();
+    let root = canonical(dir.path());
+    let (daemon, sink) = memory_daemon(&root, quick_config());
+    daemon.watching().await;
+    publish(&root, &frames[0]);
+    daemon
+        .wait_for("the first frame", |p| p.finished >= 1)
+        .await;
+
+    // The fault: the writer stalls half-way until the daemon has reported on the file.
+    let stalled = &frames[1];
+    let half = stalled.bytes.len() / 2;
+    let mut file = std::fs::File::create(root.join(&stalled.name)).unwrap();
+    file.write_all(&stalled.bytes[..half]).unwrap();
+    file.flush().unwrap();
+    daemon
+        .wait_for("a /log entry on the stalled file", |p| {
+            p.notes + p.skipped >= 1
+        })
+        .await;
+    file.write_all(&stalled.bytes[half..]).unwrap();
+    drop(file);
+    publish(&root, &frames[2]);
+    daemon.wait_for("3 inputs", |p| p.finished >= 3).await;
+    let progress = daemon.shutdown().await;
+
+    let records = sink.records();
+    let split = split(&records);
+    assert_each_once_and_true(&split, &frames);
+    assert_eq!((progress.frames, progress.skipped), (3, 0));
+    assert_only_a_waiting_warning(&split, stalled);
+}
+
+/// The daemon sees a file half-written and stops; the writer finishes it; the next run
+/// measures it (a warning in the log does not count as done), once, and nothing else twice.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
+    let src = source();
+    let frames = crops(&src, "restart", 3, 64, 7);
+    let dir = tempfile::tempdir().unwrap();
+    let out = tempfile::tempdir().unwrap();
+    let root = canonical(dir.path());
+    let config = quick_config();
+    let run = |history| {
+        let sink = sunjitter::sink::McapSink::new(
+            out.path(),
+            config.sink.clone(),
+            config.to_json().to_string(),
+        )
+        .unwrap();
+        resume(
+            &root,
+            config.clone(),
+            Arc::new(FitsReader),
+            Arc::new(HeaderShiftAligner),
+            Box::new(McapRecordSink(sink)),
+            history,
+        )
+    };
+
+    let first = run(sunjitter::pipeline::History::default());
+    first.watching().await;
+    publish(&root, &frames[0]);
+    first.wait_for("the first frame", |p| p.finished >= 1).await;
+    let stalled = &frames[1];
+    let half = stalled.bytes.len() / 2;
+    let mut file = std::fs::File::create(root.join(&stalled.name)).unwrap();
+    file.write_all(&stalled.bytes[..half]).unwrap();
+    file.flush().unwrap();
+    first
+        .wait_for("a /log entry on the stalled file", |p| {
+            p.notes + p.skipped >= 1
+        })
+        .await;
+    first.shutdown().await;
+
+    file.write_all(&stalled.bytes[half..]).unwrap();
+    drop(file);
+    publish(&root, &frames[2]);
+    let second = run(sunjitter::pipeline::read_history(out.path()).unwrap());
+    second
+        .wait_for("the completed and the new frame", |p| p.finished >= 2)
+        .await;
+    let progress = second.shutdown().await;
+    assert_eq!((progress.frames, progress.skipped), (2, 0));
+
+    let records = read_back(out.path());
+    let split = split(&records);
+    assert_each_once_and_true(&split, &frames);
+    assert_only_a_waiting_warning(&split, stalled);
+}
+
+/// The real reader, except that reading one frame's pixels first fails twice with "too many
+/// open files", the error the real reader gives when descriptors run out between the file
+/// check and the alignment job.
+struct OutOfDescriptorsOnce {
+    victim: String,
+    failures: AtomicUsize,
+}
+
+impl FrameReader for OutOfDescriptorsOnce {
+    fn read_meta(&self, path: &Path) -> sunjitter::Result<Vec<FrameMeta>> {
+        FitsReader.read_meta(path)
+    }
+    fn read_frame(&self, spec: &FrameSpec) -> sunjitter::Result<Image> {
+        if spec.path.ends_with(&self.victim) && self.failures.fetch_add(1, Ordering::SeqCst) < 2 {
+            let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
+            return Err(sunjitter::Error::io(&spec.path, emfile));
+        }
+        FitsReader.read_frame(spec)
+    }
+}
+
+/// Pixels that cannot be read for a moment (out of file descriptors) are read again: the
+/// frame is measured once, nothing is reported failed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pixels_unreadable_for_a_moment_are_read_again() {
+    let src = source();
+    let frames = crops(&src, "again", 3, 64, 9);
+    let dir = tempfile::tempdir().unwrap();
+    let root = canonical(dir.path());
+    let sink = MemorySink::default();
+    let reader = Arc::new(OutOfDescriptorsOnce {
+        victim: frames[1].name.clone(),
+        failures: AtomicUsize::new(0),
+    });
+    let daemon = start(
+        &root,
+        quick_config(),
+        reader.clone(),
+        Arc::new(HeaderShiftAligner),
+        Box::new(sink.clone()),
+    );
+    daemon.watching().await;
+    for f in &frames {
+        publish(&root, f);
+    }
+    daemon.wait_for("3 inputs", |p| p.finished >= 3).await;
+    let progress = daemon.shutdown().await;
+    assert_eq!(
+        reader.failures.load(Ordering::SeqCst),
+        3,
+        "read twice in vain"
+    );
+    let records = sink.records();
+    let split = split(&records);
+    assert_each_once_and_true(&split, &frames);
+    assert_eq!((progress.frames, progress.skipped), (3, 0));
+    assert!(
+        logs_besides_order_notes(&split).is_empty(),
+        "{:?}",
+        split.logs
+    );
 }
 
 /// Write-to-temp-then-rename (`.x.tmp`, `x.part`), moves from another directory on the same
@@ -261,28 +450,7 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
     );
 
     // What is on disk, read back by the sink's reader (every segment finished).
-    let logs = sunjitter::sink::read_logs(&[out.path().to_path_buf()]).unwrap();
-    assert!(
-        logs.segments.iter().all(|s| s.complete),
-        "{:?}",
-        logs.segments
-    );
-    let records: Vec<Record> = logs
-        .jitter
-        .iter()
-        .map(|m| Record::Frame {
-            message: Box::new(m.record.clone()),
-            log_time_ns: m.log_time_ns as i64,
-        })
-        .chain(logs.logs.iter().map(|m| {
-            Record::log(
-                LogLevel::from_foxglove(m.entry.level as u8),
-                &m.entry.file,
-                m.entry.message.clone(),
-                m.log_time_ns as i64,
-            )
-        }))
-        .collect();
+    let records = read_back(out.path());
     let split = split(&records);
     assert_each_once_and_true(&split, &frames);
     // The backlog released when space returns may exceed the reorder window: such a frame is

@@ -307,7 +307,7 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
         .map_err(|e| format!("cannot stat: {e}"))?
         .len();
     if size == 0 {
-        return Err("empty file".into());
+        return Err("empty file (0 bytes)".into());
     }
     let mut start = Vec::with_capacity(9);
     (&mut file)
@@ -331,7 +331,7 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
         while !ended {
             if offset + (blocks + 1) * BLOCK > size {
                 return Err(format!(
-                    "incomplete: HDU {hdu} header is cut off at byte {size} (no END card)"
+                    "truncated: HDU {hdu} header is cut off at byte {size} (no END card)"
                 ));
             }
             if blocks >= MAX_HEADER_BLOCKS {
@@ -420,7 +420,7 @@ pub fn fits_completeness(path: &Path) -> std::result::Result<(), String> {
             .ok_or_else(|| format!("HDU {hdu} header: data size overflows"))?;
         if data_end > size {
             return Err(format!(
-                "incomplete: HDU {hdu} needs {data_end} bytes, the file has {size}"
+                "truncated: HDU {hdu} needs {data_end} bytes, the file has {size}"
             ));
         }
         let padded = data_end.div_ceil(BLOCK) * BLOCK;

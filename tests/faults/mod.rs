@@ -16,7 +16,7 @@ use std::time::Duration;
 use sunjitter::config::Config;
 use sunjitter::engine::{AlignOutcome, Image};
 use sunjitter::pipeline::fake::outcome;
-use sunjitter::pipeline::{Aligner, LogLevel, Progress, Record, RecordSink, RunParts};
+use sunjitter::pipeline::{Aligner, History, LogLevel, Progress, Record, RecordSink, RunParts};
 use sunjitter::{FrameAlignment, Similarity, Status};
 use tokio::sync::{oneshot, watch};
 
@@ -220,13 +220,25 @@ pub fn start(
     aligner: Arc<dyn Aligner>,
     sink: Box<dyn RecordSink>,
 ) -> Daemon {
+    resume(dir, config, reader, aligner, sink, History::default())
+}
+
+/// A daemon continuing a log whose earlier runs left `history` ([`sunjitter::pipeline::read_history`]).
+pub fn resume(
+    dir: &Path,
+    config: Config,
+    reader: Arc<dyn sunjitter::pipeline::FrameReader>,
+    aligner: Arc<dyn Aligner>,
+    sink: Box<dyn RecordSink>,
+    history: History,
+) -> Daemon {
     let (progress_tx, progress) = watch::channel(Progress::default());
     let parts = RunParts {
         config: Arc::new(config),
         reader,
         aligner,
         sink,
-        history: sunjitter::pipeline::History::default(),
+        history,
         progress: progress_tx,
         live: true,
     };
@@ -271,6 +283,39 @@ impl Daemon {
             .expect("task")
             .expect("clean run")
     }
+}
+
+/// Publish a frame atomically: written under a hidden temporary name, then renamed in.
+pub fn publish(dir: &Path, f: &Frame) {
+    let tmp = dir.join(format!(".{}.tmp", f.name));
+    std::fs::write(&tmp, &f.bytes).unwrap();
+    std::fs::rename(&tmp, dir.join(&f.name)).unwrap();
+}
+
+/// The `/jitter` and `/log` messages of an MCAP output directory, read back from disk by the
+/// sink's reader, as records.
+pub fn read_back(out: &Path) -> Vec<Record> {
+    let logs = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
+    assert!(
+        logs.segments.iter().all(|s| s.complete),
+        "{:?}",
+        logs.segments
+    );
+    logs.jitter
+        .iter()
+        .map(|m| Record::Frame {
+            message: Box::new(m.record.clone()),
+            log_time_ns: m.log_time_ns as i64,
+        })
+        .chain(logs.logs.iter().map(|m| {
+            Record::log(
+                LogLevel::from_foxglove(m.entry.level as u8),
+                &m.entry.file,
+                m.entry.message.clone(),
+                m.log_time_ns as i64,
+            )
+        }))
+        .collect()
 }
 
 /// `/jitter` messages by frame file name, `/log` entries as (level, file name, message).
