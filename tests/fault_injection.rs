@@ -219,7 +219,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
         resume(
             &root,
             config.clone(),
-            Arc::new(FitsReader),
+            Arc::new(FitsReader::default()),
             Arc::new(HeaderShiftAligner),
             Box::new(McapRecordSink(sink)),
             history,
@@ -268,14 +268,14 @@ struct OutOfDescriptorsOnce {
 
 impl FrameReader for OutOfDescriptorsOnce {
     fn read_meta(&self, path: &Path) -> sunjitter::Result<Vec<FrameMeta>> {
-        FitsReader.read_meta(path)
+        FitsReader::default().read_meta(path)
     }
     fn read_frame(&self, spec: &FrameSpec) -> sunjitter::Result<Image> {
         if spec.path.ends_with(&self.victim) && self.failures.fetch_add(1, Ordering::SeqCst) < 2 {
             let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
             return Err(sunjitter::Error::io(&spec.path, emfile));
         }
-        FitsReader.read_frame(spec)
+        FitsReader::default().read_frame(spec)
     }
 }
 

@@ -58,7 +58,7 @@ async fn a_frame_arriving_without_file_descriptors_is_measured_once_they_return(
     let daemon = start(
         &root,
         quick_config(),
-        Arc::new(FitsReader),
+        Arc::new(FitsReader::default()),
         Arc::new(HeaderShiftAligner),
         Box::new(sink.clone()),
     );
