@@ -7,7 +7,7 @@
 //! Frames: realistic synthetic full-disk pairs written by `sunjitter synth --frames 2 --size N`
 //! (channel SYNTH_171, default jitter) into a temporary directory; frame 0 is the reference
 //! (prepared once and held in memory, as the daemon keeps it), frame 1 is read, aligned and
-//! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see PERFORMANCE.md).
+//! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see docs/PERFORMANCE.md).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
