@@ -261,3 +261,17 @@ pub fn live_url(line: &str) -> String {
         .take_while(|c| c.is_ascii_alphanumeric() || ":/.".contains(*c))
         .collect()
 }
+
+/// Whether process `pid` is still running: absent and zombie (ended, not yet reaped by its
+/// parent) processes are not.
+pub fn process_running(pid: u32) -> bool {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return false;
+    };
+    // The state follows the command name, which is in parentheses and may contain spaces.
+    let state = stat
+        .rsplit(')')
+        .next()
+        .and_then(|r| r.split_whitespace().next());
+    !matches!(state, None | Some("Z") | Some("X"))
+}
