@@ -177,6 +177,81 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
 }
 
 #[test]
+fn a_client_connected_before_a_channels_first_frame_receives_every_frame() {
+    NodeClient::require_installed();
+    let tmp = tempfile::tempdir().unwrap();
+    let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = tmp.path().join("sunjitter.toml");
+    // No [channels.SJI_1400]: the channel is advertised with its first frame.
+    let unnamed = CONFIG.replace("[channels.SJI_1400]", "");
+    std::fs::write(&config, unnamed).unwrap();
+    let indices: Vec<usize> = (7..12).collect();
+    let staged = stage_frames(
+        &tmp.path().join("stage"),
+        &indices
+            .iter()
+            .map(|i| (*i, Alter::None))
+            .collect::<Vec<_>>(),
+    );
+
+    let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
+    let url = live_url(&daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]));
+    let reader = NodeClient::start(&url, &["read", "/jitter/SJI_1400"]);
+    // Connected: the channels that exist are advertised; the frame channel is not among them.
+    let advertised: Vec<String> = (0..2)
+        .map(|_| {
+            reader.expect("advertised")["topic"]
+                .as_str()
+                .unwrap()
+                .to_string()
+        })
+        .collect();
+    assert!(
+        !advertised.iter().any(|t| t.starts_with("/jitter/")),
+        "{advertised:?}"
+    );
+
+    move_in(&staged, &watched);
+    while reader.expect("advertised")["topic"] != "/jitter/SJI_1400" {}
+    let live: Vec<serde_json::Value> = indices.iter().map(|_| reader.expect("message")).collect();
+    wait_for("every frame in the status file", || {
+        (status_frames(&out) == indices.len() as u64).then_some(())
+    });
+
+    // A client subscribing now gets the channel's latest message, then whatever follows.
+    let late = NodeClient::start(&url, &["read", "/jitter/SJI_1400"]);
+    let latest = late.expect("message");
+
+    let (exit, log) = daemon.terminate();
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
+    assert!(late.lines.try_iter().all(|l| l["event"] != "message"));
+
+    // The log is the truth: every logged frame came live, once, in order.
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(contents.jitter.len(), indices.len());
+    let log_times = |messages: &[&serde_json::Value]| -> Vec<String> {
+        messages
+            .iter()
+            .map(|m| m["logTime"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let logged: Vec<String> = contents
+        .jitter
+        .iter()
+        .map(|m| m.log_time_ns.to_string())
+        .collect();
+    assert_eq!(log_times(&live.iter().collect::<Vec<_>>()), logged);
+    for (m, logged) in live.iter().zip(&contents.jitter) {
+        let decoded: sunjitter::FrameAlignment =
+            serde_json::from_value(m["payload"].clone()).unwrap();
+        assert_eq!(decoded, logged.record);
+    }
+    assert_eq!(log_times(&[&latest]), logged[logged.len() - 1..]);
+}
+
+#[test]
 fn a_missing_status_file_is_bad_input() {
     let tmp = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
