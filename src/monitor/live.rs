@@ -6,13 +6,15 @@
 //! the message exactly as the MCAP sink does (same schema, same JSON, same `log_time`) and logs
 //! it to the SDK's server, which keeps its own bounded queue per client and drops the oldest
 //! messages of a slow client. The server advertises no capability: clients can subscribe,
-//! nothing else (no publishing, services or parameters).
+//! nothing else (no publishing, services or parameters). Clients reach it through the
+//! [`gate`](super::gate), which admits them by origin and number.
 //!
 //! Each channel keeps its latest message, and a client subscribing to a channel gets it at once
 //! (then every later one). Messages go only to the subscribers known when they are logged, under
 //! the same lock, so a subscriber gets each message once: none is lost to the time between a
 //! channel's advertisement (with its first message) and the client's subscription.
 
+use super::gate::{self, Notices};
 use crate::pipeline::{mcap_ns, McapRecordSink, Record};
 use crate::sink::{self, Alert, LogEntry};
 use crate::{Error, Result};
@@ -67,10 +69,12 @@ impl LiveTap {
     }
 }
 
-/// The running server and its publishing thread.
+/// The running server, its front door and its publishing thread.
 pub struct LiveServer {
     tap: LiveTap,
     handle: Option<WebSocketServerHandle>,
+    gate_stop: Option<tokio::sync::oneshot::Sender<()>>,
+    notices: Notices,
     thread: Option<std::thread::JoinHandle<()>>,
     pub addr: SocketAddr,
 }
@@ -150,33 +154,53 @@ impl ServerListener for Listener {
 impl LiveServer {
     /// Start serving on `addr` (inside a tokio runtime). `topics` are advertised at once (the
     /// channels named in the configuration, `/log`, `/alert`), so a client can subscribe before
-    /// their first message; other topics appear with their first message. `queue` is the
-    /// capacity of the writer → live queue.
-    pub async fn start(addr: SocketAddr, topics: &[String], queue: usize) -> Result<LiveServer> {
+    /// their first message; other topics appear with their first message. Connections are
+    /// admitted as `config` says (origins, number of clients); `config.queue` is the capacity
+    /// of the writer → live queue.
+    pub async fn start(
+        addr: SocketAddr,
+        topics: &[String],
+        config: &super::LiveConfig,
+    ) -> Result<LiveServer> {
         if !addr.ip().is_loopback() {
             tracing::warn!(
                 %addr,
                 "live view on a non-loopback address: anyone who can reach it can read the data"
             );
         }
+        let unavailable = |e: &dyn std::fmt::Display| {
+            Error::Usage(format!("--live {addr}: cannot serve the live view: {e}"))
+        };
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| unavailable(&e))?;
+        let addr = listener.local_addr().map_err(|e| unavailable(&e))?;
         let context = Context::new();
         let channels = SharedChannels::default();
+        let private = gate::private_loopback();
         let handle = context
             .websocket_server()
             .name(format!("sunjitter {}", env!("CARGO_PKG_VERSION")))
-            .bind(addr.ip().to_string(), addr.port())
+            .bind(private.to_string(), 0)
             .listener(Arc::new(Listener {
                 channels: channels.clone(),
             }))
             .start()
             .await
-            .map_err(|e| Error::Usage(format!("--live {addr}: cannot serve the live view: {e}")))?;
-        let addr = SocketAddr::new(addr.ip(), handle.port());
+            .map_err(|e| unavailable(&e))?;
+        let notices = Notices::default();
+        let admission = gate::Admission {
+            allowed_origins: config.allowed_origins.clone(),
+            max_clients: config.max_clients,
+        };
+        let backend = SocketAddr::new(private, handle.port());
+        let (gate_stop, stop) = tokio::sync::oneshot::channel();
+        tokio::spawn(gate::Gate::new(admission, backend, notices.clone()).run(listener, stop));
         let publisher = Publisher { context, channels };
         for topic in topics {
             publisher.channel(&mut lock(&publisher.channels), topic);
         }
-        let (tap, rx) = LiveTap::new(queue);
+        let (tap, rx) = LiveTap::new(config.queue);
         let thread = std::thread::Builder::new()
             .name("sunjitter-live".into())
             .spawn(move || publisher.run(rx))
@@ -185,6 +209,8 @@ impl LiveServer {
         Ok(LiveServer {
             tap,
             handle: Some(handle),
+            gate_stop: Some(gate_stop),
+            notices,
             thread: Some(thread),
             addr,
         })
@@ -194,8 +220,16 @@ impl LiveServer {
         self.tap.clone()
     }
 
+    /// Refused connections to name on `/log`.
+    pub fn notices(&self) -> Notices {
+        self.notices.clone()
+    }
+
     /// Stop serving: close client connections without waiting for slow ones.
     pub fn stop(mut self) {
+        if let Some(stop) = self.gate_stop.take() {
+            let _ = stop.send(());
+        }
         if let Some(handle) = self.handle.take() {
             handle.stop().detach_all();
         }
