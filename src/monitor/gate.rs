@@ -85,7 +85,7 @@ impl Limiter {
             return;
         }
         let text = format!(
-            "live view: {} more connections refused in {:.0} s ({})",
+            "live view: {} more connections refused in {:.0} s: {}",
             self.suppressed,
             now.duration_since(last).as_secs_f64(),
             self.reason
@@ -109,7 +109,7 @@ impl Notices {
     }
 
     fn refused_full(&self, peer: SocketAddr, max: usize) {
-        let reason = format!("{max} clients connected, the limit (live.max_clients)");
+        let reason = format!("live.max_clients = {max} clients connected");
         let text = format!("live view: connection from {peer} refused: {reason}");
         let mut s = self.0.lock().unwrap_or_else(|e| e.into_inner());
         let s = &mut *s;
@@ -118,7 +118,8 @@ impl Notices {
 
     fn refused_origin(&self, peer: SocketAddr, origin: &str) {
         let reason = "origin not in live.allowed_origins".to_string();
-        let text = format!("live view: connection from {peer} with origin {origin:?} refused: not in live.allowed_origins");
+        let text =
+            format!("live view: connection from {peer} with origin {origin:?} refused: {reason}");
         let mut s = self.0.lock().unwrap_or_else(|e| e.into_inner());
         let s = &mut *s;
         s.origin.event(Instant::now(), text, reason, &mut s.pending);
@@ -313,7 +314,8 @@ fn same_origin(a: &str, b: &str) -> bool {
 
 async fn respond(stream: &mut TcpStream, code: u16, status: &str, body: &str) {
     let response = format!(
-        "HTTP/1.1 {code} {status}\r\nContent-Type: text/plain\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}\n",
+        "HTTP/1.1 {code} {status}\r\nContent-Type: text/plain\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n{body}\n",
         body.len() + 1
     );
     let _ = stream.write_all(response.as_bytes()).await;
