@@ -241,9 +241,7 @@ impl Config {
         }
         self.alerts.validate()?;
         self.health.validate()?;
-        if self.live.queue == 0 {
-            return bad("live.queue must be ≥ 1");
-        }
+        self.live.validate()?;
         Ok(())
     }
 
@@ -416,6 +414,35 @@ mod tests {
         assert!(typo.contains("workerz"), "{typo}");
         let policy = Config::from_toml("[reference]\npolicy = \"sometimes\"").unwrap_err();
         assert!(policy.contains("sometimes"), "{policy}");
+    }
+
+    #[test]
+    fn live_origins_are_origins_and_the_client_cap_is_positive() {
+        let live = |text: &str| {
+            Config::from_toml(&format!("[live]\n{text}"))
+                .unwrap()
+                .validate()
+        };
+        assert!(live(
+            "allowed_origins = [\"https://app.foxglove.dev\", \"http://localhost:8080/\"]"
+        )
+        .is_ok());
+        assert!(live("allowed_origins = [\"file://\", \"app://foxglove\"]").is_ok());
+        for bad in [
+            "app.foxglove.dev",
+            "https://app.foxglove.dev/studio",
+            "*",
+            "https://",
+            "null",
+        ] {
+            let err = live(&format!("allowed_origins = [\"{bad}\"]")).unwrap_err();
+            assert!(
+                err.to_string().contains("live.allowed_origins"),
+                "{bad}: {err}"
+            );
+        }
+        let err = live("max_clients = 0").unwrap_err();
+        assert!(err.to_string().contains("live.max_clients"), "{err}");
     }
 
     #[test]

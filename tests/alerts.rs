@@ -225,15 +225,24 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     }
 }
 
-#[test]
-fn a_failing_alert_command_is_reported_on_the_log() {
+/// A daemon whose alert command is `sh -c SCRIPT` (killed after `timeout_s`), raising
+/// consecutive_failed on the first failed frame; fed a good frame and a blank one, it runs the
+/// command once. `observe` runs once the failure is counted; returns the daemon's `/log`
+/// entries from the command, after it stopped.
+fn run_alert_command_once(
+    script: &str,
+    timeout_s: f64,
+    observe: impl FnOnce(),
+) -> Vec<sunjitter::sink::LogMessage> {
     let tmp = tempfile::tempdir().unwrap();
     let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
     std::fs::create_dir_all(&watched).unwrap();
     let config_path = tmp.path().join("sunjitter.toml");
+    let command = serde_json::to_string(&["sh", "-c", script]).unwrap();
     std::fs::write(
         &config_path,
-        r#"
+        format!(
+            r#"
 [daemon]
 settle_s = 0.1
 reorder_window_s = 0.3
@@ -242,13 +251,14 @@ flush_interval_s = 0.1
 [health]
 interval_s = 0.1
 [alerts]
-command = ["sh", "-c", "cat > /dev/null; exit 7"]
+command = {command}
+command_timeout_s = {timeout_s}
 [alerts.channels.SJI_1400]
 consecutive_failed = 1
-"#,
+"#
+        ),
     )
     .unwrap();
-    // A good frame, then a blank one: consecutive_failed (N = 1) raised, the command fails.
     let staged = stage_frames(
         &tmp.path().join("stage"),
         &[(7, Alter::None), (8, Alter::Blank)],
@@ -260,20 +270,84 @@ consecutive_failed = 1
         let s = read_status(&out)?;
         (s["frames"] == 2 && s["alert_command_failures"] == 1).then_some(())
     });
+    observe();
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "{}", log.join("\n"));
     let contents = sunjitter::sink::read_logs(&[out]).unwrap();
     assert_eq!(contents.alerts.len(), 1);
-    let failures: Vec<_> = contents
+    contents
         .logs
-        .iter()
+        .into_iter()
         .filter(|m| m.entry.file == "alerts.command")
-        .collect();
-    assert_eq!(failures.len(), 1, "{:?}", contents.logs);
+        .collect()
+}
+
+#[test]
+fn a_failing_alert_command_is_reported_on_the_log() {
+    let failures = run_alert_command_once("cat > /dev/null; exit 7", 10.0, || {});
+    assert_eq!(failures.len(), 1, "{failures:?}");
     assert!(
         failures[0].entry.message.contains("exit status: 7"),
         "{:?}",
         failures[0].entry
     );
     assert_eq!(failures[0].entry.level, sunjitter::sink::LogLevel::Warning);
+}
+
+#[test]
+fn an_alert_command_over_its_time_limit_is_killed_with_its_children() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pids = tmp.path().join("children.pids");
+    // Two background children, their pids noted, then the script waits for them.
+    let script = format!(
+        "cat > /dev/null; sleep 1000 & echo $! >> '{p}'; sleep 1000 & echo $! >> '{p}'; wait",
+        p = pids.display()
+    );
+    let failures = run_alert_command_once(&script, 2.0, || {
+        // The overrun has been reported on /log.
+        let children = Reap(
+            std::fs::read_to_string(&pids)
+                .unwrap()
+                .lines()
+                .map(|l| l.parse().unwrap())
+                .collect(),
+        );
+        assert_eq!(
+            children.0.len(),
+            2,
+            "both children started within the limit"
+        );
+        // SIGKILL takes effect asynchronously; the bound only guards against a hang.
+        wait_for("the command's children to end", || {
+            children
+                .0
+                .iter()
+                .all(|pid| !process_running(*pid))
+                .then_some(())
+        });
+    });
+    assert_eq!(failures.len(), 1, "{failures:?}");
+    assert!(
+        failures[0]
+            .entry
+            .message
+            .contains("killed after the 2 s time limit"),
+        "{:?}",
+        failures[0].entry
+    );
+}
+
+/// Kills the listed processes when dropped, so a failed test leaves none behind.
+struct Reap(Vec<u32>);
+
+impl Drop for Reap {
+    fn drop(&mut self) {
+        for pid in &self.0 {
+            if process_running(*pid) {
+                let _ = std::process::Command::new("kill")
+                    .args(["-KILL", &pid.to_string()])
+                    .status();
+            }
+        }
+    }
 }

@@ -177,6 +177,171 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
 }
 
 #[test]
+fn a_client_connected_before_a_channels_first_frame_receives_every_frame() {
+    NodeClient::require_installed();
+    let tmp = tempfile::tempdir().unwrap();
+    let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = tmp.path().join("sunjitter.toml");
+    // No [channels.SJI_1400]: the channel is advertised with its first frame.
+    let unnamed = CONFIG.replace("[channels.SJI_1400]", "");
+    std::fs::write(&config, unnamed).unwrap();
+    let indices: Vec<usize> = (7..19).collect();
+    let staged = stage_frames(
+        &tmp.path().join("stage"),
+        &indices
+            .iter()
+            .map(|i| (*i, Alter::None))
+            .collect::<Vec<_>>(),
+    );
+
+    let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
+    let url = live_url(&daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]));
+    let reader = NodeClient::start(&url, &["read", "/jitter/SJI_1400"]);
+    // Connected: the channels that exist are advertised; the frame channel is not among them.
+    let advertised: Vec<String> = (0..2)
+        .map(|_| {
+            reader.expect("advertised")["topic"]
+                .as_str()
+                .unwrap()
+                .to_string()
+        })
+        .collect();
+    assert!(
+        !advertised.iter().any(|t| t.starts_with("/jitter/")),
+        "{advertised:?}"
+    );
+
+    move_in(&staged, &watched);
+    while reader.expect("advertised")["topic"] != "/jitter/SJI_1400" {}
+    let live: Vec<serde_json::Value> = indices.iter().map(|_| reader.expect("message")).collect();
+    wait_for("every frame in the status file", || {
+        (status_frames(&out) == indices.len() as u64).then_some(())
+    });
+
+    // A client subscribing now gets the channel's latest message, then whatever follows.
+    let late = NodeClient::start(&url, &["read", "/jitter/SJI_1400"]);
+    let latest = late.expect("message");
+
+    let (exit, log) = daemon.terminate();
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
+    assert!(late.lines.try_iter().all(|l| l["event"] != "message"));
+
+    // The log is the truth: every logged frame came live, once, in order.
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(contents.jitter.len(), indices.len());
+    let log_times = |messages: &[&serde_json::Value]| -> Vec<String> {
+        messages
+            .iter()
+            .map(|m| m["logTime"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let logged: Vec<String> = contents
+        .jitter
+        .iter()
+        .map(|m| m.log_time_ns.to_string())
+        .collect();
+    assert_eq!(log_times(&live.iter().collect::<Vec<_>>()), logged);
+    for (m, logged) in live.iter().zip(&contents.jitter) {
+        let decoded: sunjitter::FrameAlignment =
+            serde_json::from_value(m["payload"].clone()).unwrap();
+        assert_eq!(decoded, logged.record);
+    }
+    assert_eq!(log_times(&[&latest]), logged[logged.len() - 1..]);
+}
+
+/// A daemon serving the live view with `extra` configuration, its `ws://` address, and the
+/// output directory (inside `tmp`).
+fn live_daemon(tmp: &std::path::Path, extra: &str) -> (Daemon, String, std::path::PathBuf) {
+    let (watched, out) = (tmp.join("in"), tmp.join("out"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = tmp.join("sunjitter.toml");
+    std::fs::write(&config, format!("{CONFIG}\n{extra}")).unwrap();
+    let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
+    let url = live_url(&daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]));
+    // Running (and so handling SIGTERM), not just serving.
+    daemon.expect_stderr(&["watching"]);
+    (daemon, url, out)
+}
+
+/// The daemon's `/log` entries about the live view, after it stopped.
+fn live_log(daemon: Daemon, out: &std::path::Path) -> Vec<String> {
+    let (exit, log) = daemon.terminate();
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    let contents = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
+    contents
+        .logs
+        .into_iter()
+        .filter(|m| m.entry.file == "live")
+        .map(|m| m.entry.message)
+        .collect()
+}
+
+#[test]
+fn a_handshake_from_a_foreign_web_origin_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (daemon, url, out) = live_daemon(tmp.path(), "");
+    // A page on another site, in the operator's browser: refused, three times.
+    for _ in 0..3 {
+        let (code, _) = ws_handshake(&url, Some("http://evil.example"));
+        assert_eq!(code, 403);
+    }
+    // No Origin: not a browser (the Foxglove desktop app, scripts).
+    let (code, _open) = ws_handshake(&url, None);
+    assert_eq!(code, 101);
+    // Named once on /log, and the others counted when the daemon stops.
+    let log = live_log(daemon, &out);
+    assert_eq!(log.len(), 2, "{log:?}");
+    assert!(
+        log[0].contains("\"http://evil.example\"") && log[0].contains("live.allowed_origins"),
+        "{log:?}"
+    );
+    assert!(log[1].contains("2 more connections refused"), "{log:?}");
+}
+
+#[test]
+fn configured_web_origins_are_admitted() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (daemon, url, out) = live_daemon(
+        tmp.path(),
+        "[live]\nallowed_origins = [\"https://app.foxglove.dev\"]\n",
+    );
+    let (code, _app) = ws_handshake(&url, Some("https://app.foxglove.dev"));
+    assert_eq!(code, 101);
+    let (code, _) = ws_handshake(&url, Some("http://evil.example"));
+    assert_eq!(code, 403);
+    let (code, _desktop) = ws_handshake(&url, None);
+    assert_eq!(code, 101);
+    assert_eq!(live_log(daemon, &out).len(), 1);
+}
+
+#[test]
+fn connections_beyond_max_clients_are_refused_and_named_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (daemon, url, out) = live_daemon(tmp.path(), "[live]\nmax_clients = 2\n");
+    let admitted: Vec<_> = (0..2)
+        .map(|_| {
+            let (code, stream) = ws_handshake(&url, None);
+            assert_eq!(code, 101);
+            stream
+        })
+        .collect();
+    for _ in 0..20 {
+        let (code, _) = ws_handshake(&url, None);
+        assert_eq!(code, 503);
+    }
+    let log = live_log(daemon, &out);
+    assert_eq!(log.len(), 2, "{log:?}");
+    assert!(
+        log[0].contains("live.max_clients = 2 clients connected"),
+        "{log:?}"
+    );
+    assert!(log[1].contains("19 more connections refused"), "{log:?}");
+    drop(admitted);
+}
+
+#[test]
 fn a_missing_status_file_is_bad_input() {
     let tmp = tempfile::tempdir().unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))

@@ -32,7 +32,8 @@ use std::collections::{BTreeMap, VecDeque};
 #[serde(default, deny_unknown_fields)]
 pub struct AlertsConfig {
     /// Program and arguments run for every alert event with the alert JSON on stdin
-    /// (empty: none). Runs off the pipeline, one at a time, killed after `command_timeout_s`.
+    /// (empty: none). Runs off the pipeline, one at a time, in its own process group; killed
+    /// with the whole group after `command_timeout_s`.
     pub command: Vec<String>,
     pub command_timeout_s: f64,
     /// Thresholds for every channel.

@@ -1,8 +1,12 @@
 //! The alert command: run for every alert event with the alert JSON on stdin, one at a time on
 //! its own thread, killed after a time limit. The writer thread only queues (never waits);
 //! failures come back as one-line reasons for `/log`.
+//!
+//! The command runs in a process group of its own, and a command over its time limit is killed
+//! with its whole group: a shell script's children go with it instead of living on.
 
 use std::io::Write;
+use std::os::unix::process::CommandExt;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{channel, sync_channel, Receiver, Sender, SyncSender, TrySendError};
 use std::time::{Duration, Instant};
@@ -80,6 +84,7 @@ pub fn run_command(command: &[String], input: &str, timeout: Duration) -> Result
         .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::null())
+        .process_group(0)
         .spawn()
         .map_err(|e| format!("cannot run {program}: {e}"))?;
     if let Some(mut stdin) = child.stdin.take() {
@@ -111,8 +116,18 @@ pub fn run_command(command: &[String], input: &str, timeout: Duration) -> Result
     }
 }
 
+/// Kill the command and everything it started (its process group, whose id is its pid).
 fn kill(child: &mut Child) {
-    let _ = child.kill();
+    match libc::pid_t::try_from(child.id()) {
+        // SAFETY: kill(2) has no memory-safety preconditions. The group cannot have been
+        // reused yet: its leader is our child, not reaped until the wait below.
+        Ok(pgid) if pgid > 1 => unsafe {
+            libc::kill(-pgid, libc::SIGKILL);
+        },
+        _ => {
+            let _ = child.kill();
+        }
+    }
     let _ = child.wait();
 }
 

@@ -6,18 +6,27 @@
 //! the message exactly as the MCAP sink does (same schema, same JSON, same `log_time`) and logs
 //! it to the SDK's server, which keeps its own bounded queue per client and drops the oldest
 //! messages of a slow client. The server advertises no capability: clients can subscribe,
-//! nothing else (no publishing, services or parameters).
+//! nothing else (no publishing, services or parameters). Clients reach it through the
+//! [`gate`](super::gate), which admits them by origin and number.
+//!
+//! Each channel keeps its latest message, and a client subscribing to a channel gets it at once
+//! (then every later one). Messages go only to the subscribers known when they are logged, under
+//! the same lock, so a subscriber gets each message once: none is lost to the time between a
+//! channel's advertisement (with its first message) and the client's subscription.
 
+use super::gate::{self, Notices};
 use crate::pipeline::{mcap_ns, McapRecordSink, Record};
 use crate::sink::{self, Alert, LogEntry};
 use crate::{Error, Result};
 use foxglove::websocket::{ChannelView, Client, ServerListener};
-use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
+use foxglove::{
+    ChannelId, Context, PartialMetadata, RawChannel, Schema, SinkId, WebSocketServerHandle,
+};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard};
 
 /// What the live thread publishes.
 #[derive(Debug)]
@@ -60,16 +69,43 @@ impl LiveTap {
     }
 }
 
-/// The running server and its publishing thread.
+/// The running server, its front door and its publishing thread.
 pub struct LiveServer {
     tap: LiveTap,
     handle: Option<WebSocketServerHandle>,
+    gate_stop: Option<tokio::sync::oneshot::Sender<()>>,
+    notices: Notices,
     thread: Option<std::thread::JoinHandle<()>>,
     pub addr: SocketAddr,
 }
 
-/// Logs subscriptions (read-only server: that is all a client can do).
-struct Listener;
+/// The live channels: who subscribed to each, and its latest message.
+#[derive(Default)]
+struct Channels {
+    /// Topic → channel (`None`: it could not be created; not retried).
+    by_topic: HashMap<String, Option<ChannelId>>,
+    by_id: HashMap<ChannelId, Latched>,
+}
+
+struct Latched {
+    channel: Arc<RawChannel>,
+    subscribers: Vec<SinkId>,
+    /// Payload and log time.
+    latest: Option<(Vec<u8>, u64)>,
+}
+
+type SharedChannels = Arc<Mutex<Channels>>;
+
+fn lock(channels: &SharedChannels) -> MutexGuard<'_, Channels> {
+    // The data stays consistent whatever panicked while holding it.
+    channels.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Keeps the subscribers of each channel and hands a new one the latest message; logs
+/// subscriptions (read-only server: that is all a client can do).
+struct Listener {
+    channels: SharedChannels,
+}
 
 impl ServerListener for Listener {
     fn on_subscribe(&self, client: Client, channel: ChannelView) {
@@ -78,6 +114,22 @@ impl ServerListener for Listener {
             topic = channel.topic(),
             "live: subscribed"
         );
+        let Some(sink) = client.sink_id() else {
+            return;
+        };
+        let mut channels = lock(&self.channels);
+        if let Some(latched) = channels.by_id.get_mut(&channel.id()) {
+            if !latched.subscribers.contains(&sink) {
+                latched.subscribers.push(sink);
+            }
+            if let Some((data, log_time)) = &latched.latest {
+                latched.channel.log_with_meta_to_sink(
+                    data,
+                    PartialMetadata::with_log_time(*log_time),
+                    Some(sink),
+                );
+            }
+        }
     }
     fn on_unsubscribe(&self, client: Client, channel: ChannelView) {
         tracing::info!(
@@ -85,6 +137,11 @@ impl ServerListener for Listener {
             topic = channel.topic(),
             "live: unsubscribed"
         );
+        if let Some(sink) = client.sink_id() {
+            if let Some(latched) = lock(&self.channels).by_id.get_mut(&channel.id()) {
+                latched.subscribers.retain(|s| *s != sink);
+            }
+        }
     }
     fn on_client_connect(&self) {
         tracing::info!("live: client connected");
@@ -97,33 +154,53 @@ impl ServerListener for Listener {
 impl LiveServer {
     /// Start serving on `addr` (inside a tokio runtime). `topics` are advertised at once (the
     /// channels named in the configuration, `/log`, `/alert`), so a client can subscribe before
-    /// their first message; other topics appear with their first message. `queue` is the
-    /// capacity of the writer → live queue.
-    pub async fn start(addr: SocketAddr, topics: &[String], queue: usize) -> Result<LiveServer> {
+    /// their first message; other topics appear with their first message. Connections are
+    /// admitted as `config` says (origins, number of clients); `config.queue` is the capacity
+    /// of the writer → live queue.
+    pub async fn start(
+        addr: SocketAddr,
+        topics: &[String],
+        config: &super::LiveConfig,
+    ) -> Result<LiveServer> {
         if !addr.ip().is_loopback() {
             tracing::warn!(
                 %addr,
                 "live view on a non-loopback address: anyone who can reach it can read the data"
             );
         }
+        let unavailable = |e: &dyn std::fmt::Display| {
+            Error::Usage(format!("--live {addr}: cannot serve the live view: {e}"))
+        };
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| unavailable(&e))?;
+        let addr = listener.local_addr().map_err(|e| unavailable(&e))?;
         let context = Context::new();
+        let channels = SharedChannels::default();
+        let private = gate::private_loopback();
         let handle = context
             .websocket_server()
             .name(format!("sunjitter {}", env!("CARGO_PKG_VERSION")))
-            .bind(addr.ip().to_string(), addr.port())
-            .listener(Arc::new(Listener))
+            .bind(private.to_string(), 0)
+            .listener(Arc::new(Listener {
+                channels: channels.clone(),
+            }))
             .start()
             .await
-            .map_err(|e| Error::Usage(format!("--live {addr}: cannot serve the live view: {e}")))?;
-        let addr = SocketAddr::new(addr.ip(), handle.port());
-        let mut publisher = Publisher {
-            context,
-            channels: HashMap::new(),
+            .map_err(|e| unavailable(&e))?;
+        let notices = Notices::default();
+        let admission = gate::Admission {
+            allowed_origins: config.allowed_origins.clone(),
+            max_clients: config.max_clients,
         };
+        let backend = SocketAddr::new(private, handle.port());
+        let (gate_stop, stop) = tokio::sync::oneshot::channel();
+        tokio::spawn(gate::Gate::new(admission, backend, notices.clone()).run(listener, stop));
+        let publisher = Publisher { context, channels };
         for topic in topics {
-            publisher.channel(topic);
+            publisher.channel(&mut lock(&publisher.channels), topic);
         }
-        let (tap, rx) = LiveTap::new(queue);
+        let (tap, rx) = LiveTap::new(config.queue);
         let thread = std::thread::Builder::new()
             .name("sunjitter-live".into())
             .spawn(move || publisher.run(rx))
@@ -132,6 +209,8 @@ impl LiveServer {
         Ok(LiveServer {
             tap,
             handle: Some(handle),
+            gate_stop: Some(gate_stop),
+            notices,
             thread: Some(thread),
             addr,
         })
@@ -141,8 +220,16 @@ impl LiveServer {
         self.tap.clone()
     }
 
+    /// Refused connections to name on `/log`.
+    pub fn notices(&self) -> Notices {
+        self.notices.clone()
+    }
+
     /// Stop serving: close client connections without waiting for slow ones.
     pub fn stop(mut self) {
+        if let Some(stop) = self.gate_stop.take() {
+            let _ = stop.send(());
+        }
         if let Some(handle) = self.handle.take() {
             handle.stop().detach_all();
         }
@@ -156,24 +243,37 @@ impl LiveServer {
 
 struct Publisher {
     context: Arc<Context>,
-    channels: HashMap<String, Option<Arc<RawChannel>>>,
+    channels: SharedChannels,
 }
 
 impl Publisher {
-    fn run(mut self, rx: Receiver<LiveMessage>) {
+    fn run(self, rx: Receiver<LiveMessage>) {
         while let Ok(message) = rx.recv() {
             let Some((topic, data, log_time_ns)) = encode(&message) else {
                 continue;
             };
-            if let Some(channel) = self.channel(&topic) {
-                channel.log_with_meta(&data, PartialMetadata::with_log_time(log_time_ns));
+            let mut channels = lock(&self.channels);
+            let Some(id) = self.channel(&mut channels, &topic) else {
+                continue;
+            };
+            if let Some(latched) = channels.by_id.get_mut(&id) {
+                for sink in &latched.subscribers {
+                    latched.channel.log_with_meta_to_sink(
+                        &data,
+                        PartialMetadata::with_log_time(log_time_ns),
+                        Some(*sink),
+                    );
+                }
+                latched.latest = Some((data, log_time_ns));
             }
         }
     }
 
-    fn channel(&mut self, topic: &str) -> Option<Arc<RawChannel>> {
-        if let Some(c) = self.channels.get(topic) {
-            return c.clone();
+    /// The channel of `topic`, created (and advertised) on first use. Created under the lock,
+    /// so a subscription to it waits until it is known here.
+    fn channel(&self, channels: &mut Channels, topic: &str) -> Option<ChannelId> {
+        if let Some(id) = channels.by_topic.get(topic) {
+            return *id;
         }
         let (name, schema) = schema_of(topic);
         let bytes = serde_json::to_vec(&schema()).unwrap_or_default();
@@ -183,15 +283,26 @@ impl Publisher {
             .message_encoding(sink::MESSAGE_ENCODING)
             .schema(Schema::new(name, sink::SCHEMA_ENCODING, bytes))
             .build_raw();
-        let channel = match built {
-            Ok(c) => Some(c),
+        let id = match built {
+            Ok(channel) => {
+                let id = channel.id();
+                channels.by_id.insert(
+                    id,
+                    Latched {
+                        channel,
+                        subscribers: Vec::new(),
+                        latest: None,
+                    },
+                );
+                Some(id)
+            }
             Err(e) => {
                 tracing::error!(topic, "live view: cannot create the channel: {e}");
                 None
             }
         };
-        self.channels.insert(topic.to_string(), channel.clone());
-        channel
+        channels.by_topic.insert(topic.to_string(), id);
+        id
     }
 }
 

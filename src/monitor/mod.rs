@@ -1,4 +1,4 @@
-//! Live monitoring for operators (`watch`): the Foxglove live view ([`live`]), alerts
+//! Live monitoring for operators (`watch`): the Foxglove live view ([`live`], [`gate`]), alerts
 //! ([`alerts`], [`hook`]) and the health status file ([`status`]).
 //!
 //! ```text
@@ -6,6 +6,7 @@
 //!                   │ after each logged message, never waiting:
 //!                   ├─ alert rules (pure, in place) ── tracing warning
 //!                   ├──bounded, drop when full──> live thread ──> Foxglove WebSocket server
+//!                   │        clients ──> gate (origin, client cap) ──┘  (refusals ──> /log)
 //!                   ├──bounded──> alert command thread (stdin JSON, time limit) ─failures─> /log
 //!                   └─ counters (mutex) <── status thread: status.json every few seconds
 //! ```
@@ -14,6 +15,7 @@
 //! the writer thread; a slow or vanished live client loses live messages, never logged ones.
 
 pub mod alerts;
+pub mod gate;
 pub mod hook;
 pub mod live;
 pub mod status;
@@ -55,12 +57,58 @@ impl Default for HealthConfig {
 pub struct LiveConfig {
     /// Messages waiting for the live view at most; more are dropped for the live view only.
     pub queue: usize,
+    /// Clients connected at once at most; more connections are refused (HTTP 503).
+    pub max_clients: usize,
+    /// Web origins (`https://host[:port]`) whose pages may connect. A handshake with another
+    /// `Origin` is refused (HTTP 403); one without (not a browser) is allowed.
+    pub allowed_origins: Vec<String>,
 }
 
 impl Default for LiveConfig {
     fn default() -> Self {
-        LiveConfig { queue: 1024 }
+        LiveConfig {
+            queue: 1024,
+            max_clients: 32,
+            allowed_origins: Vec::new(),
+        }
     }
+}
+
+impl LiveConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(crate::Error::Usage(format!("configuration: {m}")));
+        if self.queue == 0 {
+            return bad("live.queue must be ≥ 1".into());
+        }
+        if self.max_clients == 0 {
+            return bad("live.max_clients must be ≥ 1".into());
+        }
+        for origin in &self.allowed_origins {
+            if !is_origin(origin) {
+                return bad(format!(
+                    "live.allowed_origins: {origin:?} is not an origin \
+                     (scheme://host[:port], e.g. \"https://app.foxglove.dev\")"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `scheme://host[:port]` and nothing after it (a path would never match). Not `null`: any
+/// sandboxed page sends that.
+fn is_origin(text: &str) -> bool {
+    let Some((scheme, rest)) = text.split_once("://") else {
+        return false;
+    };
+    let host = rest.strip_suffix('/').unwrap_or(rest);
+    let web = matches!(scheme, "http" | "https");
+    scheme.starts_with(|c: char| c.is_ascii_alphabetic())
+        && scheme
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c))
+        && !(web && host.is_empty())
+        && !host.contains(['/', '?', '#', ' ', '*'])
 }
 
 impl HealthConfig {
@@ -99,23 +147,31 @@ pub struct MonitoredSink {
     /// Ingest lags announced for frames whose message is still to come.
     lags: HashMap<String, f64>,
     live: Option<live::LiveTap>,
+    /// Connections the live view refused, to name on `/log`.
+    live_notices: Option<gate::Notices>,
     hook: Option<hook::Hook>,
     health: SharedHealth,
-    /// Alert events and command failures not yet accepted by the MCAP sink.
+    /// Alert events, command failures and live view notices not yet accepted by the MCAP sink.
     unwritten: VecDeque<Extra>,
 }
 
 enum Extra {
     Alert(AlertEvent),
     Failure(String),
+    Live(String),
 }
 
 impl MonitoredSink {
-    /// Alert command failures and alert events waiting to be logged; on an error they wait.
-    fn write_extras(&mut self) -> Result<()> {
+    /// Alert command failures, alert events and live view notices waiting to be logged; on an
+    /// error they wait. `all`: also the live view's refusals not yet named (at the end).
+    fn write_extras(&mut self, all: bool) -> Result<()> {
         if let Some(hook) = &self.hook {
             self.unwritten
                 .extend(hook.failures().into_iter().map(Extra::Failure));
+        }
+        if let Some(notices) = &self.live_notices {
+            self.unwritten
+                .extend(notices.take(all).into_iter().map(Extra::Live));
         }
         while let Some(extra) = self.unwritten.front() {
             let publish = mcap_ns(now_ns());
@@ -135,6 +191,15 @@ impl MonitoredSink {
                     if let Ok(mut h) = self.health.lock() {
                         h.status.alert_command_failures += 1;
                     }
+                }
+                Extra::Live(text) => {
+                    self.mcap.write_log(
+                        crate::sink::LogLevel::Warning,
+                        "live",
+                        text,
+                        publish,
+                        publish,
+                    )?;
                 }
             }
             self.unwritten.pop_front();
@@ -262,7 +327,7 @@ impl RecordSink for MonitoredSink {
                 .frame(message, *log_time_ns, publish_time_ns, lag_s);
             self.raise(events);
         }
-        if let Err(e) = self.write_extras() {
+        if let Err(e) = self.write_extras(false) {
             tracing::warn!("alerts wait to be logged: {e}");
         }
         Ok(())
@@ -271,7 +336,7 @@ impl RecordSink for MonitoredSink {
     fn flush(&mut self) -> Result<()> {
         let events = self.alerts.tick(now_ns());
         self.raise(events);
-        self.write_extras()?;
+        self.write_extras(false)?;
         self.mcap.tick(mcap_ns(now_ns()))
     }
 
@@ -282,7 +347,7 @@ impl RecordSink for MonitoredSink {
             self.unwritten
                 .extend(failures.into_iter().map(Extra::Failure));
         }
-        self.write_extras()?;
+        self.write_extras(true)?;
         self.mcap.finish()
     }
 
@@ -334,7 +399,7 @@ impl Monitor {
                 topics.dedup();
                 topics.push(crate::sink::LOG_TOPIC.to_string());
                 topics.push(crate::sink::ALERT_TOPIC.to_string());
-                Some(live::LiveServer::start(addr, &topics, config.live.queue).await?)
+                Some(live::LiveServer::start(addr, &topics, &config.live).await?)
             }
             None => None,
         };
@@ -369,6 +434,7 @@ impl Monitor {
             alerts: AlertEngine::new(config.alerts.clone()),
             lags: HashMap::new(),
             live: live.as_ref().map(|l| l.tap()),
+            live_notices: live.as_ref().map(|l| l.notices()),
             hook,
             health: health.clone(),
             unwritten: VecDeque::new(),

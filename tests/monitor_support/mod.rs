@@ -261,3 +261,53 @@ pub fn live_url(line: &str) -> String {
         .take_while(|c| c.is_ascii_alphanumeric() || ":/.".contains(*c))
         .collect()
 }
+
+/// Whether process `pid` is still running: absent and zombie (ended, not yet reaped by its
+/// parent) processes are not.
+pub fn process_running(pid: u32) -> bool {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return false;
+    };
+    // The state follows the command name, which is in parentheses and may contain spaces.
+    let state = stat
+        .rsplit(')')
+        .next()
+        .and_then(|r| r.split_whitespace().next());
+    !matches!(state, None | Some("Z") | Some("X"))
+}
+
+/// A WebSocket handshake for the Foxglove protocol made by hand on a raw TCP connection to the
+/// live view at `url` (`ws://HOST:PORT`), with an `Origin` header when given: the response's
+/// HTTP status code, and the connection (open, for a `101`).
+pub fn ws_handshake(url: &str, origin: Option<&str>) -> (u16, std::net::TcpStream) {
+    use std::io::{Read, Write};
+    let host = url.strip_prefix("ws://").expect("a ws:// address");
+    let mut stream = std::net::TcpStream::connect(host).unwrap();
+    stream.set_read_timeout(Some(PATIENCE)).unwrap();
+    let origin = origin.map_or(String::new(), |o| format!("Origin: {o}\r\n"));
+    let request = format!(
+        "GET / HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
+         Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n{origin}\r\n"
+    );
+    stream.write_all(request.as_bytes()).unwrap();
+    let mut head = Vec::new();
+    let mut byte = [0u8];
+    while !head.ends_with(b"\r\n\r\n") {
+        let n = stream.read(&mut byte).expect("a response to the handshake");
+        assert_eq!(
+            n,
+            1,
+            "closed without a response: {:?}",
+            String::from_utf8_lossy(&head)
+        );
+        head.push(byte[0]);
+    }
+    let head = String::from_utf8_lossy(&head);
+    let code = head
+        .strip_prefix("HTTP/1.1 ")
+        .and_then(|r| r.get(..3))
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP response: {head}"));
+    (code, stream)
+}
