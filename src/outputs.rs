@@ -28,10 +28,12 @@ pub struct OutputLock {
 impl OutputLock {
     /// Lock `dir` (created if missing) for writing, or refuse (exit 2) naming the holder's pid.
     pub fn acquire(dir: &Path) -> Result<OutputLock> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| Error::output(dir, format!("cannot create output directory: {e}")))?;
+        std::fs::create_dir_all(dir).map_err(|e| Error::unwritable(dir, e))?;
         if !dir.is_dir() {
-            return Err(Error::output(dir, "output is not a directory"));
+            return Err(Error::unwritable(
+                dir,
+                std::io::Error::from(std::io::ErrorKind::NotADirectory),
+            ));
         }
         let path = dir.join(LOCK_FILE);
         let mut file = OpenOptions::new()
@@ -40,7 +42,7 @@ impl OutputLock {
             .create(true)
             .truncate(false)
             .open(&path)
-            .map_err(|e| Error::output(&path, format!("cannot open the lock file: {e}")))?;
+            .map_err(|e| Error::unwritable(&path, e))?;
         match file.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => return Err(held(dir, read_pid(&mut file))),
