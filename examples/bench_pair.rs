@@ -1,4 +1,4 @@
-//! Our side of tools/bench_side_by_side.py: times on one FITS pair
+//! sunjitter's side of tools/bench_side_by_side.py: times on one FITS pair
 //! - `flow_opencv_semantics`: Farneback with OpenCV's algorithm and the paper's parameters
 //!   (levels 5, winsize 101, 10 iterations, poly_n 5, poly_sigma 1.1, box window), whole frame —
 //!   the same computation as `cv2.calcOpticalFlowFarneback`;

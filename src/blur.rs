@@ -6,12 +6,12 @@
 //! where the scene sits: so `ln(P_frame/P_reference)` is a straight line in `(2πk)²` whose
 //! slope is `−v`, and its intercept takes a change of gain. The intensity refinement's model
 //! (`reference ≈ α·frame∘T + β`) cannot absorb a blur difference: a 0.8 px Gaussian on a
-//! 512² TRACE crop moved its answer by 2–4σ (−0.0039 px); matched, that error is 140× smaller.
+//! 512² TRACE crop moves its answer by 2–4σ (−0.0039 px); matched, that error is 140× smaller.
 //!
 //! Only frequencies up to [`MAX_FREQUENCY`] count, where the refinement's 0.7 px smoothing
 //! leaves the structure it fits: near Nyquist, a spline-resampled frame loses power that no
 //! Gaussian explains (degree-5 frames read 0.03–0.06 px² over the whole band, 0 ± 0.003 below
-//! 0.25 cycles/px), and matching it biased the answer.
+//! 0.25 cycles/px), and matching it biases the answer.
 
 use ndarray::{s, ArrayView2};
 
@@ -383,7 +383,7 @@ mod tests {
     /// The frame's square follows the reference's by the motion rounded as a whole: for a
     /// motion of almost nothing it is the same square, also where the centre falls on a
     /// half pixel and rounding each centre alone could take the neighbouring one (an image
-    /// aligned to itself then read 0.028 px² blurrier than itself, and was "matched"). One
+    /// aligned to itself would then read 0.028 px² blurrier than itself, and be "matched"). One
     /// image has no blur difference with itself.
     #[test]
     fn a_frame_that_did_not_move_is_measured_on_the_reference_square() {

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 /// 2 for bad usage or bad input, 1 for work that ran but could not produce a result.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// The file could not be read as the image we need (not FITS, truncated, absurd header...).
+    /// The file could not be read as the image needed (not FITS, truncated, absurd header...).
     #[error("{}: {reason}", crate::text::path(path))]
     BadInput { path: PathBuf, reason: String },
 

@@ -1456,7 +1456,7 @@ mod tests {
         );
     }
 
-    /// Fuzzing found absurd table/time-axis times overflowing the ns count.
+    /// Absurd table/time-axis times that overflow the ns count.
     #[test]
     fn offset_times_that_do_not_fit_are_none() {
         assert_eq!(offset_time(1_000, 2.5), Some(2_500_001_000));

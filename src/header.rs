@@ -544,7 +544,7 @@ fn check_sizes(axes: &[u64], prefix: &str) -> Result<(), String> {
         ));
     }
     // The planes' product could overflow (tile-compressed images are not bounded by the
-    // file's size) or ask for millions of frames (found reviewing the fuzz target's paths).
+    // file's size) or ask for millions of frames.
     let frames = axes.iter().skip(2).try_fold(1u64, |n, &a| n.checked_mul(a));
     if frames.is_none_or(|n| n > MAX_FRAMES) {
         return Err(format!(
@@ -693,8 +693,8 @@ mod tests {
             "NAXIS3  = 4",
         ]);
         assert!(data_size_bytes(&huge).unwrap_err().contains("absurd"));
-        // Planes (found by reading the code while fuzzing). A tiny tile-compressed table
-        // claiming 2⁷² planes overflowed the frame count; 2²⁴ would have listed 16 M frames.
+        // Planes: a tiny tile-compressed table claiming 2⁷² planes would overflow the frame
+        // count; 2²⁴ would list 16 M frames.
         for planes in [
             &[
                 "ZNAXIS3 = 16777216",

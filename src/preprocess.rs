@@ -124,12 +124,11 @@ pub fn remove_hot_pixels_with(
 /// however compact, spills into a neighbour (the optics' PSF, the pixel's own footprint): a
 /// point source with a PSF of FWHM 1 px, centred on a pixel, rises 7.4× as high as its
 /// brightest neighbour, and less at any other phase. On the 128² AIA 171 image, rebinned
-/// 32×, the previous rules flagged 33 bright cores of real structure, at most 3.2× their
-/// brightest neighbour by this measure. Their cleaning depends on
-/// the sub-pixel phase, so it differs between two images of the same Sun: between channels
-/// the flow came back 188″ and 0.013 px off (RMSE, 8 pairs), 2.5″ and 0.0006 px with this
-/// rule. The largest spikes on the raw TRACE, EIT and IRIS frames stand 10–305× above their
-/// neighbours.
+/// 32×, 33 bright cores of real structure stand at most 3.2× their brightest neighbour by
+/// this measure. A rule that cleans such cores does so by sub-pixel phase, so differently in
+/// two images of the same Sun: between channels the flow is then 188″ and 0.013 px off
+/// (RMSE, 8 pairs), against 2.5″ and 0.0006 px with this rule. The largest spikes on the raw
+/// TRACE, EIT and IRIS frames stand 10–305× above their neighbours.
 pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;
 
 /// Whether the pixel at `at` stands alone: its rise above the floor of its 8 neighbours is
@@ -652,13 +651,13 @@ pub struct DiskFit {
 /// Smallest disk worth reporting, px: below this a "limb" is a blob.
 const MIN_DISK_RADIUS_PX: f64 = 8.0;
 /// Fraction of limb sectors that must agree on the circle for it to count as a disk
-/// (measured: HMI 1.0, AIA 171 0.85, EIT 0.57–0.63 with active regions on the limb; a
+/// (HMI 1.0, AIA 171 0.85, EIT 0.57–0.63 with active regions on the limb; a
 /// circle forced through the on-disk TRACE field 0.22).
 const MIN_LIMB_COVERAGE: f64 = 0.4;
 /// Iterations need at least this fraction of sectors with a limb point.
 const MIN_LIMB_POINTS: f64 = 0.5;
 /// Largest run of disagreeing sectors tolerated (active regions on the limb), radians
-/// (measured: EIT ≤ 57°, the forced TRACE circle 124°).
+/// (EIT ≤ 57°, the forced TRACE circle 124°).
 const MAX_LIMB_GAP_RAD: f64 = std::f64::consts::FRAC_PI_2;
 /// Step along limb rays, px (finest; coarser when a window would need more samples).
 const RAY_STEP_PX: f64 = 0.25;
@@ -680,7 +679,7 @@ const COARSE_SIZE_PX: usize = 512;
 ///
 /// Images of 2048 px and more are measured on a copy binned to at least 1024 px (2× at 2048²,
 /// 4× at 4096²): centre within a few hundredths of a pixel, radius about 1.6e-4 small (the
-/// binned limb is blurred), and a 4096² frame's disk cost 146 ms at full resolution (it is
+/// binned limb is blurred), where a 4096² frame's disk costs 146 ms at full resolution (it is
 /// checked on every frame).
 pub fn detect_disk(img: ArrayView2<f32>) -> Option<DiskFit> {
     let bin = disk_detection_bin(img.dim());
@@ -729,7 +728,7 @@ fn detect_disk_at(img: ArrayView2<f32>) -> Option<DiskFit> {
         return None;
     }
     // The background level from at most about a million pixels (every k-th row and column:
-    // plenty for a quantile; a 4096² frame's full sort cost more than the rest of the fit).
+    // plenty for a quantile; a 4096² frame's full sort costs more than the rest of the fit).
     let k = ((h * w) as f64 / (1 << 20) as f64).sqrt().ceil().max(1.0) as usize;
     let mut sampled: Vec<f32> = img
         .axis_iter(Axis(0))
@@ -867,9 +866,9 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
         })
         .collect();
     // The most significant drop of the profile, away from the centre: a median over an
-    // annulus of radius k is uncertain by ∝ 1/√k, so the drop is weighed by √k (measured:
-    // with noise, the plain steepest drop of an EIT 128² profile sometimes fell on a 12 px
-    // feature, not the 48 px limb).
+    // annulus of radius k is uncertain by ∝ 1/√k, so the drop is weighed by √k (with noise,
+    // the plain steepest drop of an EIT 128² profile can fall on a 12 px feature, not the
+    // 48 px limb).
     let mut kd = None;
     let mut best = 0.0;
     for k in 3..nr.saturating_sub(1) {
@@ -1242,8 +1241,8 @@ mod tests {
     /// A real feature spills into a neighbour however compact it is: a point source imaged
     /// with a Gaussian PSF of FWHM 1 px (σ 0.425 px), integrated over each pixel, rises at
     /// most 7.4× as far above its neighbours' floor as its brightest neighbour does (centred
-    /// on a pixel; less elsewhere). The previous rules replaced its core when it was centred
-    /// on a pixel. At every sub-pixel phase it stays; a lone spike beside it goes.
+    /// on a pixel; less elsewhere). At every sub-pixel phase it stays; a lone spike beside it
+    /// goes.
     #[test]
     fn an_undersampled_point_source_is_not_a_hot_pixel_at_any_phase() {
         let erf = |z: f64| {
@@ -1405,7 +1404,7 @@ mod tests {
         assert_eq!(matching_sigma_px(5.0, 3.0, 0.5), 0.0);
         let (a, b) = resolution_matching_sigmas(5.0, 3.0, 0.5);
         assert!(a == 0.0 && (b - s).abs() < 1e-12);
-        // Measured: blur a point source of FWHM 6 px by the σ that should give 10 px.
+        // A point source of FWHM 6 px, blurred by the σ that should give 10 px.
         let sigma_img = 6.0 / FWHM_PER_SIGMA;
         let img = Array2::from_shape_fn((81, 81), |(y, x)| {
             let r2 =
@@ -1454,8 +1453,7 @@ mod tests {
         assert_eq!(fit.limb, LimbFeature::Edge);
         let dc = (fit.center_px[0] - truth_c[0]).hypot(fit.center_px[1] - truth_c[1]);
         // The steepest drop of a limb-darkened, pixel-integrated edge lies a fraction of
-        // a pixel inside the true radius (measured 0.16 px); the centre is unbiased
-        // (measured 0.006 px).
+        // a pixel inside the true radius (0.16 px here); the centre is unbiased (0.006 px).
         assert!(dc < 0.02, "centre {:?}", fit.center_px);
         assert!(
             (fit.radius_px - truth_r).abs() < 0.3,
@@ -1508,7 +1506,7 @@ mod tests {
         ];
         let dc = (big.center_px[0] - want_c[0]).hypot(big.center_px[1] - want_c[1]) / k;
         let dr = big.radius_px / k - small.radius_px;
-        // In original pixels. Measured 0.12 px (centre) and 0.25 px (radius): the ring peak
+        // In original pixels: 0.12 px (centre) and 0.25 px (radius) here. The ring peak
         // is located after a 1 px smoothing along the rays, which is 0.22 original px here,
         // so the peak of the same ring is sampled at a different resolution.
         assert!(
@@ -1521,8 +1519,8 @@ mod tests {
     fn detect_disk_is_not_misled_by_noise_on_an_eit_disk() {
         // EIT 195 rebinned 8× from 1024²: SOLAR_R 372 px / 8 = 46.5 px to the photosphere; the
         // 195 Å limb ring the fit locks on lies a little above it. Gaussian noise of 3× the
-        // background (6.7 DN; seeds on which the steepest-drop first guess picked a 12 px
-        // feature) must not move the disk.
+        // background (6.7 DN; seeds on which the plain steepest drop lands on a 12 px feature)
+        // must not move the disk.
         let eit = read_real("eit_195_20040301T000010_128.fits");
         let clean = detect_disk(eit.view()).expect("disk");
         for seed in [42, 121, 129] {
@@ -1553,7 +1551,7 @@ mod tests {
             (fit.center_px[0] - 2050.3).hypot(fit.center_px[1] - 2040.7),
             fit.radius_px - 1600.0,
         );
-        // Measured 0.014 px and −0.25 px: binning blurs the limb-darkened edge, which moves
+        // 0.014 px and −0.25 px here: binning blurs the limb-darkened edge, which moves
         // its steepest drop inwards by about 0.06 binned px (1.6e-4 of the radius; the header
         // check tolerates 10 %, the flow measures scale to 1e-6).
         assert!(dc < 0.1 && dr.abs() < 0.4, "centre {dc}, radius {dr}");

@@ -327,7 +327,8 @@ const MAX_TAPS: usize = 10;
 
 /// `M_d(t + k)` for `k = 0..=d`: the cardinal B-spline of degree `d` (support `[0, d + 1]`).
 fn cardinal_bspline(d: usize, t: f64) -> [f64; MAX_TAPS] {
-    // A constant degree lets the recurrence unroll (it was a tenth of a refinement's time).
+    // A constant degree lets the recurrence unroll (with a run-time degree it takes a tenth
+    // of a refinement's time).
     match d {
         0 => cardinal_bspline_of::<0>(t),
         1 => cardinal_bspline_of::<1>(t),
@@ -1439,7 +1440,7 @@ mod tests {
         // y,x=np.mgrid[0:40,0:40].astype(float)
         // o=nd.map_coordinates(a,[y-1.62,x+0.37],order=3,mode='mirror')
         // print([o[j,i] for j,i in [(2,0),(10,10),(20,31),(39,39),(25,5)]])"
-        // Agreement is f32 rounding: measured ≤ 1.3e-5 on values near 200.
+        // Agreement is f32 rounding: ≤ 1.3e-5 on values near 200.
         let full = read_real("trace_171_19980519T222143_1024.fits");
         let crop = full.slice(s![400..440, 500..540]).to_owned();
         let t = Similarity {
@@ -1521,7 +1522,7 @@ mod tests {
         let there = warp_similarity(img.view(), &t, 128, 128, Interp::Spline3);
         let back = warp_similarity(there.view(), &t.inverse(), 128, 128, Interp::Spline3);
         // Away from the NaN border and its fill, the round trip is the interpolation error
-        // of a σ = 2 px image twice over: measured 4.3e-5 of the image's range (Keys 3.0e-4).
+        // of a σ = 2 px image twice over: 4.3e-5 of the image's range (Keys 3.0e-4).
         let inner = s![8..120, 8..120];
         let range = img.slice(inner).fold(0.0f32, |m, v| m.max(*v))
             - img.slice(inner).fold(f32::MAX, |m, v| m.min(*v));
@@ -1566,8 +1567,8 @@ mod tests {
             assert_eq!(v.is_nan(), touches, "({x}, {y})");
             let far = !((14..=26).contains(&x) && (24..=36).contains(&y));
             if far {
-                // The smooth fill leaks through the IIR prefilter, decaying as 0.27^d: measured
-                // ≤ 1.4e-5 relative at 4 px and beyond.
+                // The smooth fill leaks through the IIR prefilter, decaying as 0.27^d: ≤ 1.4e-5
+                // relative at 4 px and beyond.
                 let rel = (v - a[[y, x]]).abs() / a[[y, x]].abs();
                 assert!(rel < 1e-4, "({x}, {y}): {v} vs {}", a[[y, x]]);
             }

@@ -17,8 +17,8 @@ pub enum TimeScale {
 
 /// TAI − UTC in seconds from each UTC date on (IERS Bulletin C; valid until the next leap
 /// second is announced — none is scheduled as of 2025). Before 1972 UTC had fractional
-/// offsets; those dates get the 1972 value of 10 s, which is within the 1 s we promise
-/// only from 1972 on.
+/// offsets; those dates get the 1972 value of 10 s, and the 1 s accuracy holds only from
+/// 1972 on.
 const LEAP_SECONDS: [(i64, u32, u32, i64); 28] = [
     (1972, 1, 1, 10),
     (1972, 7, 1, 11),
@@ -299,8 +299,8 @@ mod tests {
         assert_eq!(iso("2014.03.01_00:01:30_UTC"), "2014-03-01T00:01:30.000Z");
     }
 
-    /// Found by fuzzing (fuzz/corpus/fits_header/crash-time-year-4028): a year beyond 2262
-    /// overflowed the ns count (a panic in debug builds, a wrapped time in release).
+    /// A year beyond 2262 overflows the ns count (a panic in debug builds, a wrapped time in
+    /// release); fuzz/corpus/fits_header/crash-time-year-4028 is such a header.
     #[test]
     fn dates_beyond_the_ns_range_are_refused() {
         for text in [

@@ -1,4 +1,4 @@
-//! Bad input fed to a running `watch` daemon (issue 7, item 5): every kind of broken file gets
+//! Bad input fed to a running `watch` daemon: every kind of broken file gets
 //! exactly one `/log` entry naming it and saying why, good frames around them are measured by
 //! the real engine as usual, and memory stays bounded (this test is alone in its binary, so
 //! the process's peak RSS is the daemon's).

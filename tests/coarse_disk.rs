@@ -1,4 +1,4 @@
-//! Coarse alignment on a real cross-instrument pair (issue 2, item 4): AIA 171 Å
+//! Coarse alignment on a real cross-instrument pair: AIA 171 Å
 //! (128², 19.18″/px, CROTA2 0.019°) as the reference, HMI continuum (100², 20.66″/px,
 //! CROTA2 179.93°) as the frame. The header transform is applied, HMI is resampled onto
 //! the AIA grid, and the two solar disks, measured in the images themselves, must

@@ -1,4 +1,4 @@
-//! Crash and restart (issue 7, item 4): the real `sunjitter watch` binary, fed real IRIS
+//! Crash and restart: the real `sunjitter watch` binary, fed real IRIS
 //! frames (two channels, real engine, real MCAP sink), is killed with SIGKILL at 50
 //! seeded-random points while it works, and restarted each time; frames keep arriving
 //! meanwhile. Then one last run finishes the backlog and stops on SIGTERM. Across all segments

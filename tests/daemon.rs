@@ -576,7 +576,7 @@ mod real {
 
 use real::*;
 
-/// The main daemon test: real SJI 1400 frames arriving every way an instrument
+/// The main daemon test: real SJI 1400 frames arriving every way an instrument
 /// writes them, one garbage file, shutdown, and the MCAP read back with the `mcap` crate.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn real_frames_are_logged_once_each_in_time_order_to_mcap() {

@@ -63,7 +63,7 @@ fn injected_similarities_are_recovered_beyond_the_papers_accuracy_with_honest_si
         }
     }
     let rmse = sq.map(|s| (s / truths.len() as f64).sqrt());
-    // Issue targets on the 1024² image: scale 2e-6, rotation 0.5″, translation 5e-4 px.
+    // Accuracy targets on the 1024² image: scale 2e-6, rotation 0.5″, translation 5e-4 px.
     // A 512² crop has a quarter of the pixels and half the lever arm, so allow 2× (4× on
     // rotation and scale).
     assert!(rmse[0] < 8e-6, "scale RMSE {:e}", rmse[0]);
@@ -149,7 +149,7 @@ fn eit_195_to_171_one_hour_apart_measures_the_telescope_not_the_suns_rotation() 
 /// another temperature). Here the frame is the reference moved by a known similarity and
 /// given a limb twice as bright within 6 % of the radius, labelled as another channel: the
 /// answer must be the similarity, not a scale change. With flow windows reaching the limb
-/// every pair came back 3.7σ short in scale (−4.7e-3).
+/// every pair is 3.7σ short in scale (−4.7e-3).
 #[test]
 fn another_channels_limb_brightening_does_not_pass_for_a_scale_change() {
     let reference = real("aia_171_20110215T000000_128.fits");
@@ -306,7 +306,7 @@ fn intensity_refinement_beats_the_flow_under_noise_with_honest_sigma() {
         sq_flow += (f[2] - t[2]).powi(2) + (f[3] - t[3]).powi(2);
         sq_refined += (e[2] - t[2]).powi(2) + (e[3] - t[3]).powi(2);
     }
-    // Measured on the 1024² Monte Carlo: 3–5× smaller translation errors; ask for 1.5×.
+    // On the 1024² Monte Carlo the refined translation errors are 3–5× smaller; ask for 1.5×.
     assert!(
         sq_refined * 2.25 < sq_flow,
         "translation RMS: refined {:e}, flow {:e}",
@@ -359,7 +359,7 @@ fn assert_within_sigmas(
 
 /// Align transformed copies of `reference` (`n` truths drawn with `seed`) against it,
 /// prepared with `cfg`: each must be `ok`, within 4σ of the truth in every parameter, and within
-/// 1e-3 px in translation (the issue's 5e-4 px target at this size's 2× allowance). `check`
+/// 1e-3 px in translation (the 5e-4 px target at this size's 2× allowance). `check`
 /// sees each result's message.
 fn assert_recovers_injected_similarities(
     reference: &Image,
@@ -412,7 +412,7 @@ fn a_seed_on_binned_copies_still_recovers_injected_similarities() {
 /// A frame blurred by a 0.8 px Gaussian (seeing, defocus) after a known similarity, made by
 /// scipy (`tools/other_instruments/blur_fixture.py`) from the central 256² of the TRACE image.
 /// The refinement's model (`reference ≈ α·frame∘T + β`) cannot absorb the blur: unmatched, the
-/// answer was 2.5σ off in scale, 2.4σ in rotation and 3.5σ in dx. Blurring the reference to
+/// answer is 2.5σ off in scale, 2.4σ in rotation and 3.5σ in dx. Blurring the reference to
 /// the frame's measured blur (0.629 px² for the kernel's 0.640) puts every parameter within
 /// 0.3σ, with σ that include what the estimate's own error would do.
 #[test]

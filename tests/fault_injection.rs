@@ -1,5 +1,6 @@
-//! Fault injection on the `watch` daemon (issue 7): bursts larger than every queue, slow
-//! writers, a writer stalled half-way (also across a restart), atomic publishing, a full disk. Real inotify, real files, the real FITS reader on
+//! Fault injection on the `watch` daemon: bursts larger than every queue, slow writers, a
+//! writer stalled half-way (also across a restart), atomic publishing, a full disk. Real
+//! inotify, real files, the real FITS reader on
 //! real-derived frames (see `faults/mod.rs`); the aligner answers from the headers so a
 //! thousand frames take seconds. Every message must carry the checksum of its finished file's
 //! pixels and the true shift to its reference; synchronisation is on observable progress with

@@ -1,12 +1,12 @@
-//! Oracle: our Farneback against OpenCV 5.0.0's `calcOpticalFlowFarneback` on a real TRACE
-//! 171 crop and a known spline warp of it (fixtures and their provenance:
+//! Oracle: sunjitter's Farneback against OpenCV 5.0.0's `calcOpticalFlowFarneback` on a real
+//! TRACE 171 crop and a known spline warp of it (fixtures and their provenance:
 //! tools/make_flow_fixtures.py, tests/data/flow/fixtures.json).
 //!
 //! Compared inside the interior (pixels at least `winsize` from the border: OpenCV's border
 //! handling — one-sided equations for flow pointing outside — deliberately differs).
 //!
-//! Tolerance: measured RMS |ours − OpenCV| = 5e-5 px (box) / 7e-5 px (Gaussian), max 3e-4 px.
-//! What remains is f32 rounding (FMA, summation order, our normalised intensities), the
+//! Tolerance: RMS |sunjitter − OpenCV| = 5e-5 px (box) / 7e-5 px (Gaussian), max 3e-4 px.
+//! What remains is f32 rounding (FMA, summation order, the normalised intensities), the
 //! scale-free regulariser (1e-6 of the typical trace, vs OpenCV's 1e-3 which is negligible at
 //! the fixtures' mean of 1e4) and the border rule, whose influence creeps inward by winsize/2
 //! per iteration but decays. Asserted: RMS ≤ 1e-3 px and max ≤ 5e-3 px, i.e. one order of

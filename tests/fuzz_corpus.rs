@@ -1,6 +1,6 @@
 //! The fuzz target's checks (`fuzz/fuzz_targets/fits_header.rs`) on its committed corpus, on
-//! stable Rust in every `cargo test`: seeds from the real and malformed files, and every input
-//! the fuzzer ever found a bug with (`crash-*`, kept as regression seeds). Nothing may panic,
+//! stable Rust in every `cargo test`: seeds from the real and malformed files, and the
+//! fuzzer's crash inputs (`crash-*`, kept as regression seeds). Nothing may panic,
 //! and the reader may only refuse with `BadInput`/`BadHeader`.
 
 use std::path::PathBuf;

@@ -1,7 +1,7 @@
 //! `sunjitter info` on every real file, against truth values computed independently with
 //! sunpy 7.0 / astropy 8.0 by `tools/sunpy_truth.py` (that script documents how each number was
 //! obtained; run `python3 tools/sunpy_truth.py` to reproduce them).
-//! Tolerances (issue 2): sun centre 0.01 px, roll 0.001°, plate scale exact, time 1 s.
+//! Tolerances: sun centre 0.01 px, roll 0.001°, plate scale exact, time 1 s.
 
 use serde_json::Value;
 use std::path::PathBuf;

@@ -100,7 +100,7 @@ fn align_refuses_to_write_over_its_inputs() {
     ]));
     assert_refused(run, &d.join("sub/../q.png"), "named twice");
     assert!(!png.exists());
-    // Other outputs are written as before.
+    // Distinct outputs are written.
     let aligned = d.join("aligned.fits");
     let (code, _, stderr) = sunjitter(&args(&[
         &"align",

@@ -1,8 +1,8 @@
 //! `sunjitter simulate` through the real binary: the paper's Monte Carlo on a small real image.
 //!
 //! Truth: each trial's injected similarity (the command compares its estimates with it). A few
-//! trials on the 128² AIA image keep this fast; the bounds below are set from measurements
-//! (seed 1, the default) with margin, and sit far below what a broken engine produces.
+//! trials on the 128² AIA image keep this fast; the bounds below are set from the results at
+//! seed 1 (the default) with margin, and sit far below what a broken engine produces.
 
 use serde_json::Value;
 use std::process::Command;
@@ -100,11 +100,11 @@ fn monte_carlo_recovers_random_similarities_on_a_real_image() {
     let sim = &doc["similarity_trials"];
     check_summary(sim, 4);
     let rmse = |p: &str| num(&sim[p]["rmse"]);
-    // Measured (seed 1): scale 4.9e-5, rotation 9.0″, dx 0.0003 px, dy 0.0007 px; over seeds
+    // This run (seed 1): scale 4.9e-5, rotation 9.0″, dx 0.0003 px, dy 0.0007 px; over seeds
     // 1–6 at most 4.9e-5, 12.6″, 0.0009, 0.0007 px. The bounds leave 4–5× margin over the
     // worst seed; a broken engine lands beyond them: a shift convention or sign error gives
     // RMSE of px (shifts are up to ±5 px), a Farneback-like 3 % gain on those shifts 0.09 px,
-    // the flow's answer without the refinement 0.01 px (session 5's engine), a rotation left
+    // the flow's answer without the refinement (`refine` off) 0.01 px, a rotation left
     // out or of the wrong sign 1200–2400″ (rotations up to ±0.01 rad = ±2063″), an inverted
     // scale 6e-3.
     assert!(rmse("dx_px") < 0.004, "dx RMSE {}", rmse("dx_px"));
@@ -117,7 +117,7 @@ fn monte_carlo_recovers_random_similarities_on_a_real_image() {
     );
 
     // Translation-only trials: optical flow against the cross-correlation baseline on the
-    // same frames. Measured (seed 1): flow 0.0006 / 0.0002 px, CC 0.027 / 0.046 px; seeds
+    // same frames. This run (seed 1): flow 0.0006 / 0.0002 px, CC 0.027 / 0.046 px; seeds
     // 1–6 at most 0.0007 px for the flow, at least 0.019 px for CC.
     let tr = &doc["translation_trials"];
     check_summary(tr, 2);
@@ -132,7 +132,7 @@ fn monte_carlo_recovers_random_similarities_on_a_real_image() {
 }
 
 /// The paper's noise variant: Gaussian noise of K × the background σ must make every σ grow
-/// with K (measured on this image, K = 0 / 3 / 10: rotation 10.8″ / 12.2″ / 23.3″, the others
+/// with K (on this image, K = 0 / 3 / 10: rotation 10.8″ / 12.2″ / 23.3″, the others
 /// 1.3–1.5× then 2.1–2.5×), and σ must still cover the errors.
 #[test]
 fn added_noise_makes_the_sigmas_grow() {
@@ -162,7 +162,7 @@ fn added_noise_makes_the_sigmas_grow() {
 
 /// `--shared-noise`, the paper's wording: the noise goes into the image before it is
 /// transformed, so the frame is an exact transform of the noisy reference and nothing but the
-/// noise's interpolation stands between them. Measured (seed 1, K = 10): dx / dy RMSE 0.0007 /
+/// noise's interpolation stands between them. With seed 1, K = 10: dx / dy RMSE 0.0007 /
 /// 0.0007 px, as without noise (0.0003 / 0.0007), against 0.0043 / 0.0032 px with independent
 /// noise of the same σ.
 #[test]

@@ -3,9 +3,9 @@
 //!
 //! A real frame is a new sampling of the sky, not the flow's quintic resampling of the
 //! reference, and on undersampled images the two move structure differently. The flow's σ
-//! (the scatter of its vectors) cannot see that. Between channels, EIT 171 128² moved by
-//! known similarities came back up to 4.7σ off in translation (frames made by scipy's cubic
-//! spline), and band-limited shifts of it up to 3.7σ. So, as the refinement does, every such
+//! (the scatter of its vectors) cannot see that. Between channels, on EIT 171 128² moved by
+//! known similarities, the flow's translation is up to 4.7σ off (frames made by scipy's cubic
+//! spline), and up to 3.7σ on band-limited shifts of it. So, as the refinement does, every such
 //! frame is checked. A frame is made from the reference through the measured transform, with
 //! its shift reduced to the fractional part, by a cubic spline (one order below the flow's
 //! model; band-limited frames lie on the model's other side, nearer). The flow then measures

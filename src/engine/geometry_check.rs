@@ -73,7 +73,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
 /// headers claim the same geometry (one instrument's series, one stale header):
 /// - no disk seen in the frame (noise or a data gap can hide it): corrected as the
 ///   reference was; a frame corrected while its reference is not would put the header's
-///   error into the coarse transform (measured: EIT 128² pairs under noise, coarse scale 0.13);
+///   error into the coarse transform (EIT 128² pairs under noise: coarse scale 0.13);
 /// - both corrected, with radii that agree within [`RADIUS_TOLERANCE`]: the reference's plate
 ///   scale and the frame's own centre. Two noisy radius measurements of one instrument would
 ///   otherwise differ by a few tenths of a percent, and that difference would be taken as a

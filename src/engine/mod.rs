@@ -4,7 +4,7 @@
 //! estimate, measure the residual motion with dense flow, fit a similarity to grid-median
 //! vectors with RANSAC, compose, repeat until the update is negligible. Iterating drives the
 //! residual motion towards zero, where the flow's gain errors (a window measures a little
-//! less than the true rotation or scale) no longer matter; the σ come from the last pass.
+//! less than the true rotation or scale) do not matter; the σ come from the last pass.
 
 pub mod output;
 pub mod quality;
@@ -93,8 +93,8 @@ pub struct EngineConfig {
     /// Final direct intensity refinement (Gauss–Newton on the RANSAC-inlier cells).
     pub refine: RefineMode,
     /// Gaussian σ applied to both images before the refinement, px: it takes the
-    /// interpolation error of sharp structure out of the match (measured on the TRACE Monte
-    /// Carlo: 0.7 px is best under noise and 5× better than none without noise).
+    /// interpolation error of sharp structure out of the match (on the TRACE Monte Carlo,
+    /// docs/ACCURACY.md: 0.7 px is best under noise and 5× better than none without noise).
     pub refine_smoothing_px: f64,
     /// Further Gaussian σ of the reference whose gradient weighs the refinement's residuals, px.
     pub refine_gradient_smoothing_px: f64,
@@ -223,7 +223,7 @@ struct ReferenceWork {
     notes: Vec<String>,
     cleaned: Array2<f32>,
     mask: Array2<bool>,
-    /// Why the mask cannot be used (raised after the frame's own checks, as before caching).
+    /// Why the mask cannot be used (raised after the frame's own checks).
     mask_error: Option<String>,
     mask_box: Roi,
     winsize: usize,
@@ -484,7 +484,7 @@ fn align_inner(
         let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
         // Between channels the limb is no common structure: each channel brightens towards it by
         // its own amount and shows it at its own height (EIT 171 and 195, one telescope, fit
-        // disks 2.3 % apart). Windows that reach it measured that as a scale change (EIT 195 →
+        // disks 2.3 % apart). Windows that reach it read that as a scale change (EIT 195 against
         // 171: 0.9927 ± 0.0020, 3.7σ from 1; with the windows clear of it 0.9975 ± 0.0038).
         let limb_clear = match work.reference_check.disk_px {
             Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
@@ -607,8 +607,8 @@ fn align_inner(
                 // A flow still moving by more than its σ when its passes ran out is mostly
                 // converging slowly: weak or noisy structure lowers its gain, and each pass
                 // recovers only part of what is left. More passes, then the refinement again
-                // (LASCO C3 102² at 3× noise, 30 pairs: 26 `ok` and 4 `degraded`, all within
-                // 3.04σ, against 14 `ok`, 13 `degraded` with 7 up to 9.3σ off, and 3 `failed`).
+                // (tests/data/lasco_c3_noisy_drift: `ok` after 12 passes, within 1.7σ; stopped
+                // after 4 passes it would be `degraded`, its rotation 7.3σ off).
                 // Only here: on real frames that the refinement accepts after the first passes,
                 // more passes can wander off (IRIS 1400 frames 22–24 under a brightening).
                 if fine.unsettled_px.is_some() {
@@ -631,8 +631,8 @@ fn align_inner(
                     refine_note = Some(rejected.note);
                     refinement_ran_off = rejected.ran_off;
                     // Two measurements of one motion that disagree beyond their σ: the flow's
-                    // answer stays, and its σ grow to cover the refinement's (LASCO C3 with noise:
-                    // the flow 8σ off, the rejected refinement right).
+                    // answer stays, and its σ grow to cover the refinement's (on LASCO C3 pairs
+                    // under noise the flow can be 8σ off and the rejected refinement right).
                     if let Some(refined) = rejected.disagreeing {
                         let (a, b) = (fine.transform.params(), refined.params());
                         for k in 0..4 {
@@ -738,16 +738,15 @@ fn align_inner(
                 reasons.push(format!("low histogram similarity {s:.3}"));
             }
         }
-        // A flow that needed more than `max_passes`, or was still moving when its passes ran out,
-        // had a low gain. With weak common structure, or a flow field most of which fits no one
+        // A flow that needs more than `max_passes`, or is still moving when its passes run out,
+        // has a low gain. With weak common structure, or a flow field most of which fits no one
         // similarity, it may also settle on a wrong match far outside its σ, or stop short of the
-        // right one (LASCO C3 102² at 3× noise: 7 of 30 pairs `degraded` 3.4–9.3σ off after 4
-        // passes, one settled on a 3.6° rotation, 26σ off; HMI 100² with a zero-filled sky: one
-        // settled after extra passes with 177/380 inliers, 18σ off). Without the refinement's
-        // confirmation there is no reliable answer. Nor when the flow settled but the refinement
-        // from its answer ran off: then both checks of that answer fail (HMI 100² with a zero
-        // sky: two flows settled within 4 passes at almost no motion, 164–174/375 inliers, 26–27σ
-        // from the truth, and the refinement from there left the frame or went singular).
+        // right one (tests/data/lasco_c3_noisy_false_match: a −3.6° rotation, 26σ off;
+        // tests/data/hmi_zero_sky_false_match: near no motion, 27σ off in dx). Without the
+        // refinement's confirmation there is no reliable answer. Nor when the flow settles but
+        // the refinement from its answer runs off: then both checks of that answer fail (HMI 100²
+        // with a zero sky has pairs whose flow settles within 4 passes near no motion, 26–27σ
+        // from the truth, and the refinement from there leaves the frame or goes singular).
         let slow_flow = fine.unsettled_px.is_some() || fine.passes > cfg.max_passes.max(1);
         let weak = correlation
             .filter(|&c| c < cfg.min_correlation)
@@ -938,9 +937,9 @@ struct FlowRegion<'a> {
 /// window, the polynomial expansion's reach (`poly_n` px each side, as in OpenCV) and two
 /// strides of the affine grid. A point's flow is interpolated from the nodes around it, one
 /// stride; and each iteration of the solver reads the previous flow across the window, so the
-/// dependence reaches further. Measured on AIA 171 128² between channels, with the frame's limb
-/// made twice as bright (6 pairs): with one stride the scale came back 2.2e-4 short (1.65σ),
-/// with two 4.2e-5, and the bias keeps falling with the margin (6e-6 at 10 px more).
+/// dependence reaches further. On AIA 171 128² between channels, with the frame's limb made
+/// twice as bright (6 pairs), one stride leaves the scale 2.2e-4 short (1.65σ), two 4.2e-5,
+/// and the bias keeps falling with the margin (6e-6 at 10 px more).
 fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
     (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
 }
@@ -961,8 +960,8 @@ fn fine_alignment(
     let mask = region.mask;
     let center = Similarity::array_center(w, h);
     // The refinement's model, so that the two answers share no interpolation bias the other
-    // lacks (with a cubic spline here, a band-limited 0.25 px TRACE shift came back 9.6e-4 px
-    // off from the flow and 7e-5 px from the refinement: 7.5σ apart).
+    // lacks (with a cubic spline here, the flow's answer on tests/data/trace_fourier_shift is
+    // 9.6e-4 px off and the refinement's 7e-5 px: 7.5σ apart).
     let spline = HighOrderSpline::new(frame.view(), refine::MODEL);
     let roi = mask_roi(mask);
     let levels = cfg
@@ -1131,7 +1130,8 @@ fn fine_alignment(
             let zero = [[0.0; 4]; 4];
             let (_, mut cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
             // Still moving when the passes ran out: the last step is a measure of how far
-            // from settled the answer is (HMI 100² with a zero-filled sky wandered by pixels).
+            // from settled the answer is (on HMI 100² with a zero-filled sky it wanders by
+            // pixels).
             let sigma_xy = sigmas(&cov)[2].hypot(sigmas(&cov)[3]);
             let unsettled_px = (!converged && moved > sigma_xy).then_some(moved);
             spare_solver(solver.take());
@@ -1323,16 +1323,16 @@ fn mask_roi(mask: &Array2<bool>) -> Roi {
 
 /// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
 /// memory grow with the pixel count while the refinement only needs a start near its answer:
-/// on 4096² synthetic pairs a seed on 4× binned copies (750 px) gave the same refined answer
+/// on 4096² synthetic pairs a seed on 4× binned copies (750 px) gives the same refined answer
 /// to 2e-5 px as one at full resolution. Not less: on TRACE 1024² a seed on 2× binned copies
-/// (512 px) moved the refined dy by about 1e-4 px (2σ) — the refinement's reweighting settles
+/// (512 px) moves the refined dy by about 1e-4 px (2σ) — the refinement's reweighting settles
 /// on slightly different weights from a coarser start. And a seed that converged on its level,
 /// not one pass: on undersampled images the refinement's answer depends on its start (AIA 171
 /// 128²: 40″ rotation RMSE from a one-pass seed, 9″ from the converged flow).
 const SEED_EXTENT_PX: usize = 700;
 
 /// How far a seed on `level` may be from the full-resolution flow, px: the RMS flow error of
-/// a level-1 finish on TRACE 1024² warps was 0.05–0.06 px (0 at full resolution).
+/// a level-1 finish on TRACE 1024² warps is 0.05–0.06 px (0 at full resolution).
 fn seed_slack_px(level: usize) -> f64 {
     0.05 * ((1usize << level.min(16)) - 1) as f64
 }

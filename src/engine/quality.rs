@@ -90,7 +90,7 @@ pub fn normalised_cross_correlation(
 /// not dominated by a few bright pixels: on low-count IRIS 1400 frames where one exposure holds
 /// a brightening (frames 4 and 5 of the bundled cube) the high-pass Pearson correlation is
 /// −0.03 while the rank correlation is 0.53, as for the neighbouring pairs (0.53, 0.53; scipy
-/// `spearmanr`, measured); unrelated and flipped images still give about 0.
+/// `spearmanr`); unrelated and flipped images still give about 0.
 pub fn rank_correlation(
     a: ArrayView2<f32>,
     b: ArrayView2<f32>,

@@ -266,7 +266,7 @@ struct Pixel {
 /// convergence matters (AIA 171 128²: 16″ rotation RMSE after three, 8″ after ten; on TRACE
 /// the reweighted estimate still moves by half of its previous step each time), but on real
 /// pairs with evolving structure it never settles (IRIS 1400, four minutes apart: the estimate
-/// wandered by its σ for as long as the weights changed); from then on Gauss–Newton converges.
+/// wanders by its σ for as long as the weights change); with them fixed Gauss–Newton converges.
 const REWEIGHTED_ITERATIONS: usize = 10;
 
 /// Least `Σψ′/Σw` the covariance uses (0.83 for Gaussian residuals; lower with heavy tails):
@@ -292,10 +292,11 @@ fn gradient(img: &ArrayView2<f32>, x: usize, y: usize) -> (f64, f64) {
 /// weight costs precision) and, for the gain, the mean of the reference's four neighbours.
 /// Neither involves the pixel's own noise, nor the frame's: weighing the gain equation with the
 /// noisy warped value itself biases the gain low (errors in variables, −2e-3 at 3× TRACE's
-/// background noise), and through the gain's coupling with the geometry, the scale. Its slope, which both the Newton step and the covariance need, is
-/// `A = Σ w·J_ref·J_frameᵀ` with the warped frame's own gradient: with noisy images
-/// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (measured: by 2×
-/// at 3× TRACE's background noise), which would halve the σ and slow convergence.
+/// background noise), and through the gain's coupling with the geometry, the scale. Its slope,
+/// which both the Newton step and the covariance need, is `A = Σ w·J_ref·J_frameᵀ` with the
+/// warped frame's own gradient: with noisy images
+/// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (by 2× at 3×
+/// TRACE's background noise), which would halve the σ and slow convergence.
 pub fn refine(
     reference: &RefineReference,
     frame: &FrameWindow,
@@ -399,7 +400,7 @@ pub fn refine(
         }
         // The pixels were chosen to map inside the frame from the start: most of them
         // leaving it means the iterations ran away from the start (HMI 100² with a zero sky:
-        // from a flow 4.5 px off, the gain went negative and the estimate left the frame).
+        // from a flow 4.5 px off, the gain turns negative and the estimate leaves the frame).
         let inside = sampled
             .par_iter()
             .filter(|s| s.iter().all(|v| v.is_finite()))
@@ -416,7 +417,7 @@ pub fn refine(
             .zip(&sampled)
             .for_each(|((r, p), s)| *r = p.value - gain * s[0] - offset);
         // Iteratively reweighted for the first iterations, then with the weights frozen: on
-        // real pairs (IRIS 1400 frames four minutes apart) reweighting every step kept the
+        // real pairs (IRIS 1400 frames four minutes apart) reweighting every step keeps the
         // estimate wandering by about its σ, while with fixed weights Gauss–Newton converges.
         if iterations <= REWEIGHTED_ITERATIONS {
             scale = robust_sigma(&residuals)
@@ -526,7 +527,7 @@ pub fn refine(
             // The estimate's sensitivity to the data is that of the M-estimator `Σ ψ(r)·J = 0`
             // (the weights were set by these residuals): the slope weighs by ψ′, not by w.
             // Huber's scalar form, `w · Σψ′/Σw`, because per pixel ψ′ turns negative beyond
-            // 0.45 c and made the slope of small images nearly singular (EIT 128²: a few
+            // 0.45 c and makes the slope of small images nearly singular (EIT 128²: a few
             // trials' σ 30× too large).
             let psi_ratio = (sum_psi / sum_w).clamp(MIN_PSI_RATIO, 1.0);
             let fits = ClusterFit {
@@ -649,7 +650,7 @@ impl RefineReference {
 /// The refinement's model of the frame between its samples: a quintic B-spline. A real frame
 /// is a new sampling of the sky, band-limited by the optics, and a spline moves structure near
 /// the Nyquist frequency differently from it: for a Fourier (band-limited) shift of TRACE
-/// 1024², the cubic spline's answer was 3–6e-4 px off, the quintic's about 4× less
+/// 1024², the cubic spline's answer is 3–6e-4 px off, the quintic's about 4× less
 /// (`tools/other_instruments/fourier_shifts.py`). It costs 36 taps per sample against 16.
 pub(crate) const MODEL: HighOrder = HighOrder::Quintic;
 
@@ -819,7 +820,7 @@ struct ClusterFit<'a> {
 /// pulls the fit towards itself and its residuals look smaller than its errors. The slope
 /// must follow ψ′ = (1 − u²)(1 − 5u²), not the weight w = (1 − u²)²: the weights follow the
 /// residuals, and for Gaussian residuals E[w]/E[ψ′] = 1.21, the σ deficit the noisy Monte
-/// Carlo showed with `w` (RMS of error/σ 1.20–1.25). `None` with fewer than 8 blocks.
+/// Carlo shows with `w` (RMS of error/σ 1.20–1.25). `None` with fewer than 8 blocks.
 fn cluster_covariance(
     blocks: &std::collections::BTreeMap<usize, BlockSums>,
 ) -> Option<(Matrix6<f64>, usize)> {
@@ -1183,8 +1184,8 @@ pub fn apply(
     let mut note = String::new();
     // What the agreement test below weighs: the σ with the floor but not the interpolation
     // check. The check bounds how far the model may be from frames made otherwise; taken as
-    // agreement, it let a cubic model's refinement 9e-3 px off replace a flow 2e-3 px off (HMI
-    // continuum, 8-bit, Fourier-shifted).
+    // agreement, it would let a cubic model's refinement 9e-3 px off replace a flow 2e-3 px off
+    // (HMI continuum, 8-bit, Fourier-shifted).
     let mut agreement_cov = cov;
     if cfg.sigma == super::SigmaMethod::Calibrated {
         // The method's systematic floor for this reference, measured once per reference;
@@ -1226,8 +1227,8 @@ pub fn apply(
             }
         }
         // Both measure the interpolation error beyond the σ: the floor as a typical frame's,
-        // this frame's transform as it is. Summed, they counted it twice (EIT 171 128²: 97 %
-        // of trials within 1σ in scale); the larger stands.
+        // this frame's transform as it is. Summed, they count it twice (EIT 171 128²: 97 % of
+        // trials within 1σ in scale); the larger stands.
         match floor {
             Some(f) => {
                 for (k, b) in f.iter().enumerate() {
@@ -1386,8 +1387,8 @@ struct BlurMatch {
 /// The fit's standard error understates the blur difference's: neighbouring frequency bins
 /// are correlated through the window.
 const BLUR_SIGMA_UNDERSTATEMENT: f64 = 2.0;
-/// And the spectra carry errors proportional to it: a 0.8 px Gaussian on the TRACE crop read
-/// 0.629 px² for 0.640, and one on a copy with its noise blurred too read 2–3 % over.
+/// And the spectra carry errors proportional to it: a 0.8 px Gaussian on the TRACE crop reads
+/// 0.629 px² for 0.640, and one on a copy with its noise blurred too reads 2–3 % over.
 const BLUR_SYSTEMATIC_FRACTION: f64 = 0.03;
 
 /// What a blur left unmatched by `mismatch_px2` does to the answer, per parameter: a frame
@@ -1540,9 +1541,9 @@ impl<M: Fn(f64, f64) -> (f64, f64)> RefinementRegion<'_, M> {
 
 /// Side of the region the interpolation check refines, px: its synthetic frame is dense, so
 /// on large images it runs on the central part only (4096²: 0.07 s, where the whole field
-/// would take about 1 s, against 0.57 s for the rest of a frame's alignment). Less of the field means less averaging of the
-/// error over sub-pixel positions when the frame is rotated or scaled: a larger term, not a
-/// smaller one.
+/// would take about 1 s, against 0.57 s for the rest of a frame's alignment). Less of the
+/// field means less averaging of the error over sub-pixel positions when the frame is rotated
+/// or scaled: a larger term, not a smaller one.
 const CHECK_MAX_SIDE: usize = 1024;
 
 /// The pixels inside the `side`×`side` square at the centre of `bbox` (all of them when the
@@ -1570,12 +1571,12 @@ fn central_pixels(
 /// reference through `transform` with a cubic spline (see [`FrameMaker::CubicSpline`]) is
 /// refined from the exact answer on the same pixels. The error depends on the sub-pixel
 /// positions the pixels land on. When they are nearly the same across the field (a shift with
-/// little rotation or scale change: pointing jitter), it does not average out. On TRACE 1024²,
-/// a band-limited (Fourier) shift of 0.25 px came back 7e-5 px off with the quintic model;
-/// this check says 4.2e-4 (a cubic-spline frame's error, which bounds it); without such a term
-/// the cubic model's σ had been 20× short of its 5.4e-4 px error. The shift is reduced to its
-/// fractional part (same sub-pixel positions), so that the synthetic frame stays inside the
-/// reference. `None` when the check cannot run.
+/// little rotation or scale change: pointing jitter), it does not average out. On
+/// tests/data/trace_fourier_shift the quintic model's answer is 7e-5 px off; this check says
+/// 4.2e-4 (a cubic-spline frame's error, which bounds it); a cubic model's σ without such a
+/// term is 20× short of its 5.4e-4 px error. The shift is reduced to its fractional part (same
+/// sub-pixel positions), so that the synthetic frame stays inside the reference. `None` when
+/// the check cannot run.
 fn interpolation_check(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
@@ -1604,8 +1605,9 @@ fn interpolation_check(
 
 /// The method's systematic floor for a reference: per parameter, the RMS of the self-test
 /// errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
-/// `mask`, beyond the σ those refinements reported themselves (quadratic excess). The error depends on the sub-pixel positions the pixels land on, so the cases
-/// spread the shift over the unit square and rotate and scale the lever arm by a fraction of a
+/// `mask`, beyond the σ those refinements reported themselves (quadratic excess). The error
+/// depends on the sub-pixel positions the pixels land on, so the cases spread the shift over
+/// the unit square and rotate and scale the lever arm by a fraction of a
 /// pixel (which varies the positions across the image); their RMS is the typical error of a
 /// frame, whatever its own transform. `None` when a case fails.
 pub fn self_test_floor(
@@ -1670,7 +1672,7 @@ pub fn self_test_floor(
         flat.extend(test.flat_sigma);
     }
     // Only the error the residuals do not already show: without noise the cluster covariance
-    // is made of these same interpolation residuals, and counting both overstated the σ
+    // is made of these same interpolation residuals, and counting both overstates the σ
     // (TRACE 1024², no noise: 86–95 % of trials within 1σ).
     Some(SelfTest {
         floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()),

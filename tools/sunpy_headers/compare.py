@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Run `sunjitter info F --json` and `sunjitter info F` on every file in truth.json, compare
-each field with sunpy's truth (tolerances from the brief), and print disagreements.
+each field with sunpy's truth (the tolerances of tests/info.rs), and print disagreements.
 Writes results.json (raw sunjitter output, rc, stderr and the list of disagreements per file).
 """
 import json, subprocess, math, sys
