@@ -154,6 +154,10 @@ pub trait Aligner: Send + Sync {
     fn usable_as_reference(&self, _image: &Image) -> std::result::Result<(), String> {
         Ok(())
     }
+    /// The plate scale alignments to `image` use (arcsec/px; by default the header's).
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        Some(image.meta.plate_scale_arcsec)
+    }
 }
 
 /// Where records go: the MCAP sink in production. Called from the one writer thread.
@@ -304,6 +308,13 @@ impl Aligner for EngineAligner {
 
     fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
         crate::engine::usable_as_reference(image)
+    }
+
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        self.prepared(image)
+            .geometry()
+            .map(|g| g.plate_scale_arcsec)
+            .or(Some(image.meta.plate_scale_arcsec))
     }
 }
 
@@ -729,6 +740,9 @@ impl StepContext for JobContext {
     }
     fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
         self.aligner.usable_as_reference(image)
+    }
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        self.aligner.plate_scale_used(image)
     }
     fn load(&self, spec: &FrameSpec) -> Result<Image> {
         self.reader.read_frame(spec)
@@ -1626,7 +1640,7 @@ pub fn read_history(out: &Path) -> Result<History> {
         let change = ReferenceChange {
             channel: c.channel.clone(),
             file: c.file.clone(),
-            frame: c.frame,
+            cube_frame: c.cube_frame,
             obs_time: c.obs_time.clone(),
             reason: c.reason.clone(),
             reference_kind: c.reference_kind.clone(),
@@ -1638,6 +1652,7 @@ pub fn read_history(out: &Path) -> Result<History> {
             chained_dy_px: None,
             chained_covariance: None,
             chain_center_px: None,
+            chain_plate_scale_arcsec: None,
         };
         history.add(&Record::Reference {
             change: Box::new(change),
@@ -1725,7 +1740,7 @@ impl McapRecordSink {
         crate::sink::ReferenceChange {
             channel: change.channel.clone(),
             file: change.file.clone(),
-            frame: change.frame,
+            cube_frame: change.cube_frame,
             obs_time: change.obs_time.clone(),
             reason: change.reason.clone(),
             reference_kind: change.reference_kind.clone(),

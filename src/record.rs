@@ -87,10 +87,20 @@ pub struct FrameAlignment {
     pub reference_kind: String,
     pub chained_dx_px: Option<f64>,
     pub chained_dy_px: Option<f64>,
+    /// `chained_dx_px`, `chained_dy_px` times the plate scale the alignments to the chain's
+    /// origin (its first reference) used, arcsec.
+    #[serde(default)]
+    pub chained_dx_arcsec: Option<f64>,
+    #[serde(default)]
+    pub chained_dy_arcsec: Option<f64>,
     pub chained_rotation_arcsec: Option<f64>,
     pub chained_scale: Option<f64>,
     pub sigma_chained_dx_px: Option<f64>,
     pub sigma_chained_dy_px: Option<f64>,
+    #[serde(default)]
+    pub sigma_chained_dx_arcsec: Option<f64>,
+    #[serde(default)]
+    pub sigma_chained_dy_arcsec: Option<f64>,
     pub sigma_chained_rotation_arcsec: Option<f64>,
     pub sigma_chained_scale: Option<f64>,
     /// Beyond the contract (additive): checksum of the pixels that were aligned, as read

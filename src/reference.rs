@@ -140,15 +140,25 @@ pub struct ChannelPolicy {
 pub struct Chain {
     pub transform: Similarity,
     pub covariance: Option<Cov4>,
+    /// The plate scale (x, y; arcsec/px) alignments to the origin use: the origin grid's,
+    /// in which the chained shifts are expressed.
+    pub plate_scale_arcsec: Option<[f64; 2]>,
 }
 
 impl Chain {
     /// The chain of an origin: identity about its own centre, exactly known.
-    pub fn origin(center: [f64; 2]) -> Chain {
+    pub fn origin(center: [f64; 2], plate_scale_arcsec: Option<[f64; 2]>) -> Chain {
         Chain {
             transform: Similarity::identity(center),
             covariance: Some([[0.0; 4]; 4]),
+            plate_scale_arcsec,
         }
+    }
+
+    /// `chained_dx_px`, `chained_dy_px` in arcsec.
+    pub fn shift_arcsec(&self) -> Option<[f64; 2]> {
+        let p = self.plate_scale_arcsec?;
+        Some([self.transform.dx * p[0], self.transform.dy * p[1]])
     }
 
     /// `step ∘ self`, with first-order covariance propagation (see the module docs).
@@ -160,11 +170,13 @@ impl Chain {
                 Chain {
                     transform,
                     covariance: Some(cov),
+                    plate_scale_arcsec: self.plate_scale_arcsec,
                 }
             }
             _ => Chain {
                 transform: step.after(&self.transform),
                 covariance: None,
+                plate_scale_arcsec: self.plate_scale_arcsec,
             },
         }
     }
@@ -184,9 +196,10 @@ impl Chain {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReferenceChange {
     pub channel: String,
-    /// The new reference's file, and its frame within a cube.
+    /// The new reference's file, and its frame within a cube (`frame` in older logs).
     pub file: String,
-    pub frame: Option<usize>,
+    #[serde(alias = "frame")]
+    pub cube_frame: Option<usize>,
     /// The new reference's observation time, ISO 8601 UTC.
     pub obs_time: String,
     pub reason: String,
@@ -211,12 +224,15 @@ pub struct ReferenceChange {
     /// Centre the chained transform is expressed about (the origin's array centre).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chain_center_px: Option<[f64; 2]>,
+    /// The plate scale of the chain's origin as alignments to it used it (arcsec/px).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chain_plate_scale_arcsec: Option<[f64; 2]>,
 }
 
 impl ReferenceChange {
     /// The new reference as a frame key (`FILE` or `FILE[N]`).
     pub fn key(&self) -> String {
-        frame_key(std::path::Path::new(&self.file), self.frame)
+        frame_key(std::path::Path::new(&self.file), self.cube_frame)
     }
 
     /// The chain this change recorded, if any.
@@ -231,6 +247,7 @@ impl ReferenceChange {
                 center,
             },
             covariance: self.chained_covariance,
+            plate_scale_arcsec: self.chain_plate_scale_arcsec,
         })
     }
 }
@@ -245,6 +262,10 @@ pub trait StepContext {
     /// Why `image` cannot start a reference, if it cannot (the aligner's requirements).
     fn usable_as_reference(&self, _image: &Image) -> Result<(), String> {
         Ok(())
+    }
+    /// The plate scale alignments to `image` use (arcsec/px; by default the header's).
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        Some(image.meta.plate_scale_arcsec)
     }
 }
 
@@ -542,7 +563,10 @@ impl ChannelState {
             .restart_reason
             .take()
             .unwrap_or_else(|| "first frame".into());
-        let chain = Chain::origin(image_center(&frame.image));
+        let chain = Chain::origin(
+            image_center(&frame.image),
+            ctx.plate_scale_used(&frame.image),
+        );
         let slot = RefSlot::from_frame(frame, Some(chain));
         self.install(slot, frame, sequence, reason, records);
         self.candidate = None;
@@ -722,7 +746,10 @@ impl ChannelState {
                 match slot.image(ctx) {
                     Ok(image) => {
                         slot.obs_time_ns = image.meta.obs_time_ns.unwrap_or(frame.obs_time_ns);
-                        slot.chain = Some(Chain::origin(image_center(&image)));
+                        slot.chain = Some(Chain::origin(
+                            image_center(&image),
+                            ctx.plate_scale_used(&image),
+                        ));
                         records.push(self.change_record(
                             &slot,
                             frame,
@@ -853,7 +880,7 @@ impl ChannelState {
         let change = ReferenceChange {
             channel: self.name.clone(),
             file: crate::text::path(&slot.spec.path).into_owned(),
-            frame: slot.spec.frame,
+            cube_frame: slot.spec.frame,
             obs_time: iso8601_utc(slot.obs_time_ns),
             reason,
             reference_kind: self.policy.policy.kind().into(),
@@ -865,6 +892,7 @@ impl ChannelState {
             chained_dy_px: chain.map(|c| c.transform.dy),
             chained_covariance: chain.and_then(|c| c.covariance),
             chain_center_px: chain.map(|c| c.transform.center),
+            chain_plate_scale_arcsec: chain.and_then(|c| c.plate_scale_arcsec),
         };
         Record::Reference {
             change: Box::new(change),
@@ -957,6 +985,11 @@ impl ChannelState {
         records: &mut Vec<Record>,
     ) -> Emitted {
         let sig = chain.and_then(|c| c.sigmas());
+        let arcsec = chain.and_then(|c| c.shift_arcsec());
+        let plate = chain.and_then(|c| c.plate_scale_arcsec);
+        let sig_arcsec = sig
+            .zip(plate)
+            .map(|(s, p)| [s[2] * p[0].abs(), s[3] * p[1].abs()]);
         let message = FrameAlignment {
             align,
             channel: self.name.clone(),
@@ -965,10 +998,14 @@ impl ChannelState {
             reference_kind: kind.into(),
             chained_dx_px: chain.map(|c| c.transform.dx),
             chained_dy_px: chain.map(|c| c.transform.dy),
+            chained_dx_arcsec: arcsec.map(|a| a[0]),
+            chained_dy_arcsec: arcsec.map(|a| a[1]),
             chained_rotation_arcsec: chain.map(|c| c.transform.rotation_arcsec()),
             chained_scale: chain.map(|c| c.transform.scale),
             sigma_chained_dx_px: sig.map(|s| s[2]),
             sigma_chained_dy_px: sig.map(|s| s[3]),
+            sigma_chained_dx_arcsec: sig_arcsec.map(|s| s[0]),
+            sigma_chained_dy_arcsec: sig_arcsec.map(|s| s[1]),
             sigma_chained_rotation_arcsec: sig.map(|s| s[1] * ARCSEC_PER_RAD),
             sigma_chained_scale: sig.map(|s| s[0]),
             pixel_checksum: None,
@@ -982,12 +1019,18 @@ impl ChannelState {
 }
 
 /// The chain of a frame aligned by `outcome` to a reference whose chain is `ref_chain`.
+/// A chain restored from a log that does not give its origin's plate scale takes the one the
+/// alignment to its reference used (one instrument's series: the same, within the disk fit).
 fn chain_after(ref_chain: Option<&Chain>, outcome: &AlignOutcome) -> Option<Chain> {
     let step = outcome.transform.as_ref()?;
     if outcome.result.status == Status::Failed {
         return None;
     }
-    Some(ref_chain?.then(step, outcome.covariance.as_ref()))
+    let mut chain = ref_chain?.then(step, outcome.covariance.as_ref());
+    if chain.plate_scale_arcsec.is_none() {
+        chain.plate_scale_arcsec = outcome.reference_geometry.map(|g| g.plate_scale_arcsec);
+    }
+    Some(chain)
 }
 
 /// The chain a message carries (diagonal covariance only: messages hold σ, not correlations).
@@ -1016,9 +1059,25 @@ fn chain_from_message(m: &FrameAlignment, center: Option<[f64; 2]>) -> Option<Ch
         }
         _ => None,
     };
+    // The message gives the plate scale as the ratio of its arcsec to its px values.
+    let ratio = |pairs: [(Option<f64>, Option<f64>); 2]| {
+        pairs.into_iter().find_map(|(a, p)| match (a?, p?) {
+            (a, p) if p != 0.0 && (a / p).is_finite() => Some(a / p),
+            _ => None,
+        })
+    };
+    let plate_x = ratio([
+        (m.chained_dx_arcsec, m.chained_dx_px),
+        (m.sigma_chained_dx_arcsec, m.sigma_chained_dx_px),
+    ]);
+    let plate_y = ratio([
+        (m.chained_dy_arcsec, m.chained_dy_px),
+        (m.sigma_chained_dy_arcsec, m.sigma_chained_dy_px),
+    ]);
     Some(Chain {
         transform,
         covariance,
+        plate_scale_arcsec: plate_x.zip(plate_y).map(|(x, y)| [x, y]),
     })
 }
 
@@ -1411,6 +1470,7 @@ mod tests {
         let chain = Chain {
             transform: t,
             covariance: Some(ct),
+            plate_scale_arcsec: None,
         }
         .then(&a, Some(&ca));
         let cov = chain.covariance.unwrap();
@@ -1678,7 +1738,7 @@ mod tests {
         all.push(("/d/p.fits".into(), partner_frame.clone()));
         let world = World::new(&all, diag(0.0, 0.0, SX, SX));
         // The partner frame's own chain (e.g. its keyframe series): origin → partner.
-        let partner_chain = Chain::origin(Similarity::array_center(WIDTH, HEIGHT))
+        let partner_chain = Chain::origin(Similarity::array_center(WIDTH, HEIGHT), None)
             .then(&partner_frame.truth, Some(&diag(0.0, 0.0, SX, SX)));
         let partner = PartnerFrame {
             channel: "P".into(),
@@ -1763,6 +1823,7 @@ mod tests {
                     c.chained_scale = None;
                     c.chain_center_px = None;
                     c.chained_covariance = None;
+                    c.chain_plate_scale_arcsec = None;
                     bare.add(&Record::Reference {
                         change: Box::new(c),
                         log_time_ns: *log_time_ns,
@@ -1788,5 +1849,94 @@ mod tests {
             );
             assert!((es - gs).abs() <= 1e-9 * es, "{es} vs {gs}");
         }
+    }
+
+    /// Injected: alignments to the origin use 0.6″/px along x and −0.6 along y (a flipped
+    /// axis), while every outcome claims 7″/px for its own reference. The chained series in
+    /// arcsec is the chained one in px times the origin's, through keyframe hand-overs and a
+    /// restart from a log whose `/reference` messages keep no chain.
+    #[test]
+    fn chained_arcsec_use_the_plate_scale_of_the_chains_origin() {
+        const ORIGIN: [f64; 2] = [0.6, -0.6];
+        struct Plated<'a>(&'a World);
+        impl StepContext for Plated<'_> {
+            fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+                let mut outcome = self.0.align(reference, frame);
+                if let Some(g) = outcome.reference_geometry.as_mut() {
+                    g.plate_scale_arcsec = [7.0, 7.0];
+                }
+                outcome
+            }
+            fn load(&self, spec: &FrameSpec) -> crate::Result<Image> {
+                self.0.load(spec)
+            }
+            fn plate_scale_used(&self, _image: &Image) -> Option<[f64; 2]> {
+                Some(ORIGIN)
+            }
+        }
+        let frames = series(11);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let ctx = Plated(&world);
+        let mut p = policy(PolicySpec::Keyframe);
+        p.keyframe_every_frames = 3;
+        let run_on = |state: &mut ChannelState, keys: &[String]| {
+            let mut out = Vec::new();
+            for key in keys {
+                out.extend(state.process(&world.loaded(key), None, &ctx).records);
+            }
+            out
+        };
+        let check = |m: &FrameAlignment| {
+            let pairs = [
+                (m.chained_dx_arcsec, m.chained_dx_px, ORIGIN[0]),
+                (m.chained_dy_arcsec, m.chained_dy_px, ORIGIN[1]),
+                (
+                    m.sigma_chained_dx_arcsec,
+                    m.sigma_chained_dx_px,
+                    ORIGIN[0].abs(),
+                ),
+                (
+                    m.sigma_chained_dy_arcsec,
+                    m.sigma_chained_dy_px,
+                    ORIGIN[1].abs(),
+                ),
+            ];
+            for (arcsec, px, plate) in pairs {
+                let (a, p) = (arcsec.unwrap(), px.unwrap());
+                assert!((a - p * plate).abs() <= 1e-12 * (1.0 + a.abs()), "{m:?}");
+            }
+        };
+        let mut straight = ChannelState::new("C", p.clone());
+        let all = run_on(&mut straight, &keys);
+        let msgs = messages(&all);
+        assert!(changes(&all).len() >= 3, "keyframes handed over");
+        assert!(msgs.iter().any(|m| m.chained_dx_px.unwrap().abs() > 0.1));
+        msgs.iter().for_each(|m| check(m));
+
+        let mut first = ChannelState::new("C", p.clone());
+        let before = run_on(&mut first, &keys[..5]);
+        let mut bare = crate::pipeline::History::default();
+        for r in &before {
+            match r {
+                Record::Reference {
+                    change,
+                    log_time_ns,
+                } => {
+                    let mut c = (**change).clone();
+                    c.chain_center_px = None;
+                    c.chain_plate_scale_arcsec = None;
+                    bare.add(&Record::Reference {
+                        change: Box::new(c),
+                        log_time_ns: *log_time_ns,
+                    });
+                }
+                other => bare.add(other),
+            }
+        }
+        let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
+        let after = run_on(&mut resumed, &keys[5..]);
+        assert_eq!(messages(&after).len(), 6);
+        messages(&after).iter().for_each(|m| check(m));
     }
 }

@@ -102,6 +102,16 @@ fn chained_series(frames: &Path, csv: &Path) -> Series {
         })
         .collect();
     let first = truth["synth_0000.fits"];
+    // The chain's origin is the first frame; its header's plate scale (read by cfitsio) holds
+    // (synth writes a true one, and the disk agrees).
+    let plate = {
+        let mut f = fitsio::FitsFile::open(frames.join("synth_0000.fits")).unwrap();
+        let hdu = f.primary_hdu().unwrap();
+        [
+            hdu.read_key::<f64>(&mut f, "CDELT1").unwrap(),
+            hdu.read_key::<f64>(&mut f, "CDELT2").unwrap(),
+        ]
+    };
     let rows = read_csv(csv);
     let (mut sq, mut n, mut ok, mut failed, mut sigmas) = (0.0, 0.0, 0, 0, Vec::new());
     for r in &rows {
@@ -121,6 +131,29 @@ fn chained_series(frames: &Path, csv: &Path) -> Series {
             continue;
         };
         sq += (cx - (tx - first.0)).powi(2) + (cy - (ty - first.1)).powi(2);
+        for (px, arcsec, p) in [
+            ("chained_dx_px", "chained_dx_arcsec", plate[0]),
+            ("chained_dy_px", "chained_dy_arcsec", plate[1]),
+            (
+                "sigma_chained_dx_px",
+                "sigma_chained_dx_arcsec",
+                plate[0].abs(),
+            ),
+            (
+                "sigma_chained_dy_px",
+                "sigma_chained_dy_arcsec",
+                plate[1].abs(),
+            ),
+        ] {
+            let (v, a) = (
+                r[px].parse::<f64>().unwrap(),
+                r[arcsec].parse::<f64>().unwrap(),
+            );
+            assert!(
+                (a - v * p).abs() <= 1e-9 * (1.0 + a.abs()),
+                "{arcsec} {a} vs {v} px"
+            );
+        }
         n += 2.0;
         if let Ok(s) = r["sigma_chained_dx_px"].parse::<f64>() {
             if s > 0.0 {

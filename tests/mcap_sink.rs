@@ -86,18 +86,29 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         elapsed_ms: 100.0 + rng.f(10.0),
     };
     let chained = |rng: &mut Rng, s: f64| if failed { None } else { Some(rng.f(s)) };
+    let (dx, dy) = (chained(rng, 5.0), chained(rng, 5.0));
+    let (rotation, scale) = (chained(rng, 30.0), chained(rng, 1e-3).map(|d| 1.0 + d));
+    let (sx, sy) = (
+        chained(rng, 0.02).map(f64::abs),
+        chained(rng, 0.02).map(f64::abs),
+    );
+    let arcsec = |v: Option<f64>| v.map(|v| v * 0.6);
     FrameAlignment {
         align,
         channel: channel.to_string(),
         obs_time: iso_time(times(i).0),
         sequence: i,
         reference_kind: if i == 0 { "self" } else { "keyframe" }.to_string(),
-        chained_dx_px: chained(rng, 5.0),
-        chained_dy_px: chained(rng, 5.0),
-        chained_rotation_arcsec: chained(rng, 30.0),
-        chained_scale: chained(rng, 1e-3).map(|d| 1.0 + d),
-        sigma_chained_dx_px: chained(rng, 0.02).map(f64::abs),
-        sigma_chained_dy_px: chained(rng, 0.02).map(f64::abs),
+        chained_dx_px: dx,
+        chained_dy_px: dy,
+        chained_dx_arcsec: arcsec(dx),
+        chained_dy_arcsec: arcsec(dy),
+        chained_rotation_arcsec: rotation,
+        chained_scale: scale,
+        sigma_chained_dx_px: sx,
+        sigma_chained_dy_px: sy,
+        sigma_chained_dx_arcsec: arcsec(sx),
+        sigma_chained_dy_arcsec: arcsec(sy),
         sigma_chained_rotation_arcsec: chained(rng, 0.2).map(f64::abs),
         sigma_chained_scale: chained(rng, 1e-6).map(f64::abs),
         pixel_checksum: None,
@@ -128,7 +139,7 @@ fn reference_change(i: u64) -> ReferenceChange {
     ReferenceChange {
         channel: "SJI_1400".into(),
         file: format!("/data/SJI_1400/f{i:04}.fits"),
-        frame: (i % 2 == 1).then_some(i as usize),
+        cube_frame: (i % 2 == 1).then_some(i as usize),
         obs_time: format!("2014-03-29T14:09:{:02}Z", 38 + i),
         reason: if i == 0 {
             "first frame".into()

@@ -147,6 +147,38 @@ fn replay_of_the_iris_cubes_logs_every_frame_once_in_time_order() {
         "channel:SJI_1400"
     );
     assert_eq!(configs[0]["reference"]["keyframe_every_frames"], 10);
+
+    // /reference names its reference by `file` and the cube index `cube_frame` (an integer;
+    // `frame` is a frame's name, a string, on every topic that has one).
+    let changes = on(&messages, "/reference/SJI_1400");
+    assert!(!changes.is_empty());
+    for c in &changes {
+        assert!(c.json["cube_frame"].is_u64(), "{}", c.json);
+        assert!(c.json.get("frame").is_none(), "{}", c.json);
+    }
+    // The chained series in arcsec: the px ones times the plate scale of the chain's origin
+    // (SJI 1400 frame 0: its header's 0.16635″/px, astropy; no disk to check it against).
+    // The SJI 2796 frames continue SJI 1400's chain.
+    for m in messages.iter().filter(|m| m.topic.starts_with("/jitter/")) {
+        for (px, arcsec) in [
+            ("chained_dx_px", "chained_dx_arcsec"),
+            ("chained_dy_px", "chained_dy_arcsec"),
+            ("sigma_chained_dx_px", "sigma_chained_dx_arcsec"),
+            ("sigma_chained_dy_px", "sigma_chained_dy_arcsec"),
+        ] {
+            match (m.json[px].as_f64(), m.json[arcsec].as_f64()) {
+                (Some(p), Some(a)) => {
+                    assert!(
+                        (a - 0.16635 * p).abs() <= 1e-9 * (1.0 + a.abs()),
+                        "{}",
+                        m.json
+                    )
+                }
+                (None, None) => {}
+                _ => panic!("{px} and {arcsec} disagree on null: {}", m.json),
+            }
+        }
+    }
 }
 
 #[test]

@@ -153,6 +153,20 @@ pub struct AlignOutcome {
     pub uabjm_covariance: Option<Covariance4>,
     /// The solar-disk mask used on the reference grid.
     pub mask: Option<Array2<bool>>,
+    /// The reference's geometry as the alignment used it, when it was prepared.
+    pub reference_geometry: Option<UsedGeometry>,
+}
+
+/// A reference's plate scale and Sun centre as used: the header's, or the disk-checked ones
+/// where the header disagreed with the disk the image shows.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UsedGeometry {
+    /// Arcsec per pixel along x and y, signed as the header's.
+    pub plate_scale_arcsec: [f64; 2],
+    /// Where helioprojective (0″, 0″) falls, 0-based px.
+    pub sun_center_px: [f64; 2],
+    /// Whether these differ from the header's (it was refused for the image's disk).
+    pub from_disk: bool,
 }
 
 /// What the fine stage measured.
@@ -267,6 +281,11 @@ impl PreparedReference {
         &self.cfg
     }
 
+    /// The reference's geometry as alignments to it use it; `None` when it cannot be used.
+    pub fn geometry(&self) -> Option<UsedGeometry> {
+        self.work.as_ref().ok().map(ReferenceWork::geometry)
+    }
+
     /// Align `frame` to the prepared reference.
     pub fn align(&self, frame: &Image) -> AlignOutcome {
         self.align_with(frame, self.cfg.solar_rotation)
@@ -290,12 +309,22 @@ impl PreparedReference {
         let mut outcome = result.unwrap_or_else(|reason| {
             AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
         });
+        outcome.reference_geometry = self.geometry();
         outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
         outcome
     }
 }
 
 impl ReferenceWork {
+    fn geometry(&self) -> UsedGeometry {
+        let used = &self.reference_check.meta;
+        UsedGeometry {
+            plate_scale_arcsec: used.plate_scale_arcsec,
+            sun_center_px: used.sun_center_px,
+            from_disk: self.reference_check.corrected,
+        }
+    }
+
     fn new(reference: &Image, cfg: &EngineConfig) -> Result<ReferenceWork, String> {
         let (h, w) = reference.data.dim();
         check_usable("reference", &reference.data)?;
@@ -849,6 +878,7 @@ fn align_inner(
             covariance: Some(fine.covariance),
             uabjm_covariance: Some(fine.uabjm_covariance),
             mask: Some(mask.clone()),
+            reference_geometry: Some(work.geometry()),
         })
     };
     let first = measure(coarse, carried.as_ref(), solar_rotation, notes.clone());
@@ -1650,6 +1680,7 @@ impl AlignOutcome {
             covariance: None,
             uabjm_covariance: None,
             mask: None,
+            reference_geometry: None,
         }
     }
 }
@@ -1701,5 +1732,6 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
         covariance: Some(zero),
         uabjm_covariance: Some(zero),
         mask: None,
+        reference_geometry: None,
     }
 }

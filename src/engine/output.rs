@@ -44,8 +44,114 @@ pub fn write_aligned(
         outcome,
     ));
     let comments = commentary(&frame_header, "COMMENT");
-    let cards = aligned_header_cards(&reference_cards, &frame_cards, &comments, &history);
+    let mut cards = aligned_header_cards(&reference_cards, &frame_cards, &comments, &history);
+    if let Some(used) = outcome.reference_geometry.filter(|g| g.from_disk) {
+        let note = use_checked_geometry(&mut cards, &reference.meta, &used);
+        cards.extend(
+            note.into_iter()
+                .map(|t| ("HISTORY".to_string(), HeaderValue::Str(t))),
+        );
+    }
     fits::write_image(path, aligned.view(), &cards)
+}
+
+/// Where the reference's header was refused for the disk its image shows, the alignment used
+/// the disk-checked plate scale and Sun centre: the aligned image's WCS says so too.
+/// `CDELTi` (or the columns of `CDi_j`) are scaled to the plate scale used, the reference point
+/// moves to the Sun centre used (`CRPIXi` there, `CRVALi` = 0, exact for any zenithal
+/// projection), radii in pixels (`SOLAR_R`, `R_SUN`) follow the plate scale, and cards that
+/// describe the old grid otherwise (alternate WCS, `XCEN`/`YCEN`, `FOVX`/`FOVY`, `*_MP`) go.
+/// Returns the HISTORY lines that say what was done.
+fn use_checked_geometry(
+    cards: &mut Vec<(String, HeaderValue)>,
+    header: &FrameMeta,
+    used: &super::UsedGeometry,
+) -> Vec<String> {
+    let factor = [0, 1].map(|j| {
+        let old = header.plate_scale_arcsec[j].abs();
+        if old > 0.0 {
+            used.plate_scale_arcsec[j].abs() / old
+        } else {
+            1.0
+        }
+    });
+    let has = |cards: &[(String, HeaderValue)], k: &str| cards.iter().any(|(c, _)| c == k);
+    let uses_cd = ["CD1_1", "CD1_2", "CD2_1", "CD2_2"]
+        .iter()
+        .any(|k| has(cards, k));
+    const OLD_GRID: [&str; 7] = ["XCEN", "YCEN", "FOVX", "FOVY", "X0_MP", "Y0_MP", "IMSCL_MP"];
+    cards.retain(|(k, _)| !(OLD_GRID.contains(&k.as_str()) || is_alternate_grid_key(k)));
+    let rsun = header.rsun_arcsec;
+    let old_plate = header.plate_scale_arcsec[0].abs();
+    for (key, value) in cards.iter_mut() {
+        let scaled = |v: &HeaderValue, f: f64| v.as_f64().map(|x| HeaderValue::Float(x * f));
+        let new = match key.as_str() {
+            "CDELT1" if !uses_cd => scaled(value, factor[0]),
+            "CDELT2" if !uses_cd => scaled(value, factor[1]),
+            "CD1_1" | "CD2_1" => scaled(value, factor[0]),
+            "CD1_2" | "CD2_2" => scaled(value, factor[1]),
+            "CRPIX1" => Some(HeaderValue::Float(used.sun_center_px[0] + 1.0)),
+            "CRPIX2" => Some(HeaderValue::Float(used.sun_center_px[1] + 1.0)),
+            "CRVAL1" | "CRVAL2" => Some(HeaderValue::Float(0.0)),
+            // A radius in pixels of the header's grid (its product with that plate scale is
+            // the Sun's radius in arcsec), now in pixels of the grid used.
+            "SOLAR_R" | "R_SUN" => value.as_f64().and_then(|r| {
+                let in_pixels = rsun.is_some_and(|a| (r * old_plate / a - 1.0).abs() < 0.01);
+                in_pixels.then(|| HeaderValue::Float(r / factor[0]))
+            }),
+            _ => None,
+        };
+        if let Some(new) = new {
+            *value = new;
+        }
+    }
+    for (key, value) in [
+        ("CRPIX1", used.sun_center_px[0] + 1.0),
+        ("CRPIX2", used.sun_center_px[1] + 1.0),
+        ("CRVAL1", 0.0),
+        ("CRVAL2", 0.0),
+    ] {
+        if !has(cards, key) {
+            cards.push((key.to_string(), HeaderValue::Float(value)));
+        }
+    }
+    for (j, key) in ["CDELT1", "CDELT2"].into_iter().enumerate() {
+        if !uses_cd && !has(cards, key) {
+            cards.push((key.to_string(), HeaderValue::Float(factor[j])));
+        }
+    }
+    let p = used.plate_scale_arcsec;
+    let c = used.sun_center_px;
+    vec![
+        "the reference header's disk disagreed with its image: the alignment".to_string(),
+        format!(
+            "used {:.6}, {:.6} arcsec/px (header: {:.6}, {:.6})",
+            p[0].abs(),
+            p[1].abs(),
+            header.plate_scale_arcsec[0].abs(),
+            header.plate_scale_arcsec[1].abs()
+        ),
+        format!(
+            "and Sun centre ({:.3}, {:.3}) px, 0-based (header: ({:.3}, {:.3}))",
+            c[0], c[1], header.sun_center_px[0], header.sun_center_px[1]
+        ),
+        "WCS written with these: CDELT, CRPIX at the Sun centre, CRVAL = 0".to_string(),
+    ]
+}
+
+/// An alternate description (`…A`–`…Z`) of axes 1–2.
+fn is_alternate_grid_key(key: &str) -> bool {
+    is_grid_key(key)
+        && key
+            .as_bytes()
+            .last()
+            .is_some_and(|b| b.is_ascii_uppercase())
+        && key.len() > 1
+        && {
+            let stem = &key[..key.len() - 1];
+            stem.bytes().last().is_some_and(|b| b.is_ascii_digit())
+                || ["WCSAXES", "WCSNAME", "LONPOLE", "LATPOLE", "RADESYS"].contains(&stem)
+        }
 }
 
 /// Red = reference, green + blue = frame; after coarse (header) alignment on the left, after

@@ -235,6 +235,10 @@ impl Aligner for TruthAligner {
         };
         outcome(&ref_name, &frame_name, rel, self.cov, status)
     }
+
+    fn plate_scale_used(&self, _image: &Image) -> Option<[f64; 2]> {
+        Some([1.0, 1.0])
+    }
 }
 
 /// An engine-like outcome for a known transform and covariance.
@@ -291,6 +295,12 @@ pub fn outcome(
         covariance: Some(cov),
         uabjm_covariance: Some(cov),
         mask: None,
+        // Arcsec equal pixels here (`dx_arcsec` = `dx_px`).
+        reference_geometry: Some(crate::engine::UsedGeometry {
+            plate_scale_arcsec: [1.0, 1.0],
+            sun_center_px: t.center,
+            from_disk: false,
+        }),
     }
 }
 

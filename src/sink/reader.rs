@@ -583,6 +583,47 @@ mod tests {
         }
     }
 
+    /// `/reference` messages written when the cube index was named `frame` still read (a
+    /// restart on such a log continues it).
+    #[test]
+    fn reference_changes_with_the_cube_index_named_frame_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sunjitter-20260101T000000Z-0000.mcap");
+        let old = br#"{"channel":"SJI_1400","file":"/d/sji.fits","frame":7,"obs_time":"2014-03-29T14:09:38Z","reason":"first frame","reference_kind":"keyframe","sequence":0,"replaces":null}"#;
+        {
+            let file = std::fs::File::create(&path).unwrap();
+            let mut w = mcap::WriteOptions::new()
+                .create(std::io::BufWriter::new(file))
+                .unwrap();
+            let schema = w
+                .add_schema(REFERENCE_CHANGE_SCHEMA, "jsonschema", b"{}")
+                .unwrap();
+            let channel = w
+                .add_channel(
+                    schema,
+                    "/reference/SJI_1400",
+                    MESSAGE_ENCODING,
+                    &BTreeMap::new(),
+                )
+                .unwrap();
+            let header = MessageHeader {
+                channel_id: channel,
+                sequence: 0,
+                log_time: 1,
+                publish_time: 1,
+            };
+            w.write_to_known_channel(&header, old).unwrap();
+            w.finish().unwrap();
+        }
+        let contents = read_logs(&[dir.path().to_path_buf()]).unwrap();
+        assert_eq!(contents.references.len(), 1);
+        assert_eq!(contents.references[0].change.cube_frame, Some(7));
+        // Written again, it carries the new name only.
+        let again = serde_json::to_value(&contents.references[0].change).unwrap();
+        assert_eq!(again["cube_frame"], 7);
+        assert!(again.get("frame").is_none());
+    }
+
     #[test]
     fn frame_ids_parse_cube_indexes() {
         let cube = parse_frame_id("data/sji.fits[12]");

@@ -42,8 +42,10 @@ pub struct ReferenceChange {
     pub channel: String,
     /// The new reference's file.
     pub file: String,
-    /// Frame index within a 3-D cube; `null` for a 2-D image.
-    pub frame: Option<usize>,
+    /// Frame index within a 3-D cube; `null` for a 2-D image. Logs that called it `frame` read
+    /// as well.
+    #[serde(alias = "frame")]
+    pub cube_frame: Option<usize>,
     /// The new reference's observation time, ISO 8601 UTC.
     pub obs_time: String,
     /// Why: e.g. `first frame`, `refresh after 100 frames`, `match degraded`.
@@ -284,10 +286,25 @@ pub fn frame_alignment_schema() -> Value {
     for p in ["dx_px", "dy_px", "rotation_arcsec", "scale"] {
         put(
             &format!("chained_{p}"),
-            number_or_null("Relative to the first keyframe"),
+            number_or_null("Relative to the chain's origin (the channel's first reference)"),
         );
     }
-    for p in ["dx_px", "dy_px", "rotation_arcsec", "scale"] {
+    for p in ["dx", "dy"] {
+        put(
+            &format!("chained_{p}_arcsec"),
+            number_or_null(&format!(
+                "chained_{p}_px times the plate scale the alignments to the chain's origin used"
+            )),
+        );
+    }
+    for p in [
+        "dx_px",
+        "dy_px",
+        "dx_arcsec",
+        "dy_arcsec",
+        "rotation_arcsec",
+        "scale",
+    ] {
         put(
             &format!("sigma_chained_{p}"),
             number_or_null("1-σ of the chained value"),
@@ -319,8 +336,8 @@ pub fn reference_change_schema() -> Value {
         "properties": {
             "channel": { "type": "string" },
             "file": { "type": "string", "description": "The new reference's file" },
-            "frame": { "type": "integer", "nullable": true, "minimum": 0,
-                       "description": "Frame index in a 3-D cube" },
+            "cube_frame": { "type": "integer", "nullable": true, "minimum": 0,
+                            "description": "Frame index in a 3-D cube (null for a 2-D image)" },
             "obs_time": { "type": "string", "description": "ISO 8601 UTC" },
             "reason": { "type": "string" },
             "reference_kind": { "type": "string",
@@ -330,7 +347,7 @@ pub fn reference_change_schema() -> Value {
             "replaces": { "type": "string", "nullable": true,
                           "description": "The previous reference" }
         },
-        "required": ["channel", "file", "frame", "obs_time", "reason", "reference_kind",
+        "required": ["channel", "file", "cube_frame", "obs_time", "reason", "reference_kind",
                      "sequence", "replaces"]
     })
 }
@@ -491,7 +508,7 @@ mod tests {
         let change = ReferenceChange {
             channel: "SJI_1400".into(),
             file: "a.fits".into(),
-            frame: Some(3),
+            cube_frame: Some(3),
             obs_time: "2014-03-29T14:09:38Z".into(),
             reason: "first frame".into(),
             reference_kind: "keyframe".into(),

@@ -37,17 +37,21 @@ pub const ALIGN_FIELDS: [&str; 27] = [
 ];
 
 /// A `/jitter/<channel>` message adds the stream context to the `align --json` fields.
-pub const STREAM_FIELDS: [&str; 12] = [
+pub const STREAM_FIELDS: [&str; 16] = [
     "channel",
     "obs_time",
     "sequence",
     "reference_kind",
     "chained_dx_px",
     "chained_dy_px",
+    "chained_dx_arcsec",
+    "chained_dy_arcsec",
     "chained_rotation_arcsec",
     "chained_scale",
     "sigma_chained_dx_px",
     "sigma_chained_dy_px",
+    "sigma_chained_dx_arcsec",
+    "sigma_chained_dy_arcsec",
     "sigma_chained_rotation_arcsec",
     "sigma_chained_scale",
 ];
