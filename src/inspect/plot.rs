@@ -549,13 +549,15 @@ where
         end
     };
     let caption = format!(
-        "{}: {} frames ({} ok, {} degraded, {} failed), {start} to {end} UTC, cadence {}",
+        "{}: {} frame{} ({} ok, {} degraded, {} failed), {start} to {end} UTC{}",
         r.channel,
         r.frames,
+        if r.frames == 1 { "" } else { "s" },
         r.ok,
         r.degraded,
         r.failed,
-        r.median_cadence_s.map_or("-".to_string(), duration),
+        r.median_cadence_s
+            .map_or(String::new(), |c| format!(", cadence {}", duration(c))),
     );
     let style = TextStyle::from((FAMILY, 19).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
     let caption = fit_text(&caption_area, &caption, &style, w.saturating_sub(60));
