@@ -346,19 +346,30 @@ fn plots_are_written_and_readable() {
     inspect::plot::write_plot(&a, &png).unwrap();
     inspect::plot::write_plot(&a, &svg).unwrap();
     let (w, h, idat) = png_info(&std::fs::read(&png).unwrap());
-    assert_eq!((w, h), (1600, 1500));
-    // A blank 1600×1500 RGB image deflates to a few kB; curves, bands and text make far more.
+    // One row of panels per channel: the one-channel figure is as wide and less tall.
+    let one = dir.path().join("one.png");
+    inspect::plot::write_plot(&a[..1], &one).unwrap();
+    let (w1, h1, _) = png_info(&std::fs::read(&one).unwrap());
+    assert_eq!((w, w1), (2000, 2000));
+    assert!(h > h1, "two channels {h} px, one {h1} px");
+    // A blank RGB image deflates to a few kB; curves, bands and text make far more.
     assert!(idat > 40_000, "IDAT only {idat} bytes");
     let text = std::fs::read_to_string(&svg).unwrap();
+    // The series starts 2024-05-01 12:00:00 UTC and lasts 948 s: the first time tick carries
+    // the date, the later ones the clock.
     for label in [
         "dx [px]",
         "dy [px]",
-        "rotation [arcsec]",
+        "rotation [″]",
         "scale - 1 [ppm]",
         "period [s]",
-        "UTC time (2024-05-01)",
+        "time (UTC)",
+        "2024-05-01 12:00",
+        "\n12:15\n",
         "SYNTH_171",
         "SYNTH_304",
+        "raw (frame → its reference)",
+        "chained (to the first reference)",
         "120.",
         "degraded",
         "failed",

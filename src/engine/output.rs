@@ -154,9 +154,42 @@ fn is_alternate_grid_key(key: &str) -> bool {
         }
 }
 
-/// Red = reference, green + blue = frame; after coarse (header) alignment on the left, after
-/// fine alignment on the right (the paper's figure 6). Where the two agree the picture is
-/// grey; misregistered structure shows red/cyan fringes.
+/// The four panels at display size: red/cyan composites (RGB, row 0 at the top) of the frame
+/// through the coarse and the measured transform, and the matching differences
+/// frame − reference (row 0 at the top) after matching the frame's intensities to the
+/// reference's.
+#[derive(Debug, Clone)]
+struct Panels {
+    width: usize,
+    height: usize,
+    composites: [Vec<u8>; 2],
+    differences: [Array2<f32>; 2],
+    /// Differences in `−diff_range..diff_range` span the colour scale.
+    diff_range: f32,
+}
+
+/// An RGB picture (row 0 at the top).
+#[derive(Debug, Clone)]
+struct Quicklook {
+    width: usize,
+    height: usize,
+    rgb: Vec<u8>,
+}
+
+/// What the figure says in words; header lines as (label, text that may be shortened).
+struct Captions {
+    reference: (String, String),
+    frame: (String, String),
+    measured: (String, String),
+    before: String,
+    after: String,
+}
+
+/// Red = reference, green + blue = frame; the frame through the coarse (header) transform on
+/// the left, through the measured one on the right (the paper's figure 6). Where the two
+/// agree the picture is grey; misregistered structure shows red/cyan fringes. Below, the
+/// difference frame − reference of each, on a blue–white–red scale shared by both, so a
+/// residual sub-pixel motion shows as paired blue/red edges.
 pub fn write_quicklook(
     path: &Path,
     reference: &Image,
@@ -168,7 +201,7 @@ pub fn write_quicklook(
     let coarse = outcome
         .coarse
         .unwrap_or_else(|| Similarity::identity(Similarity::array_center(w, h)));
-    let look = quicklook_rgb(
+    let panels = quicklook_panels(
         reference.data.view(),
         frame.data.view(),
         &coarse,
@@ -180,6 +213,51 @@ pub fn write_quicklook(
             "no finite pixels to show; nothing written".to_string(),
         )
     })?;
+    let when = |m: &FrameMeta| m.obs_time_iso().unwrap_or_else(|| "time unknown".into());
+    let r = &outcome.result;
+    // No "-0.0000": a sign only on a non-zero digit.
+    let num = |v: Option<f64>, d: usize| {
+        v.map_or("?".to_string(), |v| {
+            let s = format!("{v:.d$}");
+            if s.bytes().all(|b| matches!(b, b'-' | b'0' | b'.')) {
+                s.trim_start_matches('-').to_string()
+            } else {
+                s
+            }
+        })
+    };
+    let captions = Captions {
+        reference: (
+            "reference (red): ".into(),
+            format!("{}   {}", describe(&reference.meta), when(&reference.meta)),
+        ),
+        frame: (
+            "frame (cyan): ".into(),
+            format!("{}   {}", describe(&frame.meta), when(&frame.meta)),
+        ),
+        measured: (
+            "measured: ".into(),
+            format!(
+                "dx {} ± {} px, dy {} ± {} px, rotation {}″, scale {}",
+                num(r.dx_px, 4),
+                num(r.sigma_dx_px, 4),
+                num(r.dy_px, 4),
+                num(r.sigma_dy_px, 4),
+                num(r.rotation_arcsec, 1),
+                num(r.scale, 5)
+            ),
+        ),
+        before: format!(
+            "before: header (coarse) transform, dx {:.2} dy {:.2} px",
+            coarse.dx, coarse.dy
+        ),
+        after: format!(
+            "after: measured transform, dx {:.3} dy {:.3} px",
+            transform.dx, transform.dy
+        ),
+    };
+    let look = render_quicklook(&panels, &captions)
+        .map_err(|e| Error::output(path, format!("cannot draw the quick-look: {e}")))?;
     write_png(path, &look)
 }
 
@@ -395,62 +473,302 @@ const MIN_PANEL_PX: usize = 512;
 /// Display range: these percentiles of each image's finite pixels map to black and white.
 const LOW_PERCENTILE: f64 = 1.0;
 const HIGH_PERCENTILE: f64 = 99.5;
+/// The difference panels' shared symmetric range: this percentile of their |values|.
+const DIFF_PERCENTILE: f64 = 99.5;
 /// Grey strip between the panels, px.
 const GAP_PX: usize = 8;
+/// Figure margin, header (four text lines), panel title and colour-bar strips, px.
+const MARGIN_PX: usize = 12;
+const HEADER_PX: usize = 112;
+const PANEL_TITLE_PX: usize = 30;
+const COLOUR_BAR_PX: usize = 70;
+const BACKGROUND: u8 = 255;
+const NO_DATA: [u8; 3] = [64, 64, 64];
 
-/// An RGB picture (row 0 at the top): two panels of `(width − GAP_PX) / 2 × height` side by side.
-#[derive(Debug, Clone)]
-struct Quicklook {
-    width: usize,
-    height: usize,
-    rgb: Vec<u8>,
-}
-
-/// The two panels: frame through `coarse` (left) and through `fine` (right), on the reference
-/// grid. Each image's display range comes from its own pixels (1–99.5 %), the same for both
-/// panels, then a square-root stretch so faint disk structure shows beside active regions.
-/// `y` points up on screen (row 0 of the array at the bottom), as solar images are shown.
-/// `None` when either image has no finite pixel.
-fn quicklook_rgb(
+/// The panels: frame through `coarse` and through `fine`, on the reference grid. Each image's
+/// display range comes from its own pixels (1–99.5 %), the same for both composites, then a
+/// square-root stretch so faint disk structure shows beside active regions. The differences
+/// use the frame scaled by the least-squares gain and offset that match the `fine` rendering
+/// to the reference, the same for both. `y` points up on screen (row 0 of the array at the
+/// bottom), as solar images are shown. `None` when either image has no finite pixel.
+fn quicklook_panels(
     reference: ArrayView2<f32>,
     frame: ArrayView2<f32>,
     coarse: &Similarity,
     fine: &Similarity,
-) -> Option<Quicklook> {
+) -> Option<Panels> {
     let (h, w) = reference.dim();
     let ref_range = percentile_range(reference)?;
     let frame_range = percentile_range(frame)?;
     let spline = HighOrderSpline::new(frame, super::refine::MODEL);
+    let warped = [
+        spline.warp_similarity(coarse, w, h),
+        spline.warp_similarity(fine, w, h),
+    ];
     let red = resize(&stretch(reference, ref_range));
-    let before = resize(&stretch(
-        spline.warp_similarity(coarse, w, h).view(),
-        frame_range,
-    ));
-    let after = resize(&stretch(
-        spline.warp_similarity(fine, w, h).view(),
-        frame_range,
-    ));
     let (ph, pw) = red.dim();
-    let width = 2 * pw + GAP_PX;
-    let mut rgb = vec![64u8; width * ph * 3];
-    for (panel, cyan) in [&before, &after].into_iter().enumerate() {
-        let x0 = panel * (pw + GAP_PX);
+    let composites = [0, 1].map(|k| {
+        let cyan = resize(&stretch(warped[k].view(), frame_range));
+        let mut rgb = vec![0u8; pw * ph * 3];
         for y in 0..ph {
             let row = ph - 1 - y;
             for x in 0..pw {
-                let i = 3 * (row * width + x0 + x);
+                let i = 3 * (row * pw + x);
                 let (r, c) = (to_byte(red[[y, x]]), to_byte(cyan[[y, x]]));
-                rgb[i] = r;
-                rgb[i + 1] = c;
-                rgb[i + 2] = c;
+                rgb[i..i + 3].copy_from_slice(&[r, c, c]);
+            }
+        }
+        rgb
+    });
+    let (gain, offset) = intensity_match(warped[1].view(), reference);
+    let differences = [0, 1].map(|k| {
+        let mut d = Array2::from_shape_fn((h, w), |(y, x)| {
+            gain * warped[k][[y, x]] + offset - reference[[y, x]]
+        });
+        d = resize(&d);
+        d.invert_axis(ndarray::Axis(0));
+        d
+    });
+    let mut magnitudes: Vec<f32> = differences[0]
+        .iter()
+        .chain(differences[1].iter())
+        .filter(|v| v.is_finite())
+        .map(|v| v.abs())
+        .collect();
+    let diff_range = if magnitudes.is_empty() {
+        1.0
+    } else {
+        let k = ((DIFF_PERCENTILE / 100.0) * (magnitudes.len() - 1) as f64).round() as usize;
+        let v = *magnitudes.select_nth_unstable_by(k, f32::total_cmp).1;
+        if v > 0.0 {
+            v
+        } else {
+            1.0
+        }
+    };
+    Some(Panels {
+        width: pw,
+        height: ph,
+        composites,
+        differences,
+        diff_range,
+    })
+}
+
+/// Gain and offset of the least-squares fit reference ≈ gain · frame + offset over the
+/// pixels where both are finite (exposure and calibration differ between frames).
+fn intensity_match(frame: ArrayView2<f32>, reference: ArrayView2<f32>) -> (f32, f32) {
+    let (mut n, mut sf, mut sr, mut sff, mut sfr) = (0.0f64, 0.0, 0.0, 0.0, 0.0);
+    for (&f, &r) in frame.iter().zip(reference.iter()) {
+        if f.is_finite() && r.is_finite() {
+            let (f, r) = (f as f64, r as f64);
+            n += 1.0;
+            sf += f;
+            sr += r;
+            sff += f * f;
+            sfr += f * r;
+        }
+    }
+    if n < 2.0 {
+        return (1.0, 0.0);
+    }
+    let var = sff - sf * sf / n;
+    let gain = if var > 0.0 {
+        (sfr - sf * sr / n) / var
+    } else {
+        1.0
+    };
+    (gain as f32, ((sr - gain * sf) / n) as f32)
+}
+
+/// Blue (negative) – white (0) – red (positive), `v` in −1..1; NaN is dark grey.
+fn diverging(v: f32) -> [u8; 3] {
+    if !v.is_finite() {
+        return NO_DATA;
+    }
+    const NEG: [f32; 3] = [33.0, 102.0, 172.0];
+    const MID: [f32; 3] = [247.0, 247.0, 247.0];
+    const POS: [f32; 3] = [178.0, 24.0, 43.0];
+    let t = v.clamp(-1.0, 1.0);
+    let end = if t < 0.0 { NEG } else { POS };
+    let a = t.abs();
+    [0, 1, 2].map(|i| (MID[i] + a * (end[i] - MID[i])).round() as u8)
+}
+
+/// Figure size for panels of `pw × ph` px.
+fn quicklook_size(pw: usize, ph: usize) -> (usize, usize) {
+    (
+        2 * pw + GAP_PX + 2 * MARGIN_PX,
+        HEADER_PX + 2 * (PANEL_TITLE_PX + ph) + GAP_PX + COLOUR_BAR_PX,
+    )
+}
+
+/// Top-left corner of panel (`row`, `col`).
+fn panel_origin(p: &Panels, row: usize, col: usize) -> (usize, usize) {
+    (
+        MARGIN_PX + col * (p.width + GAP_PX),
+        HEADER_PX + PANEL_TITLE_PX + row * (p.height + PANEL_TITLE_PX + GAP_PX),
+    )
+}
+
+/// The labelled figure: the header (files, times, measured transform, colour legend), the
+/// composites above the differences, and the differences' colour bar.
+fn render_quicklook(p: &Panels, captions: &Captions) -> std::result::Result<Quicklook, String> {
+    use plotters::prelude::*;
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
+    let (width, height) = quicklook_size(p.width, p.height);
+    let mut rgb = vec![BACKGROUND; width * height * 3];
+    let mut put = |x: usize, y: usize, c: [u8; 3]| {
+        let i = 3 * (y * width + x);
+        rgb[i..i + 3].copy_from_slice(&c);
+    };
+    for col in 0..2 {
+        let (x0, y0) = panel_origin(p, 0, col);
+        for y in 0..p.height {
+            for x in 0..p.width {
+                let i = 3 * (y * p.width + x);
+                let c = &p.composites[col][i..i + 3];
+                put(x0 + x, y0 + y, [c[0], c[1], c[2]]);
+            }
+        }
+        let (x0, y0) = panel_origin(p, 1, col);
+        for y in 0..p.height {
+            for x in 0..p.width {
+                put(
+                    x0 + x,
+                    y0 + y,
+                    diverging(p.differences[col][[y, x]] / p.diff_range),
+                );
             }
         }
     }
-    Some(Quicklook {
-        width,
-        height: ph,
-        rgb,
-    })
+    // Colour bar on the right, its caption to its left.
+    let bar_w = width * 2 / 5;
+    let bar_x = width - MARGIN_PX - 40 - bar_w;
+    let bar_y = height - COLOUR_BAR_PX + 10;
+    for x in 0..bar_w {
+        let c = diverging(2.0 * x as f32 / (bar_w - 1).max(1) as f32 - 1.0);
+        for y in bar_y..bar_y + 16 {
+            put(bar_x + x, y, c);
+        }
+    }
+
+    crate::inspect::plot::register_font();
+    let family = crate::inspect::plot::FAMILY;
+    {
+        let root =
+            BitMapBackend::with_buffer(&mut rgb, (width as u32, height as u32)).into_drawing_area();
+        let e = |err: DrawingAreaErrorKind<_>| format!("{err}");
+        let left = TextStyle::from((family, 18).into_font()).pos(Pos::new(HPos::Left, VPos::Top));
+        let centre =
+            TextStyle::from((family, 17).into_font()).pos(Pos::new(HPos::Center, VPos::Top));
+        let max_w = (width - 2 * MARGIN_PX) as u32;
+        // Long paths lose their beginning (the file name stays); the label is kept whole.
+        let fit = |(label, body): &(String, String), style: &TextStyle| {
+            let fits = |s: &str| {
+                root.estimate_text_size(s, style)
+                    .map_or(true, |(w, _)| w <= max_w)
+            };
+            let chars: Vec<char> = body.chars().collect();
+            (0..chars.len())
+                .map(|k| {
+                    let cut: String = chars[k..].iter().collect();
+                    if k == 0 {
+                        format!("{label}{cut}")
+                    } else {
+                        format!("{label}…{cut}")
+                    }
+                })
+                .find(|s| fits(s))
+                .unwrap_or_else(|| label.clone())
+        };
+        let m = MARGIN_PX as i32;
+        for (k, line) in [&captions.reference, &captions.frame, &captions.measured]
+            .into_iter()
+            .enumerate()
+        {
+            root.draw_text(&fit(line, &left), &left, (m, 8 + 25 * k as i32))
+                .map_err(e)?;
+        }
+        // Colour legend of the composites.
+        let mut x = m;
+        let y = 8 + 25 * 3;
+        for (colour, text) in [
+            (RGBColor(255, 0, 0), "reference only"),
+            (RGBColor(0, 255, 255), "frame only"),
+            (RGBColor(200, 200, 200), "both (in register)"),
+        ] {
+            root.draw(&Rectangle::new(
+                [(x, y + 2), (x + 16, y + 18)],
+                colour.filled(),
+            ))
+            .map_err(e)?;
+            root.draw(&Rectangle::new([(x, y + 2), (x + 16, y + 18)], BLACK))
+                .map_err(e)?;
+            root.draw_text(text, &left, (x + 22, y)).map_err(e)?;
+            x += 22 + root.estimate_text_size(text, &left).map_err(e)?.0 as i32 + 30;
+        }
+        let titles = [
+            [captions.before.clone(), captions.after.clone()],
+            [
+                "difference before: frame − reference (intensity-matched)".to_string(),
+                "difference after: frame − reference (intensity-matched)".to_string(),
+            ],
+        ];
+        let panel_max = p.width as u32 - 4;
+        for (row, pair) in titles.iter().enumerate() {
+            for (col, title) in pair.iter().enumerate() {
+                let (x0, y0) = panel_origin(p, row, col);
+                let shown = {
+                    let fits = |s: &str| {
+                        root.estimate_text_size(s, &centre)
+                            .map_or(true, |(w, _)| w <= panel_max)
+                    };
+                    if fits(title) {
+                        title.clone()
+                    } else {
+                        // Narrow panels: the part before the colon says which panel it is.
+                        title.split(':').next().unwrap_or(title).to_string()
+                    }
+                };
+                root.draw_text(
+                    &shown,
+                    &centre,
+                    ((x0 + p.width / 2) as i32, (y0 - PANEL_TITLE_PX + 6) as i32),
+                )
+                .map_err(e)?;
+            }
+        }
+        let r = p.diff_range;
+        let label_y = (bar_y + 20) as i32;
+        for (frac, text) in [
+            (0.0, format!("−{}", significant(r))),
+            (0.5, "0".to_string()),
+            (1.0, format!("+{}", significant(r))),
+        ] {
+            let x = bar_x as i32 + (frac * (bar_w - 1) as f64) as i32;
+            root.draw_text(&text, &centre, (x, label_y)).map_err(e)?;
+        }
+        let note = TextStyle::from((family, 16).into_font()).pos(Pos::new(HPos::Right, VPos::Top));
+        root.draw_text(
+            "frame − reference, reference units",
+            &note,
+            (bar_x as i32 - 50, bar_y as i32),
+        )
+        .map_err(e)?;
+        root.present().map_err(e)?;
+    }
+    Ok(Quicklook { width, height, rgb })
+}
+
+/// Three significant digits, no exponent for everyday magnitudes.
+fn significant(v: f32) -> String {
+    let v = v as f64;
+    if v == 0.0 || !(1e-3..1e6).contains(&v.abs()) {
+        return format!("{v:.2e}");
+    }
+    let decimals = (2 - v.abs().log10().floor() as i32).max(0) as usize;
+    format!("{v:.decimals$}")
 }
 
 /// The `LOW_PERCENTILE`/`HIGH_PERCENTILE` values of the finite pixels (at most ~1M sampled).
@@ -617,18 +935,17 @@ mod tests {
         assert_eq!(get("HISTORY"), Some(HeaderValue::Str("did it".into())));
     }
 
-    /// Pearson correlation of the red and green channels of one panel, inside a circle.
-    fn panel_rg_correlation(look: &Quicklook, panel: usize, center: [f64; 2], r: f64) -> f64 {
-        let panel_width = (look.width - GAP_PX) / 2;
-        let x0 = panel * (panel_width + GAP_PX);
+    /// Pearson correlation of the red and green channels of one composite, inside a circle.
+    fn panel_rg_correlation(p: &Panels, panel: usize, center: [f64; 2], r: f64) -> f64 {
+        let rgb = &p.composites[panel];
         let (mut n, mut sr, mut sg, mut srr, mut sgg, mut srg) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        for y in 0..look.height {
-            for x in 0..panel_width {
+        for y in 0..p.height {
+            for x in 0..p.width {
                 if (x as f64 - center[0]).hypot(y as f64 - center[1]) > r {
                     continue;
                 }
-                let i = 3 * (y * look.width + x0 + x);
-                let (a, b) = (look.rgb[i] as f64, look.rgb[i + 1] as f64);
+                let i = 3 * (y * p.width + x);
+                let (a, b) = (rgb[i] as f64, rgb[i + 1] as f64);
                 n += 1.0;
                 sr += a;
                 sg += b;
@@ -639,6 +956,18 @@ mod tests {
         }
         let cov = srg / n - sr * sg / n / n;
         cov / ((srr / n - (sr / n).powi(2)) * (sgg / n - (sg / n).powi(2))).sqrt()
+    }
+
+    /// RMS of a difference panel's finite pixels inside a circle.
+    fn panel_rms(d: &Array2<f32>, center: [f64; 2], r: f64) -> f64 {
+        let (mut n, mut s) = (0.0, 0.0);
+        for ((y, x), v) in d.indexed_iter() {
+            if v.is_finite() && (x as f64 - center[0]).hypot(y as f64 - center[1]) <= r {
+                n += 1.0;
+                s += (*v as f64).powi(2);
+            }
+        }
+        (s / n).sqrt()
     }
 
     /// Truth: a real full-disk AIA image and a copy moved by a known similarity. The fine panel
@@ -658,22 +987,65 @@ mod tests {
         };
         let frame = SplineImage::new(reference.view()).warp_similarity(&truth.inverse(), w, h);
         let identity = Similarity::identity(center);
-        let look = quicklook_rgb(reference.view(), frame.view(), &identity, &truth).unwrap();
+        let p = quicklook_panels(reference.view(), frame.view(), &identity, &truth).unwrap();
 
-        // 128 px → replicated 4× to 512 px panels; two panels and the gap.
-        assert_eq!((look.width, look.height), (2 * 512 + GAP_PX, 512));
-        assert_eq!(look.rgb.len(), look.width * look.height * 3);
+        // 128 px → replicated 4× to 512 px panels.
+        assert_eq!((p.width, p.height), (512, 512));
         // Green and blue carry the same frame.
-        assert!(look.rgb.chunks(3).all(|p| p[1] == p[2]));
+        assert!(p
+            .composites
+            .iter()
+            .all(|c| c.chunks(3).all(|q| q[1] == q[2])));
 
         // Inside the disk (AIA: 19.2″/px, R☉ ≈ 975″ → ~50 px; use 40 px, ×4 on screen).
         let disk = [255.5, 255.5];
-        let coarse = panel_rg_correlation(&look, 0, disk, 160.0);
-        let fine = panel_rg_correlation(&look, 1, disk, 160.0);
+        let coarse = panel_rg_correlation(&p, 0, disk, 160.0);
+        let fine = panel_rg_correlation(&p, 1, disk, 160.0);
         // Measured: coarse 0.51, fine 0.990 (not 1: the frame went through two spline
         // resamplings, which smooth pixel-scale structure, and 8-bit quantisation).
         assert!(fine > 0.97, "fine panel correlation {fine}");
         assert!(fine > coarse + 0.3, "fine {fine} vs coarse {coarse}");
+    }
+
+    /// Truth: the frame is the reference moved by 0.25 px in x and scaled ×3 plus 50 (another
+    /// exposure). Through the identity the difference shows the motion; through the truth,
+    /// after intensity matching, little is left.
+    #[test]
+    fn difference_panels_show_a_quarter_pixel_motion_and_its_removal() {
+        let reference = read_real("aia_171_20110215T000000_128.fits");
+        let (h, w) = reference.dim();
+        let center = Similarity::array_center(w, h);
+        let truth = Similarity {
+            dx: 0.25,
+            ..Similarity::identity(center)
+        };
+        let frame = SplineImage::new(reference.view())
+            .warp_similarity(&truth.inverse(), w, h)
+            .mapv(|v| 3.0 * v + 50.0);
+        let identity = Similarity::identity(center);
+        let p = quicklook_panels(reference.view(), frame.view(), &identity, &truth).unwrap();
+        let disk = [255.5, 255.5];
+        let before = panel_rms(&p.differences[0], disk, 160.0);
+        let after = panel_rms(&p.differences[1], disk, 160.0);
+        assert!(after < 0.5 * before, "after {after} vs before {before}");
+        // The motion is visible: the before panel's structure is a sizeable part of the scale.
+        assert!(
+            before > 0.1 * p.diff_range as f64,
+            "{before} of {}",
+            p.diff_range
+        );
+
+        // The labelled figure: two panel columns and two rows of 512 px, plus text strips.
+        let captions = Captions {
+            reference: ("reference (red): ".into(), "ref.fits".into()),
+            frame: ("frame (cyan): ".into(), "frame.fits".into()),
+            measured: ("measured: ".into(), "dx 0.25 px".into()),
+            before: "before".into(),
+            after: "after".into(),
+        };
+        let look = render_quicklook(&p, &captions).unwrap();
+        assert!(look.width >= 2 * 512 + GAP_PX && look.height >= 2 * 512);
+        assert_eq!(look.rgb.len(), look.width * look.height * 3);
     }
 
     #[test]
