@@ -50,7 +50,7 @@ pub struct Args {
 pub const EXAMPLES: &str = "\
 Examples:
   sunjitter simulate data/real/aia_171_20110215T000000_128.fits --trials 10 --cc-trials 2
-  sunjitter simulate data/real/trace_171_19980519T222143_1024.fits --trials 8 --seed 2 --noise 1
+  sunjitter simulate data/real/trace_171_19980519T222143_1024.fits --trials 8 --cc-trials 0 --noise 1
   sunjitter simulate 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' \\
       --trials 50 --json --trials-out trials.jsonl";
 
