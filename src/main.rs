@@ -7,30 +7,51 @@ use sunjitter::commands;
 #[command(
     name = "sunjitter",
     version,
-    about = "Pointing-jitter monitor for solar telescopes"
+    about = "Pointing-jitter monitor for solar telescopes",
+    after_help = EXAMPLES
 )]
 struct Cli {
     #[command(subcommand)]
     command: Command,
 }
 
+const EXAMPLES: &str = "\
+Examples:
+  sunjitter info data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits
+  sunjitter replay data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits --out out/sji1400
+  sunjitter inspect out/sji1400 --plot jitter.png
+Each command's --help has its own examples.";
+
 #[derive(Debug, Subcommand)]
 enum Command {
-    /// Print the normalised header metadata of FITS files.
+    /// Print the header metadata sunjitter uses, one line per image or frame of a cube.
+    #[command(after_help = commands::info::EXAMPLES)]
     Info(commands::info::Args),
-    /// Align one frame to one reference.
+    /// Align one frame to one reference: shift, rotation and scale with 1-σ errors.
+    #[command(after_help = commands::align::EXAMPLES)]
     Align(commands::align::Args),
-    /// Watch a directory and log every new frame's alignment to MCAP.
+    /// Watch a directory and log every new frame's alignment to MCAP (the daemon).
+    #[command(after_help = commands::watch::EXAMPLES)]
     Watch(commands::watch::Args),
-    /// Run the same pipeline over archived files, directories, globs or cubes.
+    /// Run the watch pipeline over archived files, directories, globs or cubes.
+    #[command(after_help = commands::replay::EXAMPLES)]
     Replay(commands::replay::Args),
-    /// Summarise MCAP logs: statistics, spectrum, CSV, plots.
+    /// Summarise MCAP logs: statistics, jitter spectrum, outliers, CSV and plots.
+    #[command(after_help = commands::inspect::EXAMPLES)]
     Inspect(commands::inspect::Args),
-    /// The paper's Monte Carlo accuracy test on one image.
+    /// Wang et al.'s Monte Carlo accuracy test on one image.
+    ///
+    /// Applies random similarities (scale, rotation, shift) to the image, aligns each copy back
+    /// with the engine (Farnebäck flow, RANSAC similarity fit, errors from the Jacobian
+    /// covariance, "UABJM") and reports the residuals against the truth and how often they
+    /// fall within 1σ and 3σ; a translation-only run compares with cross-correlation.
+    #[command(after_help = commands::simulate::EXAMPLES)]
     Simulate(commands::simulate::Args),
-    /// Write a synthetic FITS sequence with known jitter.
+    /// Write a synthetic FITS sequence with known jitter, and its truth.csv.
+    #[command(after_help = commands::synth::EXAMPLES)]
     Synth(commands::synth::Args),
     /// Print a running (or stopped) daemon's health status.
+    #[command(after_help = commands::status::EXAMPLES)]
     Status(commands::status::Args),
 }
 
@@ -55,7 +76,7 @@ fn main() {
         && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
         .with_ansi(colour)
-        .with_writer(sunjitter::commands::replay::BarAwareStderr)
+        .with_writer(sunjitter::commands::BarAwareStderr)
         .fmt_fields(escaped_fields())
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")
@@ -88,6 +109,86 @@ fn main() {
         Err(e) => {
             eprintln!("sunjitter: {}", sunjitter::text::escape(&e.to_string()));
             std::process::exit(e.exit_code());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::{CommandFactory, Parser};
+
+    /// The command lines of a help text's `Examples:` block: lines that start `  sunjitter `,
+    /// with ` \` continuations joined, split into words as a shell would (single quotes only).
+    fn examples(help: &str) -> Vec<Vec<String>> {
+        let block = help.split_once("Examples:\n").map_or("", |(_, b)| b);
+        let joined = block.replace(" \\\n", " ");
+        joined
+            .lines()
+            .filter(|l| l.starts_with("  sunjitter "))
+            .map(|l| {
+                let mut words = Vec::new();
+                for (i, part) in l.trim().split('\'').enumerate() {
+                    if i % 2 == 1 {
+                        words.push(part.to_string());
+                    } else {
+                        words.extend(part.split_whitespace().map(String::from));
+                    }
+                }
+                words
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_command_shows_examples_that_parse() {
+        let mut cli = Cli::command();
+        cli.build();
+        let top = examples(&cli.render_help().to_string());
+        assert!(top.len() >= 2, "{top:?}");
+        for sub in cli.get_subcommands_mut().filter(|s| s.get_name() != "help") {
+            let name = sub.get_name().to_string();
+            let help = sub.render_help().to_string();
+            let lines = examples(&help);
+            assert!((2..=3).contains(&lines.len()), "{name}: {help}");
+            for words in lines.iter().chain(&top).filter(|w| w[1] == name) {
+                if let Err(e) = Cli::try_parse_from(words) {
+                    panic!("{words:?} does not parse: {e}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn shared_flags_read_the_same_in_every_command() {
+        let cli = Cli::command();
+        for flag in ["config", "out", "reference", "recursive", "json"] {
+            let helps: std::collections::BTreeSet<String> = cli
+                .get_subcommands()
+                .filter(|s| s.get_name() != "synth" || flag != "out")
+                .flat_map(|s| s.get_arguments())
+                .filter(|a| a.get_long() == Some(flag))
+                .map(|a| a.get_help().map(|h| h.to_string()).unwrap_or_default())
+                .collect();
+            assert_eq!(helps.len(), 1, "--{flag}: {helps:#?}");
+            assert!(!helps.iter().any(String::is_empty), "--{flag} is described");
+        }
+    }
+
+    #[test]
+    fn every_argument_is_described_in_one_line_and_its_default_shown_once() {
+        let cli = Cli::command();
+        for sub in cli.get_subcommands() {
+            for arg in sub.get_arguments() {
+                let what = format!("{} {}", sub.get_name(), arg.get_id());
+                let help = arg.get_help().map(|h| h.to_string()).unwrap_or_default();
+                assert!(!help.is_empty(), "{what} is not described");
+                assert!(!help.contains('\n'), "{what}: {help}");
+                if !arg.get_default_values().is_empty() {
+                    // clap appends `[default: …]` itself.
+                    assert!(!help.contains("default"), "{what}: {help}");
+                }
+            }
         }
     }
 }

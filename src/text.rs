@@ -8,6 +8,7 @@
 //!   as `\xff` and a backslash as `\\`, so two distinct names never render alike (frame keys
 //!   rely on this). A name without backslash, control character or invalid byte is unchanged.
 //!   [`unescape_path`] is the inverse.
+//! - [`value_pm`] for a measurement with its σ.
 
 use std::borrow::Cow;
 use std::ffi::{OsStr, OsString};
@@ -144,6 +145,18 @@ pub fn unescape_path(s: &str) -> PathBuf {
     PathBuf::from(os_string(out))
 }
 
+/// `value ± σ` in one notation, to the σ's second significant digit (`0.0770 ± 0.0957 px`);
+/// the bare value when there is no usable σ.
+pub fn value_pm(value: f64, sigma: Option<f64>, unit: &str) -> String {
+    match sigma {
+        Some(s) if s.is_finite() && s > 0.0 => {
+            let decimals = (1 - s.log10().floor() as i32).clamp(0, 12) as usize;
+            format!("{value:.decimals$} ± {s:.decimals$}{unit}")
+        }
+        _ => format!("{value}{unit}"),
+    }
+}
+
 #[cfg(unix)]
 fn os_string(bytes: Vec<u8>) -> OsString {
     use std::os::unix::ffi::OsStringExt;
@@ -197,5 +210,17 @@ mod tests {
             assert_eq!(unescape_path(&shown).as_os_str(), os(raw), "{shown}");
             assert!(!shown.chars().any(needs_escape), "{shown}");
         }
+    }
+
+    #[test]
+    fn value_and_sigma_share_a_notation_to_the_sigmas_second_digit() {
+        assert_eq!(value_pm(0.07701, Some(0.09573), " px"), "0.077 ± 0.096 px");
+        assert_eq!(value_pm(-376.855, Some(800.4), "″"), "-377 ± 800″");
+        assert_eq!(value_pm(0.9978772, Some(3.87e-3), ""), "0.9979 ± 0.0039");
+        assert_eq!(
+            value_pm(0.25008, Some(5.96e-4), " px"),
+            "0.25008 ± 0.00060 px"
+        );
+        assert_eq!(value_pm(0.0, Some(0.0), " px"), "0 px");
     }
 }

@@ -227,6 +227,13 @@ fn watch_measures_hostile_names_and_prints_them_escaped() {
             .any(|l| l.contains(&format!("{w}/{forged_shown}"))),
         "the unreadable file is named in the daemon's log: {stderr:#?}"
     );
+    for name in shown {
+        let frame_lines = stderr
+            .iter()
+            .filter(|l| l.contains(&format!(" {name} ")) && l.contains(" SJI_1400 "))
+            .count();
+        assert_eq!(frame_lines, 1, "one line for {name}: {stderr:#?}");
+    }
 
     let (frames, logs) = logged(&out);
     let expected: Vec<String> = shown.iter().map(|n| format!("{w}/{n}")).collect();

@@ -118,6 +118,30 @@ fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
         assert_eq!(counts.get(&key), Some(&1), "{key}: {counts:?}");
     }
     assert_eq!(counts.len(), 10, "{counts:?}");
+
+    // On stderr, one line per frame: its channel, file name and logged status, with the shift.
+    let stderr = std::fs::read_to_string(s.base.join("1.stderr")).unwrap();
+    let frame_lines: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains(" SJI_1400 "))
+        .collect();
+    assert_eq!(frame_lines.len(), 10, "{stderr}");
+    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&s.out)).unwrap();
+    for m in &logs.jitter {
+        let a = &m.record.align;
+        assert_eq!(m.record.channel, "SJI_1400");
+        let name = Path::new(&a.frame).file_name().unwrap().to_str().unwrap();
+        let status = serde_json::to_value(a.status).unwrap();
+        let shown = format!(" SJI_1400 {name} {} ", status.as_str().unwrap());
+        let lines: Vec<&&str> = frame_lines.iter().filter(|l| l.contains(&shown)).collect();
+        assert_eq!(lines.len(), 1, "{shown}: {stderr}");
+        if a.dx_px.is_some() {
+            assert!(
+                lines[0].contains(" dx ") && lines[0].contains(" px dy "),
+                "{stderr}"
+            );
+        }
+    }
 }
 
 #[test]

@@ -10,10 +10,9 @@ use std::path::PathBuf;
 pub struct Args {
     /// The reference image (`FILE.fits`, or `FILE.fits[N]` for frame N of a cube).
     pub reference: String,
-    /// The frame to align to the reference.
+    /// The frame to align to the reference (`FILE.fits` or `FILE.fits[N]`).
     pub frame: String,
-    /// Print one JSON document on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
     /// Write the frame resampled onto the reference grid, with a matching WCS.
     #[arg(long, value_name = "OUT.fits")]
@@ -21,10 +20,16 @@ pub struct Args {
     /// Write a red (reference) / cyan (frame) composite, before and after fine alignment.
     #[arg(long, value_name = "OUT.png")]
     pub quicklook: Option<PathBuf>,
-    /// Configuration file (TOML); its `[engine]` table sets the alignment parameters.
-    #[arg(long, value_name = "FILE.toml")]
+    #[arg(long, value_name = "FILE.toml", help = super::CONFIG_HELP)]
     pub config: Option<PathBuf>,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter align 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[1]'
+  sunjitter align 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[5]' --json --quicklook pair.png
+  sunjitter align data/real/eit_171_20040301T010016_128.fits \\
+      data/real/eit_195_20040301T000010_128.fits --aligned eit_195_on_171.fits";
 
 pub fn run(args: &Args) -> Result<i32> {
     let reference_spec = FrameSpec::parse(&args.reference);
@@ -90,7 +95,7 @@ fn print_human(r: &crate::record::AlignResult) {
         Status::Degraded => "degraded",
         Status::Failed => "failed",
     };
-    use crate::text::escape;
+    use crate::text::{escape, value_pm};
     println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
     {
@@ -119,33 +124,5 @@ fn print_human(r: &crate::record::AlignResult) {
     );
     if !r.message.is_empty() {
         println!("  {}", escape(&r.message));
-    }
-}
-
-/// `value ± σ` in one notation, to the σ's second significant digit (`0.0770 ± 0.0957 px`).
-fn value_pm(value: f64, sigma: Option<f64>, unit: &str) -> String {
-    match sigma {
-        Some(s) if s.is_finite() && s > 0.0 => {
-            let decimals = (1 - s.log10().floor() as i32).clamp(0, 12) as usize;
-            format!("{value:.decimals$} ± {s:.decimals$}{unit}")
-        }
-        _ => format!("{value}{unit}"),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::value_pm;
-
-    #[test]
-    fn value_and_sigma_share_a_notation_to_the_sigmas_second_digit() {
-        assert_eq!(value_pm(0.07701, Some(0.09573), " px"), "0.077 ± 0.096 px");
-        assert_eq!(value_pm(-376.855, Some(800.4), "″"), "-377 ± 800″");
-        assert_eq!(value_pm(0.9978772, Some(3.87e-3), ""), "0.9979 ± 0.0039");
-        assert_eq!(
-            value_pm(0.25008, Some(5.96e-4), " px"),
-            "0.25008 ± 0.00060 px"
-        );
-        assert_eq!(value_pm(0.0, Some(0.0), " px"), "0 px");
     }
 }

@@ -17,10 +17,15 @@ pub struct Args {
     /// FITS files; a cube lists every frame, `FILE.fits[N]` only frame N.
     #[arg(required = true, value_name = "FILE")]
     pub files: Vec<PathBuf>,
-    /// Print one JSON document on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter info data/real/aia_171_20110215T000000_128.fits data/real/eit_195_20040301T000010_128.fits
+  sunjitter info 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[3]'
+  sunjitter info --json data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 
 /// One `info --json` object: exactly the contract's fields.
 #[derive(Debug, Clone, PartialEq, Serialize)]

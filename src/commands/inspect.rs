@@ -43,10 +43,9 @@ use std::path::PathBuf;
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// MCAP logs, or directories of them (segments of one run are read as one series).
-    #[arg(required = true)]
+    #[arg(required = true, value_name = "LOG")]
     pub logs: Vec<PathBuf>,
-    /// Print one JSON document on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
     /// Write the time series, one row per frame with every field.
     #[arg(long, value_name = "OUT.csv")]
@@ -55,6 +54,12 @@ pub struct Args {
     #[arg(long, value_name = "OUT.png|OUT.svg")]
     pub plot: Option<PathBuf>,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter inspect out/sji1400
+  sunjitter inspect out/sji1400 --csv jitter.csv --plot jitter.png
+  sunjitter inspect out/sji1400/*.mcap --json";
 
 pub fn run(args: &Args) -> Result<i32> {
     if let Some(plot) = &args.plot {

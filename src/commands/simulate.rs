@@ -1,5 +1,6 @@
-//! `sunjitter simulate IMAGE [--trials N] [--seed S] [--noise K] [--json]`: the paper's
-//! Monte Carlo (§4.1) on one real image, with the cross-correlation baseline.
+//! `sunjitter simulate IMAGE [--trials N] [--seed S] [--noise K] [--json]`: the Monte Carlo
+//! accuracy test of Wang et al. (§4.1 of their paper, docs/METHOD.md) on one real image, with
+//! the cross-correlation baseline.
 
 use crate::engine::{self, Image};
 use crate::fits::{self, FrameSpec};
@@ -21,31 +22,37 @@ pub struct Args {
     /// Number of random similarity transforms.
     #[arg(long, default_value_t = 200)]
     pub trials: usize,
+    /// Seed of the random transforms and of the noise (the same seed repeats a run).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Add Gaussian noise of K times the image's background noise to both images.
     #[arg(long, value_name = "K")]
     pub noise: Option<f64>,
-    /// Add the noise once, to the image before it is transformed (the paper's wording), so the
-    /// frame is a transformed copy of the noisy reference, instead of independently to both.
+    /// Add the noise once, to the image before it is transformed (Wang et al.'s wording),
+    /// instead of to both images.
     #[arg(long, requires = "noise")]
     pub shared_noise: bool,
     /// Trials of the translation-only comparison with cross-correlation (0 to skip).
     #[arg(long, default_value_t = 20)]
     pub cc_trials: usize,
-    /// Print one JSON document on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
-    /// Configuration file (TOML); its `[engine]` table sets the alignment parameters.
-    #[arg(long, value_name = "FILE.toml")]
+    #[arg(long, value_name = "FILE.toml", help = super::CONFIG_HELP)]
     pub config: Option<PathBuf>,
-    /// Override the Farneback window, px.
-    #[arg(long)]
+    /// Farnebäck window in pixels, instead of the one sized from the image.
+    #[arg(long, value_name = "PX")]
     pub window_px: Option<usize>,
     /// Write every trial (truth, estimate, σ) as JSON lines here.
     #[arg(long, value_name = "OUT.jsonl")]
     pub trials_out: Option<PathBuf>,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter simulate data/real/aia_171_20110215T000000_128.fits --trials 10 --cc-trials 2
+  sunjitter simulate data/real/trace_171_19980519T222143_1024.fits --trials 8 --cc-trials 0 --noise 1
+  sunjitter simulate 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' \\
+      --trials 50 --json --trials-out trials.jsonl";
 
 #[derive(Debug, Serialize)]
 struct Report {
@@ -108,7 +115,7 @@ pub fn run(args: &Args) -> Result<i32> {
 
     let ranges = TrialRanges::default();
     let truths = draw_truths(args.trials, args.seed, &ranges, center);
-    let progress = crate::commands::progress_bar((args.trials + args.cc_trials) as u64, "simulate");
+    let progress = super::Bar::new((args.trials + args.cc_trials) as u64, "trials");
     let mut elapsed = 0.0;
     let mut lines = Vec::new();
     let mut run_trial = |truth: &Similarity, with_cc: bool, rng: &mut SplitMix64| -> TrialOutcome {
@@ -200,7 +207,7 @@ pub fn run(args: &Args) -> Result<i32> {
         .iter()
         .map(|t| run_trial(t, true, &mut noise_rng))
         .collect();
-    progress.finish_and_clear();
+    drop(progress);
     for o in outcomes.iter().chain(&shift_outcomes) {
         lines.push(serde_json::to_string(o).unwrap_or_default());
     }

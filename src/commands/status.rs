@@ -6,13 +6,17 @@ use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The status file, or the output directory holding `status.json` (default: `.`).
-    #[arg(default_value = ".")]
+    /// The status file, or the output directory holding `status.json`.
+    #[arg(default_value = ".", value_name = "PATH|OUTDIR")]
     pub path: PathBuf,
-    /// Print the status document as JSON.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter status out/watch
+  sunjitter status out/watch/status.json --json";
 
 pub fn run(args: &Args) -> Result<i32> {
     let path = status::resolve_path(&args.path);

@@ -25,7 +25,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Directory to write the frames and truth.csv into (created if missing).
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
     /// Number of frames.
     #[arg(long, default_value_t = 30)]
@@ -55,10 +55,15 @@ pub struct Args {
     /// or now with --realtime).
     #[arg(long)]
     pub start: Option<String>,
-    /// Print one JSON document on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
 }
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter synth --out synth --frames 10 --size 256
+  sunjitter synth --out synth --jitter sine:0.3:120,walk:0.02 --solar-rotation none --seed 7
+  sunjitter synth --out incoming --realtime --cadence 12";
 
 pub fn run(args: &Args) -> Result<i32> {
     if args.frames == 0 {

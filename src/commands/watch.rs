@@ -12,21 +12,10 @@ use std::sync::Arc;
 pub struct Args {
     /// Directory to watch for new FITS frames.
     pub dir: PathBuf,
-    /// Output directory for the MCAP log segments.
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
-    /// Reference policy for every channel: keyframe, previous, fixed:FILE, channel:NAME.
-    #[arg(long, value_name = "POLICY")]
-    pub reference: Option<String>,
-    /// Configuration file (TOML); see examples/sunjitter.toml.
-    #[arg(long, value_name = "FILE.toml")]
-    pub config: Option<PathBuf>,
-    /// Watch subdirectories too.
-    #[arg(long)]
-    pub recursive: bool,
-    /// Also serve the logged topics live over the Foxglove WebSocket protocol, on
-    /// 127.0.0.1:8765 unless another address is given (port 0: any free port). A
-    /// non-loopback address exposes the data to the network (read-only).
+    #[command(flatten)]
+    pub run: super::PipelineArgs,
+    /// Also serve the logged topics live to Foxglove over WebSocket [no value: 127.0.0.1:8765;
+    /// port 0: any free port].
     #[arg(
         long,
         value_name = "ADDR:PORT",
@@ -34,51 +23,54 @@ pub struct Args {
         default_missing_value = "127.0.0.1:8765"
     )]
     pub live: Option<String>,
-    /// On exit, print a JSON summary of the run on stdout.
-    #[arg(long)]
+    #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
 }
 
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter watch incoming/ --out out/watch
+  sunjitter watch incoming/ --out out/watch --config examples/sunjitter.toml --recursive
+  sunjitter watch incoming/ --out out/watch --live 127.0.0.1:8765
+Each logged frame gets one line on stderr; `sunjitter status out/watch` shows the health.
+With --json, the run's summary is printed when the daemon stops.
+A --live address beyond loopback serves the data (read-only) to the network.";
+
 /// Resolve the configuration from `--config` and the flags.
-pub fn effective_config(
-    config: Option<&std::path::Path>,
-    reference: Option<&str>,
-    recursive: bool,
-) -> Result<Config> {
+pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
     let overrides = Overrides {
-        reference: reference.map(str::parse).transpose()?,
-        recursive,
+        reference: args.reference.as_deref().map(str::parse).transpose()?,
+        recursive: args.recursive,
     };
-    let mut config = Config::load(config, &overrides)?;
+    let mut config = Config::load(args.config.as_deref(), &overrides)?;
     config.canonicalize_fixed_paths()?;
     Ok(config)
 }
 
 pub fn run(args: &Args) -> Result<i32> {
     let live = args.live.as_deref().map(parse_live_address).transpose()?;
-    let config = effective_config(
-        args.config.as_deref(),
-        args.reference.as_deref(),
-        args.recursive,
-    )?;
+    let config = effective_config(&args.run)?;
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
     // Before reading (and recovering) the log: another daemon may be writing it.
-    let lock = OutputLock::acquire(&args.out)?;
-    let status_file = config.health.status_path(&args.out);
-    let config_file: Vec<&std::path::Path> = args.config.as_deref().into_iter().collect();
+    let lock = OutputLock::acquire(&args.run.out)?;
+    let status_file = config.health.status_path(&args.run.out);
+    let config_file: Vec<&std::path::Path> = args.run.config.as_deref().into_iter().collect();
     check_outputs(&[&status_file], &config_file)?;
-    let history = read_history(&args.out)?;
-    let mcap =
-        crate::sink::McapSink::new(&args.out, config.sink.clone(), config.to_json().to_string())?
-            .holding(lock);
+    let history = read_history(&args.run.out)?;
+    let mcap = crate::sink::McapSink::new(
+        &args.run.out,
+        config.sink.clone(),
+        config.to_json().to_string(),
+    )?
+    .holding(lock);
     let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
     let runtime = runtime()?;
     let setup = MonitorSetup {
         config: &config,
         watching: &args.dir,
-        out: &args.out,
+        out: &args.run.out,
         live,
         progress: progress_rx,
     };
@@ -107,7 +99,7 @@ pub fn run(args: &Args) -> Result<i32> {
         "stopped cleanly"
     );
     if args.json {
-        println!("{}", summary_json(&progress, &args.out));
+        println!("{}", summary_json(&progress, &args.run.out));
     }
     Ok(0)
 }

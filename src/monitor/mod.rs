@@ -309,6 +309,9 @@ impl RecordSink for MonitoredSink {
     fn write(&mut self, record: &Record, publish_time_ns: i64) -> Result<()> {
         McapRecordSink::write_to(&mut self.mcap, record, publish_time_ns)?;
         // Logged: from here on nothing may fail the write (it would be retried).
+        if let Record::Frame { message, .. } = record {
+            tracing::info!("{}", frame_line(message));
+        }
         let lag_s = match record {
             Record::Frame { message, .. } => self.lags.remove(&message.align.frame),
             _ => None,
@@ -357,6 +360,37 @@ impl RecordSink for MonitoredSink {
         }
         self.lags.insert(frame.to_string(), lag_s);
     }
+}
+
+/// The operator's line for one logged frame: channel, file name, status, the shift with its
+/// σ, and for a frame that is not `ok` the first of its reasons, e.g.
+/// `SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy 0.054 ± 0.096 px`.
+pub fn frame_line(message: &crate::record::FrameAlignment) -> String {
+    let a = &message.align;
+    let spec = crate::reference::parse_frame_key(&a.frame);
+    let mut file = match spec.path.file_name() {
+        Some(name) => crate::text::name(name).into_owned(),
+        None => crate::text::escape(&a.frame).into_owned(),
+    };
+    if let Some(n) = spec.frame {
+        file.push_str(&format!("[{n}]"));
+    }
+    let status = match a.status {
+        FrameStatus::Ok => "ok",
+        FrameStatus::Degraded => "degraded",
+        FrameStatus::Failed => "failed",
+    };
+    let mut line = format!("{} {file} {status}", crate::text::escape(&message.channel));
+    if let (Some(dx), Some(dy)) = (a.dx_px, a.dy_px) {
+        let dx = crate::text::value_pm(dx, a.sigma_dx_px, " px");
+        let dy = crate::text::value_pm(dy, a.sigma_dy_px, " px");
+        line.push_str(&format!(" dx {dx} dy {dy}"));
+    }
+    let reason = a.message.split("; ").next().unwrap_or_default().trim();
+    if a.status != FrameStatus::Ok && !reason.is_empty() {
+        line.push_str(&format!(" ({})", crate::text::escape(reason)));
+    }
+    line
 }
 
 /// The monitors of one `watch` run: build with [`Monitor::start`], hand
@@ -541,5 +575,69 @@ impl StatusWriter {
         }
         status.live_dropped = self.dropped.as_ref().map_or(0, |t| t.dropped());
         status::write_atomic(&self.path, &status)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::frame_line;
+    use crate::record::{FrameAlignment, Status};
+
+    fn message(key: &str, status: Status, message: &str) -> FrameAlignment {
+        let mut align = crate::engine::AlignOutcome::failed("/in/ref.fits", key, message).result;
+        align.status = status;
+        if status != Status::Failed {
+            (align.dx_px, align.sigma_dx_px) = (Some(0.07701), Some(0.09573));
+            (align.dy_px, align.sigma_dy_px) = (Some(-0.0537), Some(0.0957));
+        }
+        FrameAlignment {
+            align,
+            channel: "SJI_1400".into(),
+            obs_time: String::new(),
+            sequence: 1,
+            reference_kind: "keyframe".into(),
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_rotation_arcsec: None,
+            chained_scale: None,
+            sigma_chained_dx_px: None,
+            sigma_chained_dy_px: None,
+            sigma_chained_rotation_arcsec: None,
+            sigma_chained_scale: None,
+            pixel_checksum: None,
+        }
+    }
+
+    #[test]
+    fn a_frame_line_names_channel_file_status_and_shift_with_sigma() {
+        assert_eq!(
+            frame_line(&message("/in/f0123.fits", Status::Ok, "")),
+            "SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px"
+        );
+        assert_eq!(
+            frame_line(&message(
+                "/in/cube.fits[7]",
+                Status::Degraded,
+                "weak common structure (correlation 0.210); low histogram similarity 0.400"
+            )),
+            "SJI_1400 cube.fits[7] degraded dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px \
+             (weak common structure (correlation 0.210))"
+        );
+        assert_eq!(
+            frame_line(&message(
+                "/in/f0124.fits",
+                Status::Failed,
+                "no common structure"
+            )),
+            "SJI_1400 f0124.fits failed (no common structure)"
+        );
+    }
+
+    #[test]
+    fn a_frame_line_prints_a_hostile_file_name_escaped() {
+        // Frame keys are `text::path` renderings: `\xff` is the byte 0xFF, `\n` a newline.
+        let line = frame_line(&message(r"/in/b\xffd\n.fits", Status::Ok, ""));
+        assert!(line.starts_with(r"SJI_1400 b\xffd\n.fits ok "), "{line}");
+        assert!(!line.chars().any(char::is_control), "{line}");
     }
 }
