@@ -604,6 +604,10 @@ mod tests {
             sigma_chained_dy_px: None,
             sigma_chained_rotation_arcsec: None,
             sigma_chained_scale: None,
+            chained_dx_arcsec: None,
+            chained_dy_arcsec: None,
+            sigma_chained_dx_arcsec: None,
+            sigma_chained_dy_arcsec: None,
             pixel_checksum: None,
         }
     }
