@@ -1221,6 +1221,32 @@ mod tests {
             .collect()
     }
 
+    /// The history a restart reads back from `records`, with `strip` applied to every
+    /// reference change (fields an older log or the MCAP schema lacks).
+    fn history_stripped(
+        records: &[Record],
+        strip: impl Fn(&mut ReferenceChange),
+    ) -> crate::pipeline::History {
+        let mut history = crate::pipeline::History::default();
+        for r in records {
+            match r {
+                Record::Reference {
+                    change,
+                    log_time_ns,
+                } => {
+                    let mut c = (**change).clone();
+                    strip(&mut c);
+                    history.add(&Record::Reference {
+                        change: Box::new(c),
+                        log_time_ns: *log_time_ns,
+                    });
+                }
+                other => history.add(other),
+            }
+        }
+        history
+    }
+
     fn run(state: &mut ChannelState, world: &World, keys: &[String]) -> Vec<Record> {
         let mut out = Vec::new();
         for key in keys {
@@ -1812,26 +1838,12 @@ mod tests {
         // The MCAP schema keeps no chain in /reference messages: the restart then takes the
         // chain from the reference frame's own message (σ only), which for these diagonal
         // covariances is the same to rounding.
-        let mut bare = crate::pipeline::History::default();
-        for r in &before {
-            match r {
-                Record::Reference {
-                    change,
-                    log_time_ns,
-                } => {
-                    let mut c = (**change).clone();
-                    c.chained_scale = None;
-                    c.chain_center_px = None;
-                    c.chained_covariance = None;
-                    c.chain_plate_scale_arcsec = None;
-                    bare.add(&Record::Reference {
-                        change: Box::new(c),
-                        log_time_ns: *log_time_ns,
-                    });
-                }
-                other => bare.add(other),
-            }
-        }
+        let bare = history_stripped(&before, |c| {
+            c.chained_scale = None;
+            c.chain_center_px = None;
+            c.chained_covariance = None;
+            c.chain_plate_scale_arcsec = None;
+        });
         let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
         let after = run(&mut resumed, &world, &keys[6..]);
         let expect = messages(&all[n_before..]);
@@ -1916,24 +1928,10 @@ mod tests {
 
         let mut first = ChannelState::new("C", p.clone());
         let before = run_on(&mut first, &keys[..5]);
-        let mut bare = crate::pipeline::History::default();
-        for r in &before {
-            match r {
-                Record::Reference {
-                    change,
-                    log_time_ns,
-                } => {
-                    let mut c = (**change).clone();
-                    c.chain_center_px = None;
-                    c.chain_plate_scale_arcsec = None;
-                    bare.add(&Record::Reference {
-                        change: Box::new(c),
-                        log_time_ns: *log_time_ns,
-                    });
-                }
-                other => bare.add(other),
-            }
-        }
+        let bare = history_stripped(&before, |c| {
+            c.chain_center_px = None;
+            c.chain_plate_scale_arcsec = None;
+        });
         let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
         let after = run_on(&mut resumed, &keys[5..]);
         assert_eq!(messages(&after).len(), 6);

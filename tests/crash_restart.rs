@@ -8,14 +8,16 @@
 //! The log is left in `$CARGO_TARGET_TMPDIR/crash_restart/out` for the official Python reader
 //! (`.ci/run` runs `tools/check_mcap.py` on it).
 
+mod common;
 mod faults;
 
+use common::{logged, publish};
 use faults::Lcg;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use sunjitter::pipeline::fake::{split_cube, SplitFrame};
+use sunjitter::pipeline::fake::split_cube;
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =
@@ -57,24 +59,6 @@ fn spawn(watched: &Path, out: &Path, config: &Path, log: &Path, level: &str) -> 
         .stderr(stderr)
         .spawn()
         .unwrap()
-}
-
-fn publish(watched: &Path, f: &SplitFrame) {
-    let tmp = watched.join(format!(".{}.tmp", f.name));
-    std::fs::write(&tmp, &f.bytes).unwrap();
-    std::fs::rename(&tmp, watched.join(&f.name)).unwrap();
-}
-
-/// Frame keys logged in `out` so far, with their counts (the library's reader, which also
-/// reads segments still being written).
-fn logged(out: &Path) -> BTreeMap<String, usize> {
-    let mut counts = BTreeMap::new();
-    if let Ok(logs) = sunjitter::sink::read_logs(&[out.to_path_buf()]) {
-        for m in &logs.jitter {
-            *counts.entry(m.record.align.frame.clone()).or_insert(0) += 1;
-        }
-    }
-    counts
 }
 
 #[test]

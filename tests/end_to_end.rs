@@ -4,23 +4,9 @@
 
 mod common;
 
-use common::read_csv;
+use common::{read_csv, sunjitter_ok};
 use std::collections::HashMap;
 use std::path::Path;
-use std::process::Command;
-
-fn sunjitter(args: &[&str]) -> std::process::Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
-        .args(args)
-        .output()
-        .expect("binary runs");
-    assert!(
-        out.status.success(),
-        "sunjitter {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
 
 #[test]
 fn injected_jitter_is_recovered_with_its_period() {
@@ -29,7 +15,7 @@ fn injected_jitter_is_recovered_with_its_period() {
     let out = dir.path().join("log");
     let csv = dir.path().join("series.csv");
     let f = frames.to_str().unwrap();
-    sunjitter(&[
+    sunjitter_ok(&[
         "synth",
         "--out",
         f,
@@ -44,8 +30,8 @@ fn injected_jitter_is_recovered_with_its_period() {
         "--jitter",
         "sine:0.3:120,walk:0.05",
     ]);
-    sunjitter(&["replay", f, "--out", out.to_str().unwrap()]);
-    let report = sunjitter(&[
+    sunjitter_ok(&["replay", f, "--out", out.to_str().unwrap()]);
+    let report = sunjitter_ok(&[
         "inspect",
         out.to_str().unwrap(),
         "--json",
@@ -178,7 +164,7 @@ fn the_suns_rotation_is_not_reported_as_pointing_drift() {
     let dir = tempfile::tempdir().unwrap();
     let frames = dir.path().join("frames");
     let f = frames.to_str().unwrap();
-    sunjitter(&[
+    sunjitter_ok(&[
         "synth",
         "--out",
         f,
@@ -202,8 +188,8 @@ fn the_suns_rotation_is_not_reported_as_pointing_drift() {
             std::fs::write(&config_path, text).unwrap();
             args.extend(["--config", config_path.to_str().unwrap()]);
         }
-        sunjitter(&args);
-        sunjitter(&[
+        sunjitter_ok(&args);
+        sunjitter_ok(&[
             "inspect",
             out.to_str().unwrap(),
             "--csv",

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{exit_status_within, WatchProcess, QUICK_DAEMON_CONFIG};
+use common::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -39,23 +39,6 @@ fn setup(frames: usize) -> Setup {
         frames: all,
         base,
     }
-}
-
-fn publish(watched: &Path, f: &SplitFrame) {
-    let tmp = watched.join(format!(".{}.tmp", f.name));
-    std::fs::write(&tmp, &f.bytes).unwrap();
-    std::fs::rename(&tmp, watched.join(&f.name)).unwrap();
-}
-
-/// Frame keys logged in `out` (also in segments still being written), with their counts.
-fn logged(out: &Path) -> BTreeMap<String, usize> {
-    let mut counts = BTreeMap::new();
-    if let Ok(logs) = sunjitter::sink::read_logs(&[out.to_path_buf()]) {
-        for m in &logs.jitter {
-            *counts.entry(m.record.align.frame.clone()).or_insert(0) += 1;
-        }
-    }
-    counts
 }
 
 /// Bytes of every file in `out`, by name.

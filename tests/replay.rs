@@ -2,13 +2,16 @@
 //! into an existing output, the same messages as the daemon, and usage errors.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::sync::Arc;
 use std::time::Duration;
 use sunjitter::config::{Config, Overrides};
 use sunjitter::pipeline::fake::split_cube;
 use sunjitter::pipeline::{open_output, EngineAligner, FitsReader, Progress, RunParts};
 use tokio::sync::{oneshot, watch};
+
+mod common;
+
+use common::sunjitter;
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =
@@ -27,19 +30,6 @@ hold_s = 2.0
 policy = "channel:SJI_1400"
 tolerance_s = 150.0
 "#;
-
-fn sunjitter(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
-        .args(args)
-        .env("SUNJITTER_LOG", "warn")
-        .output()
-        .expect("runs");
-    (
-        out.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
 
 #[derive(Debug, Clone, PartialEq)]
 struct Msg {

@@ -3,24 +3,12 @@
 //! it are measured (replay through the binary, read back with `inspect --csv`).
 
 mod common;
+
 mod faults;
 
-use common::read_csv;
+use common::{read_csv, sunjitter_ok};
 use faults::*;
 use std::path::Path;
-use std::process::Command;
-
-fn sunjitter(args: &[&str]) {
-    let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
-        .args(args)
-        .output()
-        .expect("binary runs");
-    assert!(
-        out.status.success(),
-        "sunjitter {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
 
 #[test]
 fn an_unusable_first_frame_never_becomes_the_reference() {
@@ -43,13 +31,13 @@ fn an_unusable_first_frame_never_becomes_the_reference() {
         std::fs::write(input.join(&f.name), &f.bytes).unwrap();
     }
     let (out, csv) = (dir.path().join("log"), dir.path().join("series.csv"));
-    sunjitter(&[
+    sunjitter_ok(&[
         "replay",
         input.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
     ]);
-    sunjitter(&[
+    sunjitter_ok(&[
         "inspect",
         out.to_str().unwrap(),
         "--csv",

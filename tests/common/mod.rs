@@ -103,6 +103,20 @@ pub fn sunjitter<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (i32, String, String)
     )
 }
 
+/// Run the binary, which must succeed; its output.
+pub fn sunjitter_ok(args: &[&str]) -> std::process::Output {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .args(args)
+        .output()
+        .expect("binary runs");
+    assert!(
+        out.status.success(),
+        "sunjitter {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// A `sunjitter watch` process, its stderr in a file.
 pub struct WatchProcess {
     pub child: std::process::Child,
@@ -196,4 +210,24 @@ pub fn exit_status_within(
         }
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
+}
+
+/// Publish a split frame into `watched` as instruments do: written under a hidden temporary
+/// name, then renamed into place.
+pub fn publish(watched: &Path, f: &sunjitter::pipeline::fake::SplitFrame) {
+    let tmp = watched.join(format!(".{}.tmp", f.name));
+    std::fs::write(&tmp, &f.bytes).unwrap();
+    std::fs::rename(&tmp, watched.join(&f.name)).unwrap();
+}
+
+/// Frame keys logged in `out` so far, with their counts (the library's reader, which also
+/// reads segments still being written).
+pub fn logged(out: &Path) -> std::collections::BTreeMap<String, usize> {
+    let mut counts = std::collections::BTreeMap::new();
+    if let Ok(logs) = sunjitter::sink::read_logs(&[out.to_path_buf()]) {
+        for m in &logs.jitter {
+            *counts.entry(m.record.align.frame.clone()).or_insert(0) += 1;
+        }
+    }
+    counts
 }
