@@ -280,28 +280,30 @@ fn print_table(r: &Report) {
         "", "scale", "rotation ″", "dx px", "dy px"
     );
     type Column = fn(&crate::simulate::ParameterSummary) -> f64;
-    let rows: [(&str, Column); 8] = [
-        ("RMSE of residuals", |p| p.rmse),
-        ("mean residual (bias)", |p| p.bias),
-        ("RMS of σ (calibrated)", |p| p.rms_sigma),
-        ("within 1σ", |p| p.within_1sigma),
-        ("within 3σ", |p| p.within_3sigma),
-        ("RMS of UABJM σ", |p| p.rms_uabjm_sigma),
-        ("UABJM within 1σ", |p| p.uabjm_within_1sigma),
-        ("UABJM within 3σ", |p| p.uabjm_within_3sigma),
+    // The last field says whether the row is a fraction of trials (printed as one in every
+    // column) or a value in each column's unit.
+    let rows: [(&str, Column, bool); 8] = [
+        ("RMSE of residuals", |p| p.rmse, false),
+        ("mean residual (bias)", |p| p.bias, false),
+        ("RMS of σ (calibrated)", |p| p.rms_sigma, false),
+        ("within 1σ", |p| p.within_1sigma, true),
+        ("within 3σ", |p| p.within_3sigma, true),
+        ("RMS of UABJM σ", |p| p.rms_uabjm_sigma, false),
+        ("UABJM within 1σ", |p| p.uabjm_within_1sigma, true),
+        ("UABJM within 3σ", |p| p.uabjm_within_3sigma, true),
     ];
     if s.succeeded == 0 {
         println!("no trial aligned, so there is nothing to summarise (the warnings say why)");
     }
-    for (name, f) in rows.into_iter().filter(|_| s.succeeded > 0) {
-        println!(
-            "{:<26}{:>14.3e}{:>14.4}{:>14.5}{:>14.5}",
-            name,
-            f(&s.scale),
-            f(&s.rotation_arcsec),
-            f(&s.dx_px),
-            f(&s.dy_px)
-        );
+    for (name, f, fraction) in rows.into_iter().filter(|_| s.succeeded > 0) {
+        let columns = [&s.scale, &s.rotation_arcsec, &s.dx_px, &s.dy_px].map(f);
+        if fraction {
+            let [a, b, c, d] = columns;
+            println!("{name:<26}{a:>14.3}{b:>14.3}{c:>14.3}{d:>14.3}");
+        } else {
+            let [a, b, c, d] = columns;
+            println!("{name:<26}{a:>14.3e}{b:>14.4}{c:>14.5}{d:>14.5}");
+        }
     }
     if let Some(t) = &r.translation_trials {
         if let Some(cc) = t.cc_rmse_px {

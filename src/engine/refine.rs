@@ -659,11 +659,29 @@ pub(crate) const MODEL: HighOrder = HighOrder::Quintic;
 /// after is the same to first order in the scale change (a Gaussian is isotropic), and lets
 /// every iteration sample only the pixels the fit uses instead of warping the whole box.
 pub struct FrameWindow {
-    spline: HighOrderSpline,
-    /// Frame-grid position of the window's first column and row.
-    origin: [f64; 2],
+    /// One tile for a pair's refinement; several, far apart, for a self-test on tiles.
+    tiles: Vec<WindowTile>,
     /// The Sun's motion between the two times: pixels are sampled at `T(S(p))`.
     carried: Option<super::derotate::Carried>,
+}
+
+/// A part of the frame, prefiltered for spline sampling.
+struct WindowTile {
+    spline: HighOrderSpline,
+    /// Frame-grid position of the tile's first column and row.
+    origin: [f64; 2],
+    /// Frame-grid position of its last column and row.
+    end: [f64; 2],
+}
+
+impl WindowTile {
+    /// How far `(x, y)` lies inside the tile, px (negative outside).
+    fn depth(&self, x: f64, y: f64) -> f64 {
+        (x - self.origin[0])
+            .min(self.end[0] - x)
+            .min(y - self.origin[1])
+            .min(self.end[1] - y)
+    }
 }
 
 /// Pixels sampled per task.
@@ -692,8 +710,11 @@ impl FrameWindow {
         let smoothed =
             crate::preprocess::gaussian_smooth(frame.slice(s![y0..=y1, x0..=x1]), sigma_px);
         Some(FrameWindow {
-            spline: HighOrderSpline::new(smoothed.view(), MODEL),
-            origin: [x0 as f64, y0 as f64],
+            tiles: vec![WindowTile {
+                spline: HighOrderSpline::new(smoothed.view(), MODEL),
+                origin: [x0 as f64, y0 as f64],
+                end: [x1 as f64, y1 as f64],
+            }],
             carried: carried.cloned(),
         })
     }
@@ -710,6 +731,15 @@ impl FrameWindow {
         )
     }
 
+    /// The tile that frame position `p` lies deepest in.
+    fn tile_of(&self, p: [f64; 2]) -> usize {
+        if self.tiles.len() == 1 {
+            return 0;
+        }
+        let depth = |k: usize| self.tiles[k].depth(p[0], p[1]);
+        (1..self.tiles.len()).fold(0, |best, k| if depth(k) > depth(best) { k } else { best })
+    }
+
     /// Value and reference-grid gradient of the frame at the image of each pixel through `t`
     /// (of each pixel's carried position, when given).
     fn sample(
@@ -720,23 +750,37 @@ impl FrameWindow {
     ) -> Vec<[f64; 3]> {
         let (a, b) = t.ab();
         let map = crate::resample::similarity_map(t);
-        let [ox, oy] = self.origin;
         let mut out = vec![[0.0; 3]; pixels.len()];
         out.par_chunks_mut(SAMPLE_CHUNK)
             .zip(pixels.par_chunks(SAMPLE_CHUNK))
             .enumerate()
             .for_each(|(k, (out, pixels))| {
                 let moved = carried.map(|c| &c[k * SAMPLE_CHUNK..]);
-                let positions: Vec<[f64; 2]> = pixels
+                let mut positions: Vec<[f64; 2]> = pixels
                     .iter()
                     .enumerate()
                     .map(|(i, p)| {
                         let (px, py) = moved.map_or((p.x as f64, p.y as f64), |m| m[i]);
                         let (x, y) = map(px, py);
-                        [x - ox, y - oy]
+                        [x, y]
                     })
                     .collect();
-                self.spline.sample_with_gradient_at(&positions, out);
+                // Runs of positions in one tile, each sampled from the tile it lies deepest in.
+                let mut start = 0;
+                while start < positions.len() {
+                    let tile = self.tile_of(positions[start]);
+                    let mut stop = start + 1;
+                    while stop < positions.len() && self.tile_of(positions[stop]) == tile {
+                        stop += 1;
+                    }
+                    let t = &self.tiles[tile];
+                    for q in &mut positions[start..stop] {
+                        *q = [q[0] - t.origin[0], q[1] - t.origin[1]];
+                    }
+                    t.spline
+                        .sample_with_gradient_at(&positions[start..stop], &mut out[start..stop]);
+                    start = stop;
+                }
                 for s in out.iter_mut() {
                     let [v, fx, fy] = *s;
                     // ∇(frame ∘ T) = Jᵀ ∇frame with J = [[a, −b], [b, a]].
@@ -1440,7 +1484,10 @@ fn check_at_fractional_shift(
         dy: transform.dy - transform.dy.round(),
         ..*transform
     };
-    self_test_bias(reference, prepared, pixels, grid, &local, &settings, maker)
+    let whole = [pixel_box(pixels)?];
+    self_test_bias(
+        reference, prepared, pixels, &whole, grid, &local, &settings, maker,
+    )
 }
 
 /// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives
@@ -1619,13 +1666,29 @@ pub fn self_test_floor(
 ) -> Option<SelfTest> {
     let (h, w) = reference.dim();
     let grid = CellGrid::new(mask.view(), sample)?;
-    let pixels = lattice_pixels(
-        (h, w),
-        |x, y| mask[[y, x]] && reference[[y, x]].is_finite(),
-        &grid,
-        MAX_PIXELS,
-        |_| true,
-    );
+    let usable = |x: usize, y: usize| mask[[y, x]] && reference[[y, x]].is_finite();
+    let tiles = self_test_tiles(mask);
+    let (pixels, boxes) = if tiles.is_empty() {
+        let pixels = lattice_pixels((h, w), usable, &grid, MAX_PIXELS, |_| true);
+        let whole = pixel_box(&pixels)?;
+        (pixels, vec![whole])
+    } else {
+        // Every pixel of every tile, tile by tile (the order the sampling reads them in).
+        let pixels = tiles
+            .par_iter()
+            .flat_map_iter(|&(x0, y0, x1, y1)| {
+                let (usable, grid) = (&usable, &grid);
+                (y0..=y1).flat_map(move |y| {
+                    (x0..=x1).filter_map(move |x| {
+                        usable(x, y)
+                            .then(|| grid.cell_of(x, y).map(|c| (x, y, c)))
+                            .flatten()
+                    })
+                })
+            })
+            .collect();
+        (pixels, tiles)
+    };
     if pixels.is_empty() {
         return None;
     }
@@ -1644,6 +1707,7 @@ pub fn self_test_floor(
     // More cases where they are cheap: the RMS of four is uncertain by about ±35 %, and on
     // small undersampled images the error varies strongly with the sub-pixel position.
     let cases = (SELF_TEST_PIXEL_BUDGET / pixels.len().max(1)).clamp(4, 16);
+    let cases = if boxes.len() > 1 { 4 } else { cases };
     let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
     let mut flat = Vec::with_capacity(cases);
     for case in 0..cases {
@@ -1659,6 +1723,7 @@ pub fn self_test_floor(
             reference,
             prepared,
             &pixels,
+            &boxes,
             &grid,
             &t,
             &settings,
@@ -1681,8 +1746,62 @@ pub fn self_test_floor(
     })
 }
 
-/// Pixels (summed over the cases) the self-test may refine: 4 cases at 2²⁰ pixels, up to 16
-/// on smaller images.
+/// Tiles (inclusive boxes) of the self-test on a large mask: a 5 × 5 layout over the mask's
+/// bounding box, the tiles wholly inside the mask kept, [`SELF_TEST_TILE_PIXELS`] in all.
+/// Tiles keep the lever arm of the whole mask and every sub-pixel position while the
+/// synthetic frames are made only where the refinement reads them. Empty when the mask is
+/// small enough to be tested whole.
+fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, usize)> {
+    const LAYOUT: usize = 5;
+    let Some(roi) = bounding_box(mask) else {
+        return Vec::new();
+    };
+    let (x0, y0, x1, y1) = roi;
+    let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
+    if bw * bh < SELF_TEST_TILED_ABOVE {
+        return Vec::new();
+    }
+    let side = ((SELF_TEST_TILE_PIXELS / (LAYOUT * LAYOUT - 4)) as f64).sqrt() as usize;
+    let side = side.min(bw / LAYOUT).min(bh / LAYOUT);
+    let tiles: Vec<_> = (0..LAYOUT * LAYOUT)
+        .map(|k| {
+            let centre = |i: usize, n: usize, at: usize| at + ((2 * i + 1) * n) / (2 * LAYOUT);
+            let (cx, cy) = (centre(k % LAYOUT, bw, x0), centre(k / LAYOUT, bh, y0));
+            (
+                cx - side / 2,
+                cy - side / 2,
+                cx - side / 2 + side - 1,
+                cy - side / 2 + side - 1,
+            )
+        })
+        .filter(|&(tx0, ty0, tx1, ty1)| mask.slice(s![ty0..=ty1, tx0..=tx1]).iter().all(|&m| m))
+        .collect();
+    // Too few tiles inside (a ring-shaped or ragged mask): test the whole mask.
+    if tiles.len() < LAYOUT * LAYOUT / 2 {
+        return Vec::new();
+    }
+    tiles
+}
+
+/// Bounding box (x0, y0, x1, y1), inclusive, of the true pixels of `mask`.
+fn bounding_box(mask: &Array2<bool>) -> Option<(usize, usize, usize, usize)> {
+    let rows: Vec<usize> = (0..mask.nrows())
+        .filter(|&y| mask.row(y).iter().any(|&m| m))
+        .collect();
+    let cols: Vec<usize> = (0..mask.ncols())
+        .filter(|&x| mask.column(x).iter().any(|&m| m))
+        .collect();
+    Some((*cols.first()?, *rows.first()?, *cols.last()?, *rows.last()?))
+}
+
+/// Mask bounding-box area above which the self-test runs on tiles, px.
+const SELF_TEST_TILED_ABOVE: usize = 2000 * 2000;
+
+/// Pixels in all the self-test's tiles.
+const SELF_TEST_TILE_PIXELS: usize = 1 << 18;
+
+/// Pixels (summed over the cases) the self-test may refine on a whole mask: 4 cases at 2²⁰
+/// pixels, up to 16 on smaller images (on tiles, always 4).
 const SELF_TEST_PIXEL_BUDGET: usize = 4 << 20;
 
 /// The `k`-th self-test transform: (dx, dy, rotation and scale change as a motion of the
@@ -1718,19 +1837,49 @@ enum FrameMaker {
 /// the reference itself through `transform` (by `maker`) is refined from the exact answer,
 /// and what the refinement reports instead is its bias (interpolation of sharp or
 /// undersampled structure, mostly), with the variance it reported.
+#[allow(clippy::too_many_arguments)]
 fn self_test_bias(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
     pixels: &[(usize, usize, usize)],
+    boxes: &[(usize, usize, usize, usize)],
     grid: &CellGrid,
     transform: &Similarity,
     settings: &RefineSettings,
     maker: FrameMaker,
 ) -> Option<SelfTestCase> {
+    let tiles = boxes
+        .par_iter()
+        .map(|&bbox| synthetic_tile(reference, bbox, transform, settings, maker))
+        .collect::<Option<Vec<_>>>()?;
+    let window = FrameWindow {
+        tiles,
+        carried: None,
+    };
+    let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
+    let (a, b) = (transform.params(), test.transform.params());
+    let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
+    let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);
+    let flat_sigma = test.flat_residual_sigma;
+    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase {
+        bias,
+        variance,
+        flat_sigma,
+    })
+}
+
+/// The synthetic frame (the reference moved by `transform`, by `maker`) on the window that
+/// the reference pixels in `bbox` map into.
+fn synthetic_tile(
+    reference: ArrayView2<f32>,
+    bbox: (usize, usize, usize, usize),
+    transform: &Similarity,
+    settings: &RefineSettings,
+    maker: FrameMaker,
+) -> Option<WindowTile> {
     let (h, w) = reference.dim();
     // The synthetic frame is only needed on the window the refinement reads; it is made
     // there from the spline of the part of the reference that the window maps back to.
-    let bbox = pixel_box(pixels)?;
     let sigma = settings.smoothing_px;
     // The synthetic frame's own smoothing: a blur mismatch, for the blur check.
     let frame_sigma = sigma.hypot(settings.frame_smoothing_px);
@@ -1760,23 +1909,13 @@ fn self_test_bias(
             SplineImage::new(source).warp_similarity_window(&to_source, wx0, wy0, ww, wh)
         }
     };
-    let window = FrameWindow {
+    Some(WindowTile {
         spline: HighOrderSpline::new(
             crate::preprocess::gaussian_smooth(synthetic.view(), frame_sigma).view(),
             MODEL,
         ),
         origin: [wx0 as f64, wy0 as f64],
-        carried: None,
-    };
-    let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
-    let (a, b) = (transform.params(), test.transform.params());
-    let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
-    let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);
-    let flat_sigma = test.flat_residual_sigma;
-    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase {
-        bias,
-        variance,
-        flat_sigma,
+        end: [wx1 as f64, wy1 as f64],
     })
 }
 
