@@ -183,9 +183,8 @@ impl Products {
                 }
                 let mut grid =
                     Grid::of_image(image, ctx.aligner.geometry_used(image)).map_err(reason)?;
-                if !is_identity(&t) {
-                    grid.cards = compose_wcs(&grid.cards, &t);
-                }
+                // Also for the identity: the roll is stated as PCi_j, however the header gave it.
+                grid.cards = compose_wcs(&grid.cards, &t);
                 Arc::new(grid)
             }
         };
@@ -288,8 +287,10 @@ impl Products {
             .reader
             .read_frame(&parse_frame_key(key))
             .map_err(reason)?;
-        let grid =
-            Arc::new(Grid::of_image(&image, ctx.aligner.geometry_used(&image)).map_err(reason)?);
+        let mut grid = Grid::of_image(&image, ctx.aligner.geometry_used(&image)).map_err(reason)?;
+        let identity = Similarity::identity(Similarity::array_center(1, 1));
+        grid.cards = compose_wcs(&grid.cards, &identity);
+        let grid = Arc::new(grid);
         lock().insert(key.to_string(), grid.clone());
         Ok(grid)
     }

@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{sunjitter, sunjitter_ok};
+use common::{logged, sunjitter, sunjitter_ok, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use sunjitter::fits::{self, FrameSpec};
@@ -366,4 +366,199 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
     let (code, _, stderr) = sunjitter(&["replay", file, "--out", "x", "--wcs-only"]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("--aligned"), "{stderr}");
+}
+
+#[test]
+fn a_real_cube_gets_one_header_only_product_per_measured_frame_on_its_chain() {
+    let dir = tempfile::tempdir().unwrap();
+    let cube = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
+    let out = dir.path().join("log");
+    let products = dir.path().join("products");
+    sunjitter_ok(&[
+        "replay",
+        cube,
+        "--out",
+        out.to_str().unwrap(),
+        "--aligned",
+        products.to_str().unwrap(),
+        "--wcs-only",
+    ]);
+    let logs = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+    let name = Path::new(cube).file_name().unwrap().to_str().unwrap();
+    let mut expected = Vec::new();
+    for m in &logs.jitter {
+        let r = &m.record;
+        let n = r
+            .align
+            .frame
+            .rsplit_once('[')
+            .unwrap()
+            .1
+            .trim_end_matches(']');
+        let product = products.join(format!("{name}[{n}].wcs.fits"));
+        if r.align.status == Status::Failed {
+            assert!(!product.exists(), "{product:?}");
+            continue;
+        }
+        // The product carries the chain the log holds.
+        let (_, h) = fits::read_image_header(&product).unwrap();
+        let card = |k: &str| h.get(k).and_then(|v| v.as_f64()).unwrap();
+        // Cards hold 15 significant digits.
+        let same = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs().max(1.0);
+        assert!(same(card("SJ_DX"), r.chained_dx_px.unwrap()), "{n}");
+        assert!(same(card("SJ_DY"), r.chained_dy_px.unwrap()), "{n}");
+        assert!(same(card("SJ_SCALE"), r.chained_scale.unwrap()), "{n}");
+        expected.push(format!("{name}[{n}].wcs.fits"));
+    }
+    expected.sort();
+    assert!(expected.len() > 40, "{} products", expected.len());
+    assert_eq!(files_below(&products), expected);
+    // sunpy (independently of sunjitter's WCS code) puts each frame's chained pixels at the
+    // origin's coordinates, across keyframe changes.
+    let origin = products.join(format!("{name}[0].wcs.fits"));
+    python_check(&[
+        products.to_str().unwrap(),
+        "--origin",
+        origin.to_str().unwrap(),
+        "--chain",
+        "--expect",
+        &expected.len().to_string(),
+    ]);
+}
+
+#[test]
+fn a_refused_plate_scale_is_not_the_one_products_state() {
+    // EIT's header says 2.63″/px; the disk it shows says about 20.6″/px, which the alignment
+    // used. Both kinds of product must state the latter.
+    let reference = "data/real/eit_171_20040301T010016_128.fits";
+    let frame = "data/real/eit_195_20040301T000010_128.fits";
+    for wcs_only in [false, true] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("log");
+        let products = dir.path().join("products");
+        let fixed = format!("fixed:{reference}");
+        let mut args = vec![
+            "replay",
+            reference,
+            frame,
+            "--reference",
+            &fixed,
+            "--out",
+            out.to_str().unwrap(),
+            "--aligned",
+            products.to_str().unwrap(),
+        ];
+        if wcs_only {
+            args.push("--wcs-only");
+        }
+        sunjitter_ok(&args);
+        let logs = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+        let m = logs
+            .jitter
+            .iter()
+            .find(|m| {
+                m.record
+                    .align
+                    .frame
+                    .ends_with("eit_195_20040301T000010_128.fits")
+            })
+            .unwrap();
+        let used = m.record.align.dx_arcsec.unwrap() / m.record.align.dx_px.unwrap();
+        assert!((used - 20.6).abs() < 1.0, "plate scale used {used}");
+        assert_eq!(files_below(&products).len(), 2);
+        python_check(&[products.to_str().unwrap(), "--origin", reference, "--disk"]);
+    }
+}
+
+/// A watch started with `--aligned … --wcs-only` on `watched`.
+fn spawn_watch(watched: &Path, out: &Path, config: &Path, products: &Path) -> WatchProcess {
+    let stderr = out.with_extension("stderr");
+    let file = std::fs::File::create(&stderr).unwrap();
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
+        .arg("watch")
+        .arg(watched)
+        .args(["--out".as_ref(), out.as_os_str()])
+        .args(["--config".as_ref(), config.as_os_str()])
+        .args([
+            "--aligned".as_ref(),
+            products.as_os_str(),
+            "--wcs-only".as_ref(),
+        ])
+        .env("SUNJITTER_LOG", "info")
+        .stdout(std::process::Stdio::null())
+        .stderr(file)
+        .spawn()
+        .unwrap();
+    WatchProcess { child, stderr }
+}
+
+/// Put a frame into the watched directory as instruments do (hidden name, then rename).
+fn publish_file(watched: &Path, from: &Path) {
+    let name = from.file_name().unwrap().to_str().unwrap();
+    let tmp = watched.join(format!(".{name}.tmp"));
+    std::fs::copy(from, &tmp).unwrap();
+    std::fs::rename(&tmp, watched.join(name)).unwrap();
+}
+
+#[test]
+fn after_a_kill_and_a_restart_every_logged_frame_has_exactly_one_product() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = synth(dir.path(), 6);
+    let watched = dir.path().join("incoming");
+    std::fs::create_dir_all(&watched).unwrap();
+    let out = dir.path().join("log");
+    let products = dir.path().join("products");
+    let config = dir.path().join("watch.toml");
+    std::fs::write(
+        &config,
+        format!("{QUICK_DAEMON_CONFIG}\n[engine]\nsolar_rotation = \"none\"\n"),
+    )
+    .unwrap();
+    let frame = |k: usize| frames.join(format!("synth_{k:04}.fits"));
+
+    let mut first = spawn_watch(&watched, &out, &config, &products);
+    first.wait_watching();
+    for k in 0..3 {
+        publish_file(&watched, &frame(k));
+    }
+    first.wait_until("three frames logged", |_| logged(&out).len() >= 3);
+    first.kill();
+
+    let mut second = spawn_watch(&watched, &out, &config, &products);
+    second.wait_watching();
+    for k in 3..6 {
+        publish_file(&watched, &frame(k));
+    }
+    second.wait_until("six frames logged", |_| logged(&out).len() >= 6);
+    assert!(second.terminate().success());
+
+    let counts = logged(&out);
+    assert!(counts.values().all(|&n| n == 1), "{counts:?}");
+    let statuses = logged_frames(&out);
+    let expected: Vec<String> = statuses
+        .iter()
+        .filter(|(_, (s, _))| *s != Status::Failed)
+        .map(|(k, _)| {
+            format!(
+                "{}.wcs.fits",
+                Path::new(k).file_name().unwrap().to_str().unwrap()
+            )
+        })
+        .collect();
+    assert_eq!(expected.len(), 6, "{statuses:?}");
+    let visible: Vec<String> = files_below(&products)
+        .into_iter()
+        .filter(|f| !f.starts_with('.'))
+        .collect();
+    assert_eq!(visible, expected);
+    // The frames measured after the restart are put on the chain's origin too.
+    python_check(&[
+        products.to_str().unwrap(),
+        "--origin",
+        frame(0).to_str().unwrap(),
+        "--truth",
+        frames.join("truth.csv").to_str().unwrap(),
+        "--expect",
+        "6",
+    ]);
 }

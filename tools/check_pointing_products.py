@@ -9,9 +9,12 @@ origin gives it. Where the feature is seen is decided here without sunjitter's W
       p' = s R(theta) (p - c) + c + (dx, dy)). sunpy's Map of the product at truth_k(p) must
       give the coordinates sunpy's Map of the origin gives at truth_0(p), within the measured
       sigma (the product's SJ_SDX, SJ_SDY, SJ_SROT) -- and the frame's own header must not.
-  --image             (real data): each product is reprojected onto the origin's pixel grid
-      through the two WCS (astropy), and the remaining shift against the origin image is
-      measured by FFT cross-correlation; it must stay below --max-shift-px.
+  --chain             (real data): sunpy's Map of each product, at the frame pixel where the
+      chained transform (SJ_* cards, the log's chained_* values) puts an origin pixel, must
+      give the coordinates sunpy's Map of the origin gives that pixel.
+  --disk              (a refused plate scale, EUV): the limb's radius measured in each
+      product's pixels times its CDELT1 must be the header's solar radius within 5 %, and
+      the input's own CDELT1 must fail that test.
 
 Prints one line per product and a closing 'N passed, N failed'; exit 1 on any failure.
 """
@@ -110,52 +113,73 @@ def check_truth(args):
     return passed, failed
 
 
-def shift_by_correlation(a, b):
-    """Shift (x, y) of b relative to a: FFT cross-correlation, parabolic peak."""
-    a = np.nan_to_num(a - np.nanmean(a))
-    b = np.nan_to_num(b - np.nanmean(b))
-    win = np.outer(np.hanning(a.shape[0]), np.hanning(a.shape[1]))
-    f = np.fft.fft2(a * win).conj() * np.fft.fft2(b * win)
-    cc = np.fft.fftshift(np.real(np.fft.ifft2(f)))
-    iy, ix = np.unravel_index(np.argmax(cc), cc.shape)
-
-    def para(m, c, p):
-        d = m - 2 * c + p
-        return 0.0 if d == 0 else 0.5 * (m - p) / d
-
-    dy = para(cc[iy - 1, ix], cc[iy, ix], cc[iy + 1, ix])
-    dx = para(cc[iy, ix - 1], cc[iy, ix], cc[iy, ix + 1])
-    return ix + dx - cc.shape[1] // 2, iy + dy - cc.shape[0] // 2
+def chain_of(header):
+    t = (header["SJ_SCALE"], math.radians(header["SJ_ROT"] / 3600.0), header["SJ_DX"], header["SJ_DY"])
+    return t, (header["SJ_CX"], header["SJ_CY"])
 
 
-def reproject(data, wcs_from, wcs_to, shape):
-    from scipy.ndimage import map_coordinates
-
-    h, w = shape
-    y, x = np.mgrid[0:h, 0:w].astype(float)
-    lon, lat = wcs_to.celestial.wcs_pix2world(x, y, 0)
-    px, py = wcs_from.celestial.wcs_world2pix(lon, lat, 0)
-    return map_coordinates(data.astype(float), [py, px], order=3, mode="constant", cval=np.nan)
-
-
-def check_image(args):
-    ref_hdu = fits.getheader(args.origin)
-    ref = fits.getdata(args.origin).astype(float)
-    ref_wcs = WCS(ref_hdu).celestial
-    h, w = ref.shape
-    crop = (slice(h // 4, 3 * h // 4), slice(w // 4, 3 * w // 4))
+def check_chain(args):
+    """Real data: sunpy's Map of each product, at the frame pixel where the chained transform
+    (the log's chained_*, carried in SJ_*) puts an origin pixel, gives the coordinates sunpy's
+    Map of the origin gives that origin pixel."""
+    origin = sunpy_map(args.origin)
+    h, w = origin.data.shape
+    g = np.linspace(0.1, 0.9, 5)
+    xy = np.array([(u * (w - 1), v * (h - 1)) for u in g for v in g])
+    reference = hpc_arcsec(origin, xy)
+    plate = abs(origin.scale.axis1.value)
     passed = failed = 0
     for path in products(args.products):
-        hdr = fits.getheader(path)
-        data = fits.getdata(path)
-        on_ref = reproject(data, WCS(hdr).celestial, ref_wcs, ref.shape)
-        sx, sy = shift_by_correlation(ref[crop], on_ref[crop])
-        err = math.hypot(sx, sy)
-        ok = err <= args.max_shift_px
+        header = fits.getheader(path)
+        t, center = chain_of(header)
+        err = np.abs(hpc_arcsec(sunpy_map(path), apply(t, xy, center)) - reference).max() / plate
+        ok = err <= args.floor_px
         passed += ok
         failed += not ok
         print(f"{'ok  ' if ok else 'FAIL'} {os.path.relpath(path, args.products)}: "
-              f"remaining shift ({sx:+.4f}, {sy:+.4f}) px (limit {args.max_shift_px})")
+              f"{err:.2e} px from the origin's coordinates (limit {args.floor_px})")
+    return passed, failed
+
+
+def limb_radius_px(data):
+    """The radius of an EUV image's limb brightening: the peak of the radial profile about the
+    centroid of the brighter half of the pixels."""
+    data = np.nan_to_num(data.astype(float))
+    bright = data > np.median(data)
+    y, x = np.mgrid[0 : data.shape[0], 0 : data.shape[1]]
+    cx, cy = x[bright].mean(), y[bright].mean()
+    r = np.hypot(x - cx, y - cy)
+    bins = np.floor(r).astype(int).ravel()
+    prof = np.bincount(bins, data.ravel()) / np.maximum(np.bincount(bins), 1)
+    reach = int(min(cx, cy, data.shape[1] - 1 - cx, data.shape[0] - 1 - cy))
+    k = 5 + int(np.argmax(prof[5:reach]))
+    m, c, p = prof[k - 1], prof[k], prof[k + 1]
+    d = m - 2 * c + p
+    return k + 0.5 + (0.0 if d == 0 else 0.5 * (m - p) / d)
+
+
+def check_disk(args):
+    """The plate scale a product states against the Sun it shows: the limb's radius in pixels
+    times CDELT1 must be the solar radius the input's header gives (RSUN_OBS, or SOLAR_R in
+    its own pixels) within 5 %, and the input's own CDELT1 must fail that test."""
+    passed = failed = 0
+    own = fits.getheader(args.origin)
+    rsun = own.get("RSUN_OBS") or own.get("RSUN_ARC") or own["SOLAR_R"] * abs(own["CDELT1"])
+    found = sorted(glob.glob(os.path.join(args.products, "**", "*.fits"), recursive=True))
+    for path in [args.origin] + found:
+        header = fits.getheader(path)
+        r_px = limb_radius_px(fits.getdata(path))
+        stated = r_px * abs(header["CDELT1"])
+        ok = abs(stated / rsun - 1) <= 0.05
+        if path == args.origin:
+            ok = not ok
+            what = "input header (must disagree)"
+        else:
+            what = "product"
+        passed += ok
+        failed += not ok
+        print(f"{'ok  ' if ok else 'FAIL'} {os.path.basename(path)}: {what}: limb {r_px:.1f} px "
+              f"x CDELT1 {abs(header['CDELT1']):.3f} = {stated:.0f} arcsec vs R_sun {rsun:.0f}")
     return passed, failed
 
 
@@ -164,14 +188,19 @@ def main():
     p.add_argument("products", help="the --aligned directory (its *.wcs.fits are checked)")
     p.add_argument("--origin", required=True, help="the chain origin's input file")
     p.add_argument("--truth", help="synth's truth.csv")
-    p.add_argument("--image", action="store_true", help="check by image correlation")
+    p.add_argument("--chain", action="store_true", help="check against the chained transform")
+    p.add_argument("--disk", action="store_true", help="check the plate scale against the disk")
     p.add_argument("--sigmas", type=float, default=4.0)
     p.add_argument("--floor-px", type=float, default=0.002)
     p.add_argument("--min-raw-px", type=float, default=0.5)
-    p.add_argument("--max-shift-px", type=float, default=0.2)
     p.add_argument("--expect", type=int, help="number of products expected")
     args = p.parse_args()
-    passed, failed = check_truth(args) if args.truth else check_image(args)
+    if args.truth:
+        passed, failed = check_truth(args)
+    elif args.chain:
+        passed, failed = check_chain(args)
+    else:
+        passed, failed = check_disk(args)
     if args.expect is not None and len(products(args.products)) != args.expect:
         print(f"FAIL {len(products(args.products))} products, expected {args.expect}")
         failed += 1

@@ -138,8 +138,8 @@ fn product_cards(
 /// The grid `cards` describe, seen through `m` (new pixel → old pixel, 0-based): the WCS whose
 /// world coordinates at pixel `q` are the old WCS's at `m(q)`. Exact for any projection: only
 /// the linear part changes. `CRPIXi` moves, `CDi_j` becomes `CD·L` (L = s R(θ)); otherwise
-/// `CDELTi` is multiplied by `s` and `PCi_j` (from `CROTA2` where the header has no matrix)
-/// becomes `PC·R(θ)`, with `CROTAi` removed. `CRVALi`, `CTYPEi`, `CUNITi` stay. Cards that
+/// `CDELTi` is multiplied by `s` and `PCi_j` (from `CROTA2`, or `SC_ROLL`, where the header has
+/// no matrix) becomes `PC·R(θ)`, with `CROTAi` removed. `CRVALi`, `CTYPEi`, `CUNITi` stay. Cards that
 /// would describe the old grid otherwise (alternate WCS, `XCEN`/`YCEN`, `FOVX`/`FOVY`, `*_MP`,
 /// roll and spacecraft-pointing keys) go.
 pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(String, HeaderValue)> {
@@ -166,10 +166,14 @@ pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(Stri
     let c1 = [m.center[0] + 1.0, m.center[1] + 1.0];
     let v = [c1[0] + m.dx - crpix[0], c1[1] + m.dy - crpix[1]];
     let det = a * a + b * b;
-    let new_crpix = [
-        c1[0] - (a * v[0] + b * v[1]) / det,
-        c1[1] - (-b * v[0] + a * v[1]) / det,
-    ];
+    let new_crpix = if (a, b, m.dx, m.dy) == (1.0, 0.0, 0.0, 0.0) {
+        crpix
+    } else {
+        [
+            c1[0] - (a * v[0] + b * v[1]) / det,
+            c1[1] - (-b * v[0] + a * v[1]) / det,
+        ]
+    };
     let has_cd = ij.iter().any(|(i, j)| get(&format!("CD{i}_{j}")).is_some());
     let mut linear: Vec<(String, f64)> = Vec::new();
     if has_cd {
@@ -193,9 +197,12 @@ pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(Stri
             };
             [[at(1, 1), at(1, 2)], [at(2, 1), at(2, 2)]]
         } else {
-            // FITS WCS Paper II, the CROTA2 convention.
+            // FITS WCS Paper II, the CROTA2 convention; SOHO's SC_ROLL where nothing else
+            // gives the roll, as the headers are read for alignment.
             let rho = get("CROTA2")
+                .or_else(|| get("CROTA1"))
                 .or_else(|| get("CROTA"))
+                .or_else(|| get("SC_ROLL"))
                 .unwrap_or(0.0)
                 .to_radians();
             let (s, c) = rho.sin_cos();
