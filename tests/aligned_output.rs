@@ -383,7 +383,7 @@ fn a_real_cube_gets_one_header_only_product_per_measured_frame_on_its_chain() {
         products.to_str().unwrap(),
         "--wcs-only",
     ]);
-    let logs = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     let name = Path::new(cube).file_name().unwrap().to_str().unwrap();
     let mut expected = Vec::new();
     for m in &logs.jitter {
@@ -452,7 +452,7 @@ fn a_refused_plate_scale_is_not_the_one_products_state() {
             args.push("--wcs-only");
         }
         sunjitter_ok(&args);
-        let logs = sunjitter::sink::read_logs(&[out.clone()]).unwrap();
+        let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
         let m = logs
             .jitter
             .iter()

@@ -57,7 +57,7 @@ pub fn run(args: &Args) -> Result<i32> {
         .dir
         .canonicalize()
         .map_err(|e| Error::io(&args.dir, e))?;
-    let products = crate::products::open(&args.run, &[root.clone()], &[], &root)?;
+    let products = crate::products::open(&args.run, std::slice::from_ref(&root), &[], &root)?;
     // Before reading (and recovering) the log: another daemon may be writing it.
     let lock = OutputLock::acquire(&args.run.out)?;
     let status_file = config.health.status_path(&args.run.out);

@@ -1128,6 +1128,115 @@ mod tests {
         assert_eq!(get("HISTORY"), Some(HeaderValue::Str("did it".into())));
     }
 
+    /// Intermediate world coordinates (CD · (p − CRPIX), 0-based p) of a header's cards,
+    /// evaluated the way FITS WCS Paper I/II define them, independently of `compose_wcs`.
+    fn intermediate(cards: &[(String, HeaderValue)], p: [f64; 2]) -> [f64; 2] {
+        let get = |k: &str| {
+            cards
+                .iter()
+                .find(|(c, _)| c == k)
+                .and_then(|(_, v)| v.as_f64())
+        };
+        let d = [
+            p[0] + 1.0 - get("CRPIX1").unwrap(),
+            p[1] + 1.0 - get("CRPIX2").unwrap(),
+        ];
+        let m = if get("CD1_1").is_some() {
+            [
+                [get("CD1_1").unwrap(), get("CD1_2").unwrap()],
+                [get("CD2_1").unwrap(), get("CD2_2").unwrap()],
+            ]
+        } else {
+            let c = [get("CDELT1").unwrap(), get("CDELT2").unwrap()];
+            let (pc11, pc12, pc21, pc22) = match get("PC1_1") {
+                Some(_) => (
+                    get("PC1_1").unwrap(),
+                    get("PC1_2").unwrap(),
+                    get("PC2_1").unwrap(),
+                    get("PC2_2").unwrap(),
+                ),
+                None => {
+                    let r = get("CROTA2").unwrap_or(0.0).to_radians();
+                    (
+                        r.cos(),
+                        -r.sin() * c[1] / c[0],
+                        r.sin() * c[0] / c[1],
+                        r.cos(),
+                    )
+                }
+            };
+            [[c[0] * pc11, c[0] * pc12], [c[1] * pc21, c[1] * pc22]]
+        };
+        [
+            m[0][0] * d[0] + m[0][1] * d[1],
+            m[1][0] * d[0] + m[1][1] * d[1],
+        ]
+    }
+
+    /// Truth: the definition. The composed WCS at q equals the original at m(q), for the
+    /// three ways a header states its linear part.
+    #[test]
+    fn a_composed_wcs_at_q_is_the_original_at_m_of_q() {
+        let f = |k: &str, v: f64| (k.to_string(), HeaderValue::Float(v));
+        let common = vec![
+            f("CRPIX1", 512.5),
+            f("CRPIX2", 498.25),
+            f("CRVAL1", -120.0),
+            f("CRVAL2", 35.0),
+            ("CTYPE1".to_string(), HeaderValue::Str("HPLN-TAN".into())),
+            f("XCEN", 3.0),
+        ];
+        let crota = [f("CDELT1", 0.6), f("CDELT2", 0.61), f("CROTA2", 12.5)];
+        let pc = [
+            f("CDELT1", -0.6),
+            f("CDELT2", 0.6),
+            f("PC1_1", 0.99),
+            f("PC1_2", -0.02),
+            f("PC2_1", 0.03),
+            f("PC2_2", 0.98),
+        ];
+        let cd = [
+            f("CD1_1", 2.6),
+            f("CD1_2", 0.01),
+            f("CD2_1", -0.02),
+            f("CD2_2", 2.63),
+        ];
+        let m = Similarity {
+            scale: 1.003,
+            rotation_rad: 0.021,
+            dx: 2.7,
+            dy: -1.4,
+            center: [511.5, 511.5],
+        };
+        for linear in [&crota[..], &pc[..], &cd[..]] {
+            let mut cards = common.clone();
+            cards.extend(linear.iter().cloned());
+            let composed = compose_wcs(&cards, &m);
+            for q in [[0.0, 0.0], [1023.0, 17.0], [300.5, 800.25]] {
+                let want = intermediate(&cards, m.apply(q));
+                let got = intermediate(&composed, q);
+                for k in 0..2 {
+                    assert!(
+                        (want[k] - got[k]).abs() < 1e-9,
+                        "{linear:?} {q:?}: {got:?} vs {want:?}"
+                    );
+                }
+            }
+            let keys: Vec<&str> = composed.iter().map(|(k, _)| k.as_str()).collect();
+            assert!(
+                !keys.contains(&"CROTA2") && !keys.contains(&"XCEN"),
+                "{keys:?}"
+            );
+            assert!(keys.contains(&"CRVAL1") && keys.contains(&"CTYPE1"));
+            // Through m and back: the original grid.
+            let back = compose_wcs(&composed, &m.inverse());
+            for q in [[10.0, 20.0], [900.0, 5.0]] {
+                let (a, b) = (intermediate(&cards, q), intermediate(&back, q));
+                assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9);
+            }
+        }
+    }
+
     /// Pearson correlation of the red and green channels of one composite, inside a circle.
     fn panel_rg_correlation(p: &Panels, panel: usize, center: [f64; 2], r: f64) -> f64 {
         let rgb = &p.composites[panel];
