@@ -441,9 +441,18 @@ pub fn check_dir(
         ));
     }
     let o = absolute(out);
-    if d.starts_with(&o) || o.starts_with(&d) {
+    let relation = if d == o {
+        Some("is")
+    } else if d.starts_with(&o) {
+        Some("is inside")
+    } else if o.starts_with(&d) {
+        Some("holds")
+    } else {
+        None
+    };
+    if let Some(relation) = relation {
         return refuse(format!(
-            "and the log directory {} must be apart (neither inside the other)",
+            "{relation} the log directory {} (--out); write the products elsewhere",
             crate::text::path(out)
         ));
     }

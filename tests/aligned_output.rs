@@ -343,8 +343,8 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
 
     let file = "data/real/aia_171_20110215T000000_128.fits";
     for (products, why) in [
-        (out.clone(), "apart"),
-        (out.join("p"), "apart"),
+        (out.clone(), "log directory"),
+        (out.join("p"), "log directory"),
         (PathBuf::from("data/real/products"), "inside"),
         (PathBuf::from("data"), "holds"),
     ] {
@@ -561,4 +561,38 @@ fn after_a_kill_and_a_restart_every_logged_frame_has_exactly_one_product() {
         "--expect",
         "6",
     ]);
+}
+
+#[test]
+fn a_product_that_cannot_be_written_is_one_log_warning_and_the_frame_is_still_logged() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = synth(dir.path(), 3);
+    let out = dir.path().join("log");
+    let products = dir.path().join("products");
+    // A directory where frame 1's product would go: it cannot be put in place.
+    std::fs::create_dir_all(products.join("synth_0001.fits.wcs.fits")).unwrap();
+    sunjitter_ok(&[
+        "replay",
+        frames.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--aligned",
+        products.to_str().unwrap(),
+        "--wcs-only",
+    ]);
+    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(logs.jitter.len(), 3, "every frame is logged");
+    let notes: Vec<_> = logs
+        .logs
+        .iter()
+        .filter(|m| m.entry.message.starts_with("product not written"))
+        .collect();
+    assert_eq!(notes.len(), 1, "{:?}", logs.logs);
+    assert!(notes[0].entry.file.ends_with("synth_0001.fits"));
+    assert_eq!(notes[0].entry.message.lines().count(), 1);
+    for k in [0, 2] {
+        assert!(products
+            .join(format!("synth_{k:04}.fits.wcs.fits"))
+            .is_file());
+    }
 }
