@@ -40,6 +40,7 @@ pub mod daemon;
 pub mod monitor;
 pub mod outputs;
 pub mod pipeline;
+pub mod products;
 pub mod reference;
 pub mod sink;
 

@@ -158,6 +158,10 @@ pub trait Aligner: Send + Sync {
     fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
         Some(image.meta.plate_scale_arcsec)
     }
+    /// The geometry alignments to `image` use, where it is not the header's.
+    fn geometry_used(&self, _image: &Image) -> Option<crate::engine::UsedGeometry> {
+        None
+    }
 }
 
 /// Where records go: the MCAP sink in production. Called from the one writer thread.
@@ -315,6 +319,10 @@ impl Aligner for EngineAligner {
             .geometry()
             .map(|g| g.plate_scale_arcsec)
             .or(Some(image.meta.plate_scale_arcsec))
+    }
+
+    fn geometry_used(&self, image: &Image) -> Option<crate::engine::UsedGeometry> {
+        self.prepared(image).geometry()
     }
 }
 
@@ -727,11 +735,12 @@ impl FrameReader for RetryingReader {
     }
 }
 
-/// The reader and aligner the jobs use.
+/// The reader, aligner and product writer the jobs use.
 #[derive(Clone)]
 pub struct JobContext {
     pub reader: Arc<dyn FrameReader>,
     pub aligner: Arc<dyn Aligner>,
+    pub products: Option<Arc<crate::products::Products>>,
 }
 
 impl StepContext for JobContext {
@@ -801,7 +810,6 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
             }));
             match step {
                 Ok(mut out) => {
-                    partner_out = out.partner;
                     // This frame's own message carries what was read (proves no torn reads).
                     for r in &mut out.records {
                         if let Record::Frame { message, .. } = r {
@@ -821,8 +829,16 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
                             _ => None,
                         })
                         .collect();
+                    // Written before the frame's records are logged: a frame logged is a frame
+                    // whose product is in place (or whose note says why not).
+                    let product_note = ctx
+                        .products
+                        .as_ref()
+                        .and_then(|p| p.write(&item.key, &frame.image, &out, ctx));
+                    partner_out = out.partner;
                     records.extend(out.records);
                     records.extend(notes);
+                    records.extend(product_note);
                 }
                 Err(panic) => {
                     let what = panic
@@ -1390,6 +1406,8 @@ pub struct RunParts {
     pub history: History,
     pub progress: watch::Sender<Progress>,
     pub live: bool,
+    /// Where each measured frame's FITS product goes (`--aligned DIR`), if anywhere.
+    pub products: Option<Arc<crate::products::Products>>,
 }
 
 /// Run the pipeline until the input ends (replay) or `stop` turns true (daemon: frames in
@@ -1410,6 +1428,7 @@ pub async fn run_pipeline(
         history,
         progress,
         live,
+        products,
     } = parts;
     let stopping = Arc::new(AtomicBool::new(false));
     let (writer_tx, writer_rx) = mpsc::channel(config.daemon.queue_capacity.max(1));
@@ -1421,6 +1440,7 @@ pub async fn run_pipeline(
     let ctx = JobContext {
         reader: Arc::new(RetryingReader::new(reader, &config.daemon)),
         aligner,
+        products,
     };
     let flush_every = Duration::from_secs_f64(config.daemon.flush_interval_s.max(0.01));
     let driven = drive(
@@ -1982,6 +2002,7 @@ mod tests {
             history,
             progress: watch::channel(Progress::default()).0,
             live: false,
+            products: None,
         };
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)

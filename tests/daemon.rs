@@ -78,6 +78,7 @@ fn start(dir: &Path, config: Config, history: History) -> Daemon {
         history,
         progress: progress_tx,
         live: true,
+        products: None,
     };
     let (stop, stopped) = oneshot::channel::<()>();
     let dir = dir.to_path_buf();
@@ -413,6 +414,7 @@ async fn replay_writes_what_the_daemon_wrote() {
         history: History::default(),
         progress: watch::channel(Progress::default()).0,
         live: false,
+        products: None,
     };
     sunjitter::pipeline::run_replay(inputs, parts, std::future::pending())
         .await
@@ -526,6 +528,7 @@ mod real {
             history,
             progress: progress_tx,
             live: true,
+            products: None,
         };
         let (stop, stopped) = oneshot::channel::<()>();
         let dir = dir.to_path_buf();

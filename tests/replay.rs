@@ -278,6 +278,7 @@ async fn replay_writes_what_watch_wrote_for_the_same_frames() {
         history,
         progress: progress_tx,
         live: true,
+        products: None,
     };
     let (stop, stopped) = oneshot::channel::<()>();
     let dir = watched.clone();

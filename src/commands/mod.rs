@@ -40,6 +40,14 @@ pub struct PipelineArgs {
     /// Take the files in subdirectories of the directories given too.
     #[arg(long)]
     pub recursive: bool,
+    /// Write each measured frame, resampled onto its chain origin's grid with that WCS, as
+    /// DIR/NAME.aligned.fits (the input tree mirrored; DIR outside it and apart from --out).
+    #[arg(long, value_name = "DIR")]
+    pub aligned: Option<PathBuf>,
+    /// With --aligned: keep each frame's own pixels and correct only its header's pointing
+    /// (CRPIXi, CDELTi, PCi_j), as DIR/NAME.wcs.fits.
+    #[arg(long, requires = "aligned")]
+    pub wcs_only: bool,
 }
 
 // ---------------------------------------------------------------------------------------------

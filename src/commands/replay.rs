@@ -29,6 +29,7 @@ Examples:
 pub fn run(args: &Args) -> Result<i32> {
     let config = effective_config(&args.run)?;
     let files = expand_inputs(&args.paths, &config)?;
+    let products = crate::products::for_replay(&args.run, &args.paths, &files)?;
     let (sink, history) = open_output(&args.run.out, &config)?;
     let reader = FitsReader::from_config(&config);
     let inputs = replay_inputs(&files, &config, &reader, &history);
@@ -46,6 +47,7 @@ pub fn run(args: &Args) -> Result<i32> {
         history,
         progress: progress_tx,
         live: false,
+        products,
     };
 
     let bar = super::Bar::new(total, "frames");

@@ -53,6 +53,11 @@ pub fn run(args: &Args) -> Result<i32> {
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
+    let root = args
+        .dir
+        .canonicalize()
+        .map_err(|e| Error::io(&args.dir, e))?;
+    let products = crate::products::open(&args.run, std::slice::from_ref(&root), &[], &root)?;
     // Before reading (and recovering) the log: another daemon may be writing it.
     let lock = OutputLock::acquire(&args.run.out)?;
     let status_file = config.health.status_path(&args.run.out);
@@ -84,6 +89,7 @@ pub fn run(args: &Args) -> Result<i32> {
         history,
         progress: progress_tx,
         live: true,
+        products,
     };
     let result = runtime
         .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()).await });

@@ -28,31 +28,220 @@ pub fn write_aligned(
     outcome: &AlignOutcome,
 ) -> Result<()> {
     let transform = require_transform(path, outcome)?;
-    let (h, w) = reference.data.dim();
-    let aligned = HighOrderSpline::new(frame.data.view(), super::refine::MODEL)
-        .warp_similarity(&transform, w, h);
+    let grid = Grid::of_image(reference, outcome.reference_geometry)?;
+    let history = alignment_history(&reference.meta, &frame.meta, &transform, outcome);
+    write_resampled(path, &grid, frame, &transform, history, &[])
+}
 
-    let (_, ref_header) = fits::read_image_header(&reference.meta.file)?;
-    let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
-    let reference_cards = fits::frame_header_cards(&ref_header, &reference.meta);
-    let frame_cards = fits::frame_header_cards(&frame_header, &frame.meta);
-    let mut history = commentary(&frame_header, "HISTORY");
-    history.extend(alignment_history(
-        &reference.meta,
-        &frame.meta,
-        &transform,
-        outcome,
-    ));
-    let comments = commentary(&frame_header, "COMMENT");
-    let mut cards = aligned_header_cards(&reference_cards, &frame_cards, &comments, &history);
-    if let Some(used) = outcome.reference_geometry.filter(|g| g.from_disk) {
-        let note = use_checked_geometry(&mut cards, &reference.meta, &used);
-        cards.extend(
-            note.into_iter()
-                .map(|t| ("HISTORY".to_string(), HeaderValue::Str(t))),
-        );
+/// A pixel grid as a header describes it: its cards (those [`is_grid_key`] names), its shape
+/// `(height, width)`, and `HISTORY` lines about how the cards were made.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grid {
+    pub cards: Vec<(String, HeaderValue)>,
+    pub shape: (usize, usize),
+    pub notes: Vec<String>,
+}
+
+impl Grid {
+    /// The grid of `image` as its header gives it; where the alignment used a disk-checked
+    /// geometry instead (`used.from_disk`), with that plate scale and Sun centre.
+    pub fn of_image(image: &Image, used: Option<super::UsedGeometry>) -> Result<Grid> {
+        let (_, header) = fits::read_image_header(&image.meta.file)?;
+        let mut cards: Vec<(String, HeaderValue)> = fits::frame_header_cards(&header, &image.meta)
+            .into_iter()
+            .filter(|(k, _)| is_grid_key(k))
+            .map(|(k, v)| {
+                // `frame_header_cards` removed the third axis; a cube's WCSAXES = 3 no longer holds.
+                let v = if k.starts_with("WCSAXES") {
+                    HeaderValue::Int(2)
+                } else {
+                    v
+                };
+                (k, v)
+            })
+            .collect();
+        let notes = match used.filter(|g| g.from_disk) {
+            Some(used) => use_checked_geometry(&mut cards, &image.meta, &used),
+            None => Vec::new(),
+        };
+        Ok(Grid {
+            cards,
+            shape: image.data.dim(),
+            notes,
+        })
     }
-    fits::write_image(path, aligned.view(), &cards)
+}
+
+/// `frame` resampled onto `grid` through `transform` (grid pixel → frame pixel; the identity
+/// copies the pixels as they are), written as f32 FITS with the frame's cards, the grid's, the
+/// frame's `HISTORY` followed by `history` and the grid's notes, and `extra` cards.
+pub fn write_resampled(
+    path: &Path,
+    grid: &Grid,
+    frame: &Image,
+    transform: &Similarity,
+    history: Vec<String>,
+    extra: &[(String, HeaderValue)],
+) -> Result<()> {
+    let (h, w) = grid.shape;
+    let identity = transform.scale == 1.0
+        && transform.rotation_rad == 0.0
+        && transform.dx == 0.0
+        && transform.dy == 0.0
+        && frame.data.dim() == grid.shape;
+    let data = if identity {
+        frame.data.clone()
+    } else {
+        HighOrderSpline::new(frame.data.view(), super::refine::MODEL)
+            .warp_similarity(transform, w, h)
+    };
+    let cards = product_cards(grid, frame, history, extra, true)?;
+    fits::write_image(path, data.view(), &cards)
+}
+
+/// The frame's own pixels with `grid`'s cards in place of its own: a header-only correction.
+pub fn write_regridded_header(
+    path: &Path,
+    grid: &Grid,
+    frame: &Image,
+    history: Vec<String>,
+    extra: &[(String, HeaderValue)],
+) -> Result<()> {
+    let cards = product_cards(grid, frame, history, extra, false)?;
+    fits::write_image(path, frame.data.view(), &cards)
+}
+
+fn product_cards(
+    grid: &Grid,
+    frame: &Image,
+    history: Vec<String>,
+    extra: &[(String, HeaderValue)],
+    resampled: bool,
+) -> Result<Vec<(String, HeaderValue)>> {
+    let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
+    let mut frame_cards = fits::frame_header_cards(&frame_header, &frame.meta);
+    frame_cards.retain(|(k, _)| !extra.iter().any(|(e, _)| e == k));
+    let mut all_history = commentary(&frame_header, "HISTORY");
+    all_history.extend(history);
+    all_history.extend(grid.notes.iter().cloned());
+    let comments = commentary(&frame_header, "COMMENT");
+    let mut cards = aligned_header_cards(&grid.cards, &frame_cards, &comments, &[], !resampled);
+    cards.extend(extra.iter().cloned());
+    cards.extend(
+        all_history
+            .into_iter()
+            .map(|t| ("HISTORY".to_string(), HeaderValue::Str(t))),
+    );
+    Ok(cards)
+}
+
+/// The grid `cards` describe, seen through `m` (new pixel → old pixel, 0-based): the WCS whose
+/// world coordinates at pixel `q` are the old WCS's at `m(q)`. Exact for any projection: only
+/// the linear part changes. `CRPIXi` moves, `CDi_j` becomes `CD·L` (L = s R(θ)); otherwise
+/// `CDELTi` is multiplied by `s` and `PCi_j` (from `CROTA2`, or `SC_ROLL`, where the header has
+/// no matrix) becomes `PC·R(θ)`, with `CROTAi` removed. `CRVALi`, `CTYPEi`, `CUNITi` stay. Cards that
+/// would describe the old grid otherwise (alternate WCS, `XCEN`/`YCEN`, `FOVX`/`FOVY`, `*_MP`,
+/// roll and spacecraft-pointing keys) go.
+pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(String, HeaderValue)> {
+    let get = |k: &str| {
+        cards
+            .iter()
+            .find(|(c, _)| c == k)
+            .and_then(|(_, v)| v.as_f64())
+    };
+    let ij = [(1, 1), (1, 2), (2, 1), (2, 2)];
+    let (a, b) = m.ab();
+    let l = [[a, -b], [b, a]];
+    let matmul = |x: [[f64; 2]; 2], y: [[f64; 2]; 2]| {
+        let mut z = [[0.0; 2]; 2];
+        for (r, row) in z.iter_mut().enumerate() {
+            for (c, v) in row.iter_mut().enumerate() {
+                *v = x[r][0] * y[0][c] + x[r][1] * y[1][c];
+            }
+        }
+        z
+    };
+    let crpix = [get("CRPIX1").unwrap_or(0.0), get("CRPIX2").unwrap_or(0.0)];
+    // FITS pixels are 1-based: m(q) = L (q − c) + c + d holds with c + 1 for c.
+    let c1 = [m.center[0] + 1.0, m.center[1] + 1.0];
+    let v = [c1[0] + m.dx - crpix[0], c1[1] + m.dy - crpix[1]];
+    let det = a * a + b * b;
+    let new_crpix = if (a, b, m.dx, m.dy) == (1.0, 0.0, 0.0, 0.0) {
+        crpix
+    } else {
+        [
+            c1[0] - (a * v[0] + b * v[1]) / det,
+            c1[1] - (-b * v[0] + a * v[1]) / det,
+        ]
+    };
+    let has_cd = ij.iter().any(|(i, j)| get(&format!("CD{i}_{j}")).is_some());
+    let mut linear: Vec<(String, f64)> = Vec::new();
+    if has_cd {
+        let cd = [
+            [get("CD1_1").unwrap_or(0.0), get("CD1_2").unwrap_or(0.0)],
+            [get("CD2_1").unwrap_or(0.0), get("CD2_2").unwrap_or(0.0)],
+        ];
+        let new = matmul(cd, l);
+        linear.extend(ij.map(|(i, j)| (format!("CD{i}_{j}"), new[i - 1][j - 1])));
+    } else {
+        let cdelt = [get("CDELT1").unwrap_or(1.0), get("CDELT2").unwrap_or(1.0)];
+        let has_pc = ij.iter().any(|(i, j)| get(&format!("PC{i}_{j}")).is_some());
+        let has_old_pc = ij
+            .iter()
+            .any(|(i, j)| get(&format!("PC00{i}00{j}")).is_some());
+        let pc = if has_pc || has_old_pc {
+            let at = |i: usize, j: usize| {
+                get(&format!("PC{i}_{j}"))
+                    .or_else(|| get(&format!("PC00{i}00{j}")))
+                    .unwrap_or(if i == j { 1.0 } else { 0.0 })
+            };
+            [[at(1, 1), at(1, 2)], [at(2, 1), at(2, 2)]]
+        } else {
+            // FITS WCS Paper II, the CROTA2 convention; SOHO's SC_ROLL where nothing else
+            // gives the roll, as the headers are read for alignment.
+            let rho = get("CROTA2")
+                .or_else(|| get("CROTA1"))
+                .or_else(|| get("CROTA"))
+                .or_else(|| get("SC_ROLL"))
+                .unwrap_or(0.0)
+                .to_radians();
+            let (s, c) = rho.sin_cos();
+            let ratio = if cdelt[0] != 0.0 {
+                cdelt[1] / cdelt[0]
+            } else {
+                1.0
+            };
+            [[c, -s * ratio], [s / ratio, c]]
+        };
+        let (sin, cos) = m.rotation_rad.sin_cos();
+        let new = matmul(pc, [[cos, -sin], [sin, cos]]);
+        linear.push(("CDELT1".into(), cdelt[0] * m.scale));
+        linear.push(("CDELT2".into(), cdelt[1] * m.scale));
+        linear.extend(ij.map(|(i, j)| (format!("PC{i}_{j}"), new[i - 1][j - 1])));
+    }
+    const STALE: [&str; 12] = [
+        "XCEN", "YCEN", "FOVX", "FOVY", "X0_MP", "Y0_MP", "IMSCL_MP", "SC_ROLL", "SC_X0", "SC_Y0",
+        "SAT_ROT", "INST_ROT",
+    ];
+    let replaced = |k: &str| {
+        matches!(
+            k,
+            "CRPIX1" | "CRPIX2" | "CDELT1" | "CDELT2" | "CROTA" | "CROTA1" | "CROTA2"
+        ) || ["PC", "CD"].iter().any(|p| {
+            k.strip_prefix(p)
+                .and_then(|r| r.split_once('_'))
+                .is_some_and(|(i, j)| matches!(i, "1" | "2") && matches!(j, "1" | "2"))
+        }) || k.strip_prefix("PC00").is_some_and(|r| r.len() == 4)
+    };
+    let mut out: Vec<(String, HeaderValue)> = cards
+        .iter()
+        .filter(|(k, _)| !replaced(k) && !is_alternate_grid_key(k) && !STALE.contains(&k.as_str()))
+        .cloned()
+        .collect();
+    out.push(("CRPIX1".into(), HeaderValue::Float(new_crpix[0])));
+    out.push(("CRPIX2".into(), HeaderValue::Float(new_crpix[1])));
+    out.extend(linear.into_iter().map(|(k, v)| (k, HeaderValue::Float(v))));
+    out
 }
 
 /// Where the reference's header was refused for the disk its image shows, the alignment used
@@ -62,7 +251,7 @@ pub fn write_aligned(
 /// projection), radii in pixels (`SOLAR_R`, `R_SUN`) follow the plate scale, and cards that
 /// describe the old grid otherwise (alternate WCS, `XCEN`/`YCEN`, `FOVX`/`FOVY`, `*_MP`) go.
 /// Returns the HISTORY lines that say what was done.
-fn use_checked_geometry(
+pub(crate) fn use_checked_geometry(
     cards: &mut Vec<(String, HeaderValue)>,
     header: &FrameMeta,
     used: &super::UsedGeometry,
@@ -272,17 +461,21 @@ fn require_transform(path: &Path, outcome: &AlignOutcome) -> Result<Similarity> 
 // Aligned FITS header
 // ---------------------------------------------------------------------------------------------
 
-/// Frame cards without its grid description, then the reference's grid cards, then the
-/// frame's comments and the history.
+/// Frame cards without its grid description (and without the data statistics unless the
+/// pixels are the frame's own), then the reference's grid cards, then the frame's comments and
+/// the history.
 fn aligned_header_cards(
     reference_cards: &[(String, HeaderValue)],
     frame_cards: &[(String, HeaderValue)],
     comments: &[String],
     history: &[String],
+    keep_statistics: bool,
 ) -> Vec<(String, HeaderValue)> {
     let mut cards: Vec<(String, HeaderValue)> = frame_cards
         .iter()
-        .filter(|(k, _)| !is_grid_key(k) && !is_data_statistic(k) && !is_container_key(k))
+        .filter(|(k, _)| {
+            !is_grid_key(k) && (keep_statistics || !is_data_statistic(k)) && !is_container_key(k)
+        })
         .cloned()
         .collect();
     for (key, value) in reference_cards.iter().filter(|(k, _)| is_grid_key(k)) {
@@ -307,7 +500,7 @@ fn aligned_header_cards(
 
 /// Cards that describe the pixel grid of axes 1–2 (the WCS, with alternates `…A`–`…Z`) or the
 /// instrument's pointing in grid terms. On the aligned image these are the reference's.
-fn is_grid_key(key: &str) -> bool {
+pub fn is_grid_key(key: &str) -> bool {
     const INSTRUMENT_GRID: [&str; 14] = [
         "XCEN", "YCEN", "FOVX", "FOVY", "SOLAR_R", "R_SUN", "X0_MP", "Y0_MP", "IMSCL_MP",
         "SC_ROLL", "SC_X0", "SC_Y0", "SAT_ROT", "INST_ROT",
@@ -915,7 +1108,7 @@ mod tests {
             s("DATAMAX", HeaderValue::Float(9.0)),
             s("EXPTIME", HeaderValue::Float(2.0)),
         ];
-        let cards = aligned_header_cards(&reference, &frame, &[], &["did it".to_string()]);
+        let cards = aligned_header_cards(&reference, &frame, &[], &["did it".to_string()], false);
         let get = |k: &str| {
             let v: Vec<_> = cards.iter().filter(|(c, _)| c == k).collect();
             assert!(v.len() <= 1, "{k} twice");
@@ -933,6 +1126,115 @@ mod tests {
         );
         assert_eq!(get("EXPTIME"), Some(HeaderValue::Float(2.0)));
         assert_eq!(get("HISTORY"), Some(HeaderValue::Str("did it".into())));
+    }
+
+    /// Intermediate world coordinates (CD · (p − CRPIX), 0-based p) of a header's cards,
+    /// evaluated the way FITS WCS Paper I/II define them, independently of `compose_wcs`.
+    fn intermediate(cards: &[(String, HeaderValue)], p: [f64; 2]) -> [f64; 2] {
+        let get = |k: &str| {
+            cards
+                .iter()
+                .find(|(c, _)| c == k)
+                .and_then(|(_, v)| v.as_f64())
+        };
+        let d = [
+            p[0] + 1.0 - get("CRPIX1").unwrap(),
+            p[1] + 1.0 - get("CRPIX2").unwrap(),
+        ];
+        let m = if get("CD1_1").is_some() {
+            [
+                [get("CD1_1").unwrap(), get("CD1_2").unwrap()],
+                [get("CD2_1").unwrap(), get("CD2_2").unwrap()],
+            ]
+        } else {
+            let c = [get("CDELT1").unwrap(), get("CDELT2").unwrap()];
+            let (pc11, pc12, pc21, pc22) = match get("PC1_1") {
+                Some(_) => (
+                    get("PC1_1").unwrap(),
+                    get("PC1_2").unwrap(),
+                    get("PC2_1").unwrap(),
+                    get("PC2_2").unwrap(),
+                ),
+                None => {
+                    let r = get("CROTA2").unwrap_or(0.0).to_radians();
+                    (
+                        r.cos(),
+                        -r.sin() * c[1] / c[0],
+                        r.sin() * c[0] / c[1],
+                        r.cos(),
+                    )
+                }
+            };
+            [[c[0] * pc11, c[0] * pc12], [c[1] * pc21, c[1] * pc22]]
+        };
+        [
+            m[0][0] * d[0] + m[0][1] * d[1],
+            m[1][0] * d[0] + m[1][1] * d[1],
+        ]
+    }
+
+    /// Truth: the definition. The composed WCS at q equals the original at m(q), for the
+    /// three ways a header states its linear part.
+    #[test]
+    fn a_composed_wcs_at_q_is_the_original_at_m_of_q() {
+        let f = |k: &str, v: f64| (k.to_string(), HeaderValue::Float(v));
+        let common = vec![
+            f("CRPIX1", 512.5),
+            f("CRPIX2", 498.25),
+            f("CRVAL1", -120.0),
+            f("CRVAL2", 35.0),
+            ("CTYPE1".to_string(), HeaderValue::Str("HPLN-TAN".into())),
+            f("XCEN", 3.0),
+        ];
+        let crota = [f("CDELT1", 0.6), f("CDELT2", 0.61), f("CROTA2", 12.5)];
+        let pc = [
+            f("CDELT1", -0.6),
+            f("CDELT2", 0.6),
+            f("PC1_1", 0.99),
+            f("PC1_2", -0.02),
+            f("PC2_1", 0.03),
+            f("PC2_2", 0.98),
+        ];
+        let cd = [
+            f("CD1_1", 2.6),
+            f("CD1_2", 0.01),
+            f("CD2_1", -0.02),
+            f("CD2_2", 2.63),
+        ];
+        let m = Similarity {
+            scale: 1.003,
+            rotation_rad: 0.021,
+            dx: 2.7,
+            dy: -1.4,
+            center: [511.5, 511.5],
+        };
+        for linear in [&crota[..], &pc[..], &cd[..]] {
+            let mut cards = common.clone();
+            cards.extend(linear.iter().cloned());
+            let composed = compose_wcs(&cards, &m);
+            for q in [[0.0, 0.0], [1023.0, 17.0], [300.5, 800.25]] {
+                let want = intermediate(&cards, m.apply(q));
+                let got = intermediate(&composed, q);
+                for k in 0..2 {
+                    assert!(
+                        (want[k] - got[k]).abs() < 1e-9,
+                        "{linear:?} {q:?}: {got:?} vs {want:?}"
+                    );
+                }
+            }
+            let keys: Vec<&str> = composed.iter().map(|(k, _)| k.as_str()).collect();
+            assert!(
+                !keys.contains(&"CROTA2") && !keys.contains(&"XCEN"),
+                "{keys:?}"
+            );
+            assert!(keys.contains(&"CRVAL1") && keys.contains(&"CTYPE1"));
+            // Through m and back: the original grid.
+            let back = compose_wcs(&composed, &m.inverse());
+            for q in [[10.0, 20.0], [900.0, 5.0]] {
+                let (a, b) = (intermediate(&cards, q), intermediate(&back, q));
+                assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9);
+            }
+        }
     }
 
     /// Pearson correlation of the red and green channels of one composite, inside a circle.

@@ -241,6 +241,7 @@ pub fn resume(
         history,
         progress: progress_tx,
         live: true,
+        products: None,
     };
     let (stop, stopped) = oneshot::channel::<()>();
     let dir = dir.to_path_buf();
