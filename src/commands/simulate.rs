@@ -1,5 +1,5 @@
 //! `sunjitter simulate IMAGE [--trials N] [--seed S] [--noise K] [--json]`: the Monte Carlo
-//! accuracy test of Wang et al. (§4.1 of their paper, docs/METHOD.md) on one real image, with
+//! accuracy test of Wang et al. (§4.1 of their paper, docs/method.md) on one real image, with
 //! the cross-correlation baseline.
 
 use crate::engine::{self, Image};

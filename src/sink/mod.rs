@@ -1,7 +1,7 @@
 //! The MCAP sink: a run's log as segment files in an output directory, and the reader that
 //! reads them back (also unfinished ones, after a crash).
 //!
-//! Layout (CONTRACT.md, "MCAP layout"): `/jitter/<channel>` (`sunjitter.FrameAlignment`),
+//! Layout (contract.md, "MCAP layout"): `/jitter/<channel>` (`sunjitter.FrameAlignment`),
 //! `/reference/<channel>` (`sunjitter.ReferenceChange`), `/log` (`foxglove.Log`), all JSON with
 //! JSON Schemas; a `sunjitter` metadata record (`version`, `config`) at the start of every
 //! segment; zstd chunks, message indexes and a summary.
