@@ -87,7 +87,11 @@ fn main() {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) => {
-            let code = if e.use_stderr() { 2 } else { 0 };
+            let code = if e.use_stderr() {
+                sunjitter::error::exit::BAD_INPUT
+            } else {
+                sunjitter::error::exit::OK
+            };
             let _ = e.print();
             std::process::exit(code);
         }

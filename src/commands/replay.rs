@@ -1,6 +1,7 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
 use super::watch::{effective_config, runtime, summary_json, termination};
+use crate::error::exit;
 use crate::pipeline::{
     expand_inputs, open_output, replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts,
 };
@@ -87,5 +88,9 @@ pub fn run(args: &Args) -> Result<i32> {
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.
     let measured = progress.ok + progress.degraded;
-    Ok(if total > 0 && measured == 0 { 1 } else { 0 })
+    Ok(if total > 0 && measured == 0 {
+        exit::FAILED
+    } else {
+        exit::OK
+    })
 }
