@@ -39,8 +39,10 @@ pub mod config;
 pub mod daemon;
 pub mod monitor;
 pub mod outputs;
+pub mod merge;
 pub mod pipeline;
 pub mod reference;
+pub mod shard;
 pub mod sink;
 
 pub mod inspect;
