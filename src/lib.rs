@@ -37,9 +37,9 @@ pub mod simulate;
 
 pub mod config;
 pub mod daemon;
+pub mod merge;
 pub mod monitor;
 pub mod outputs;
-pub mod merge;
 pub mod pipeline;
 pub mod reference;
 pub mod shard;

@@ -84,7 +84,11 @@ pub fn read_shard(path: &Path) -> Result<ShardLog> {
     let spec: ShardSpec = get("shard")?
         .parse()
         .map_err(|_| refused(path, "shard metadata `shard` is not K/N"))?;
-    for other in contents.metadata.iter().filter(|o| o.name == SHARD_METADATA) {
+    for other in contents
+        .metadata
+        .iter()
+        .filter(|o| o.name == SHARD_METADATA)
+    {
         if other.metadata != *m {
             return Err(refused(
                 path,
@@ -193,7 +197,11 @@ pub fn check_set(shards: &mut [ShardLog]) -> Result<()> {
         if pair[0].spec.index == pair[1].spec.index {
             return Err(refused(
                 &pair[1].path,
-                format!("shard {} is given twice (also {})", pair[1].spec, name(&pair[0])),
+                format!(
+                    "shard {} is given twice (also {})",
+                    pair[1].spec,
+                    name(&pair[0])
+                ),
             ));
         }
     }
@@ -281,11 +289,11 @@ pub struct Merged {
 }
 
 /// How one chain of one shard joins the run's series.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 enum LinkState {
     /// Already the run's: the chain starts where the run's does.
     Identity,
-    Link(Chain),
+    Link(Box<Chain>),
     Unresolved,
 }
 
@@ -384,10 +392,7 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
     let mut links: BTreeMap<(usize, String), Vec<LinkState>> = BTreeMap::new();
     for (i, s) in shards.iter().enumerate() {
         for (channel, starts) in &s.done.chains {
-            let fixed = matches!(
-                config.channel_policy(channel).policy,
-                PolicySpec::Fixed(_)
-            );
+            let fixed = matches!(config.channel_policy(channel).policy, PolicySpec::Fixed(_));
             let states = starts
                 .iter()
                 .map(|st| {
@@ -403,31 +408,34 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
     }
     // The run's chained value of every frame of a root channel, as it becomes known.
     let mut merged: HashMap<String, Chain> = HashMap::new();
-    let resolve_frames =
-        |i: usize, channel: &str, j: usize, state: LinkState, merged: &mut HashMap<String, Chain>| {
-            let s = &shards[i];
-            let starts = &s.done.chains[channel];
-            for jm in &s.contents.jitter {
-                let m = &jm.record;
-                if m.channel != channel || chain_at(starts, jm.log_time_ns as i64) != Some(j) {
-                    continue;
-                }
-                let Some(own) = message_chain(m, starts[j].center_px) else {
-                    continue;
-                };
-                let value = match state {
-                    LinkState::Identity => own,
-                    LinkState::Link(l) => l.then(&own.transform, own.covariance.as_ref()),
-                    LinkState::Unresolved => continue,
-                };
-                merged.insert(m.align.frame.clone(), value);
+    let resolve_frames = |i: usize,
+                          channel: &str,
+                          j: usize,
+                          state: LinkState,
+                          merged: &mut HashMap<String, Chain>| {
+        let s = &shards[i];
+        let starts = &s.done.chains[channel];
+        for jm in &s.contents.jitter {
+            let m = &jm.record;
+            if m.channel != channel || chain_at(starts, jm.log_time_ns as i64) != Some(j) {
+                continue;
             }
-        };
+            let Some(own) = message_chain(m, starts[j].center_px) else {
+                continue;
+            };
+            let value = match &state {
+                LinkState::Identity => own,
+                LinkState::Link(l) => l.then(&own.transform, own.covariance.as_ref()),
+                LinkState::Unresolved => continue,
+            };
+            merged.insert(m.align.frame.clone(), value);
+        }
+    };
     // Identity chains first, then links as the frames they go through become known.
     for ((i, channel), states) in &links {
         for (j, state) in states.iter().enumerate() {
             if let LinkState::Identity = state {
-                resolve_frames(*i, channel, j, *state, &mut merged);
+                resolve_frames(*i, channel, j, state.clone(), &mut merged);
             }
         }
     }
@@ -447,9 +455,9 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
                     })
                 });
                 if let Some(l) = link {
-                    let state = LinkState::Link(l);
+                    let state = LinkState::Link(Box::new(l));
                     if let Some(v) = links.get_mut(&(i, channel.clone())) {
-                        v[j] = state;
+                        v[j] = state.clone();
                     }
                     resolve_frames(i, &channel, j, state, &mut merged);
                     progressed = true;
@@ -487,7 +495,7 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
             let starts = s.done.chains.get(&root);
             let chain = starts.and_then(|st| chain_at(st, at).map(|j| (j, &st[j])));
             if let (Some((j, start)), true) = (chain, m.chained_dx_px.is_some()) {
-                match links.get(&(i, root.clone())).map(|v| v[j]) {
+                match links.get(&(i, root.clone())).map(|v| v[j].clone()) {
                     Some(LinkState::Link(l)) => {
                         let own = message_chain(&m, start.center_px);
                         let value = own.map(|c| l.then(&c.transform, c.covariance.as_ref()));
@@ -734,8 +742,8 @@ mod tests {
         let a = chain(0.25, 0.75, 0.05);
         let single = k.then(&a.transform, a.covariance.as_ref());
         // The shard starts its chain at K: F's chained value there is `a` itself.
-        let shard_f = Chain::origin([10.0, 10.0], Some([0.5, 0.5]))
-            .then(&a.transform, a.covariance.as_ref());
+        let shard_f =
+            Chain::origin([10.0, 10.0], Some([0.5, 0.5])).then(&a.transform, a.covariance.as_ref());
         let stitched = k.then(&shard_f.transform, shard_f.covariance.as_ref());
         assert!((stitched.transform.dx - single.transform.dx).abs() < 1e-12);
         assert!((stitched.transform.dy - single.transform.dy).abs() < 1e-12);

@@ -143,9 +143,7 @@ fn overlap_start(a: usize, p: &ChannelPolicy, times: &[i64], overlap: Option<usi
     }
     match &p.policy {
         PolicySpec::Keyframe => {
-            let want = overlap
-                .unwrap_or(p.keyframe_every_frames as usize)
-                .max(1);
+            let want = overlap.unwrap_or(p.keyframe_every_frames as usize).max(1);
             let s = a.saturating_sub(want);
             let keyframes = predicted_keyframes(times, p);
             let at = keyframes.partition_point(|&k| k <= s);
@@ -527,7 +525,8 @@ impl RecordSink for ShardSink {
         self.done.overlap_frames = self.measured.len() as u64;
         let now = crate::pipeline::mcap_ns(crate::pipeline::now_ns());
         let metadata = self.done.to_metadata();
-        self.inner.write_metadata(SHARD_DONE_METADATA, metadata, now)?;
+        self.inner
+            .write_metadata(SHARD_DONE_METADATA, metadata, now)?;
         self.inner.finish()
     }
 }
