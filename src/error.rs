@@ -88,18 +88,30 @@ impl Error {
         matches!(self, Error::Io { source, .. } if transient_io(source))
     }
 
-    /// The contract's exit code for this error.
+    /// The contract's exit code for this error: the one mapping from errors to [`exit`] codes.
     pub fn exit_code(&self) -> i32 {
         match self {
             Error::BadInput { .. }
             | Error::BadHeader { .. }
             | Error::Usage(_)
             | Error::Refused { .. }
-            | Error::Unwritable { .. } => 2,
-            Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => 2,
-            Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => 1,
+            | Error::Unwritable { .. } => exit::BAD_INPUT,
+            Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+                exit::BAD_INPUT
+            }
+            Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => exit::FAILED,
         }
     }
+}
+
+/// The contract's exit codes (docs/contract.md), named once; commands return one of these.
+pub mod exit {
+    /// The work was done.
+    pub const OK: i32 = 0;
+    /// The work ran but failed: nothing could be aligned, nothing measured, an output failed.
+    pub const FAILED: i32 = 1;
+    /// Bad usage or bad input: one line on stderr names the file and the problem.
+    pub const BAD_INPUT: i32 = 2;
 }
 
 /// Errors of the moment (out of file descriptors or memory, interrupted, busy, timed out)

@@ -37,11 +37,13 @@ pub mod simulate;
 
 pub mod config;
 pub mod daemon;
+pub mod merge;
 pub mod monitor;
 pub mod outputs;
 pub mod pipeline;
 pub mod products;
 pub mod reference;
+pub mod shard;
 pub mod sink;
 
 pub mod inspect;

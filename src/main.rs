@@ -36,6 +36,9 @@ enum Command {
     /// Run the watch pipeline over archived files, directories, globs or cubes.
     #[command(after_help = commands::replay::EXAMPLES)]
     Replay(commands::replay::Args),
+    /// Join the logs of `replay --shard K/N` into one, chained series stitched across shards.
+    #[command(after_help = commands::merge::EXAMPLES)]
+    Merge(commands::merge::Args),
     /// Summarise MCAP logs: statistics, jitter spectrum, outliers, CSV and plots.
     #[command(after_help = commands::inspect::EXAMPLES)]
     Inspect(commands::inspect::Args),
@@ -87,7 +90,11 @@ fn main() {
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) => {
-            let code = if e.use_stderr() { 2 } else { 0 };
+            let code = if e.use_stderr() {
+                sunjitter::error::exit::BAD_INPUT
+            } else {
+                sunjitter::error::exit::OK
+            };
             let _ = e.print();
             std::process::exit(code);
         }
@@ -99,6 +106,7 @@ fn main() {
         Command::Align(a) => commands::align::run(a),
         Command::Watch(a) => commands::watch::run(a),
         Command::Replay(a) => commands::replay::run(a),
+        Command::Merge(a) => commands::merge::run(a),
         Command::Inspect(a) => commands::inspect::run(a),
         Command::Simulate(a) => commands::simulate::run(a),
         Command::Synth(a) => commands::synth::run(a),

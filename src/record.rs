@@ -1,5 +1,5 @@
 //! The records sunjitter reports: `align --json` and the MCAP `/jitter/<channel>` messages.
-//! Field names are the external contract (`../shared/docs/CONTRACT.md`); do not rename.
+//! Field names are the external contract (`docs/contract.md`); do not rename.
 
 use serde::{Deserialize, Serialize};
 

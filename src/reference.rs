@@ -1034,7 +1034,7 @@ fn chain_after(ref_chain: Option<&Chain>, outcome: &AlignOutcome) -> Option<Chai
 }
 
 /// The chain a message carries (diagonal covariance only: messages hold σ, not correlations).
-fn chain_from_message(m: &FrameAlignment, center: Option<[f64; 2]>) -> Option<Chain> {
+pub fn chain_from_message(m: &FrameAlignment, center: Option<[f64; 2]>) -> Option<Chain> {
     let center = center?;
     let transform = Similarity {
         scale: m.chained_scale?,

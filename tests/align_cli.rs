@@ -604,8 +604,8 @@ fn no_confident_wrong_answer(name: &str, truth: &[(&str, f64)], why: &str) -> Va
 
 /// A coronagraph pair under noise whose first four fine passes each recover a fraction of the
 /// remaining motion, with weak common structure (`tests/data/lasco_c3_noisy_drift/README.md`).
-/// The session 9 build stopped after four passes and returned it `degraded`, rotation 7.3σ off.
-/// Now the refinement is rejected after those four, the passes continue (12 in all) and the
+/// Stopped after four passes, the answer would be `degraded` with its rotation 7.3σ off; the
+/// refinement is rejected after those four, the passes continue (12 in all) and the
 /// refinement then takes the answer: `ok`, within 1.7σ.
 #[test]
 fn an_unsettled_pair_with_weak_structure_gets_no_confident_wrong_answer() {
@@ -627,7 +627,7 @@ fn an_unsettled_pair_with_weak_structure_gets_no_confident_wrong_answer() {
 /// −3.6° rotation) and settle there, with weak common structure
 /// (`tests/data/lasco_c3_noisy_false_match/README.md`): without the refinement's confirmation
 /// there is no reliable answer. Reported as `degraded` (extended passes without this rule), it
-/// was 26σ off; the session 9 build, with four passes, failed it as "no common structure".
+/// would be 26σ off.
 #[test]
 fn a_slow_flow_settling_with_weak_structure_gets_no_confident_wrong_answer() {
     no_confident_wrong_answer(
@@ -645,8 +645,8 @@ fn a_slow_flow_settling_with_weak_structure_gets_no_confident_wrong_answer() {
 /// A featureless disk with a zero-filled sky whose flow settles within its four passes at
 /// almost no motion, 4.7 px from the truth, with fewer than half the vectors agreeing
 /// (`tests/data/hmi_zero_sky_false_match/README.md`); the intensity refinement from there
-/// runs off. Both checks of the flow's answer fail, so there is no reliable answer. The
-/// session 10 build returned it `degraded`, 27σ off in dx.
+/// runs off. Both checks of the flow's answer fail, so there is no reliable answer; reported
+/// as `degraded` it would be 27σ off in dx.
 #[test]
 fn a_settled_flow_whose_refinement_runs_off_gets_no_confident_wrong_answer() {
     no_confident_wrong_answer(

@@ -366,6 +366,24 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
     let (code, _, stderr) = sunjitter(&["replay", file, "--out", "x", "--wcs-only"]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("--aligned"), "{stderr}");
+
+    // A shard's chains start at its own origin: products come from a single run only.
+    let products = dir.path().join("shard_products");
+    let shard_out = dir.path().join("shard_log");
+    let (code, _, stderr) = sunjitter(&[
+        "replay".as_ref(),
+        file.as_ref(),
+        "--out".as_ref(),
+        shard_out.as_os_str(),
+        "--shard".as_ref(),
+        "0/2".as_ref(),
+        "--aligned".as_ref(),
+        products.as_os_str(),
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("--shard"), "{stderr}");
+    assert!(!products.exists() && !shard_out.exists(), "nothing created");
 }
 
 #[test]

@@ -271,7 +271,7 @@ fn messages_read_back_exactly() {
     assert_eq!(log.metadata[0].metadata["config"], CONFIG_JSON);
 }
 
-/// Channels, schemas, compression, indexes and metadata per CONTRACT.md, read with the `mcap`
+/// Channels, schemas, compression, indexes and metadata per contract.md, read with the `mcap`
 /// crate's summary and strict message reader (not with sunjitter's reader).
 #[test]
 fn layout_follows_the_contract() {

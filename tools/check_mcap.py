@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Independent check of sunjitter MCAP logs with the official Python `mcap` reader.
 
-Checks every file (directories: every *.mcap in them) against CONTRACT.md's "MCAP layout":
+Checks every file (directories: every *.mcap in them) against contract.md's "MCAP layout":
   - a finished file: summary with statistics, zstd chunks each with a message index;
   - the metadata record `sunjitter` with `version` and `config` (a JSON document);
   - topics and schemas: /jitter/<channel> -> sunjitter.FrameAlignment,

@@ -1,6 +1,7 @@
 //! `sunjitter align REFERENCE FRAME [--json] [--aligned OUT.fits] [--quicklook OUT.png]`
 
 use crate::engine::{self, EngineConfig};
+use crate::error::exit;
 use crate::fits::{self, FrameSpec};
 use crate::record::Status;
 use crate::{Error, Result};
@@ -68,9 +69,9 @@ pub fn run(args: &Args) -> Result<i32> {
         engine::output::write_quicklook(path, &reference, &frame, &outcome)?;
     }
     Ok(if result.status == Status::Failed {
-        1
+        exit::FAILED
     } else {
-        0
+        exit::OK
     })
 }
 

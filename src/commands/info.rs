@@ -6,6 +6,7 @@
 //! is 2 if any file was bad. With `--json` stdout always holds exactly one JSON array
 //! (empty when nothing could be read).
 
+use crate::error::exit;
 use crate::fits::{self, FrameSpec};
 use crate::meta::FrameMeta;
 use crate::{Error, Result};
@@ -89,7 +90,11 @@ pub fn run(args: &Args) -> Result<i32> {
     } else if !records.is_empty() {
         print!("{}", table(&records));
     }
-    Ok(if failed > 0 { 2 } else { 0 })
+    Ok(if failed > 0 {
+        exit::BAD_INPUT
+    } else {
+        exit::OK
+    })
 }
 
 /// Metadata of one command-line argument: every frame of a file, or the one frame named.

@@ -36,6 +36,7 @@
 //! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
 //! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
 
+use crate::error::exit;
 use crate::inspect::{self, InspectOptions, LogSummary, LoggedFrame};
 use crate::{Error, Result};
 use std::path::PathBuf;
@@ -106,7 +107,7 @@ pub fn run(args: &Args) -> Result<i32> {
     } else {
         print!("{}", inspect::render_text(&report));
     }
-    Ok(0)
+    Ok(exit::OK)
 }
 
 /// The logs to read: files as given, directories replaced by their `*.mcap` files in name order.

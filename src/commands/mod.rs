@@ -8,6 +8,7 @@
 pub mod align;
 pub mod info;
 pub mod inspect;
+pub mod merge;
 pub mod replay;
 pub mod simulate;
 pub mod status;

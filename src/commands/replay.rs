@@ -1,8 +1,10 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
 use super::watch::{effective_config, runtime, summary_json, termination};
+use crate::error::exit;
 use crate::pipeline::{
-    expand_inputs, open_output, replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts,
+    expand_inputs, open_output, replay_inputs, EngineAligner, FitsReader, History, Input, Progress,
+    RunParts,
 };
 use crate::Result;
 use std::sync::Arc;
@@ -16,6 +18,13 @@ pub struct Args {
     pub run: super::PipelineArgs,
     #[arg(long, help = super::JSON_HELP)]
     pub json: bool,
+    /// Measure only shard K (0-based) of N of the inputs, for `sunjitter merge` to join.
+    #[arg(long, value_name = "K/N")]
+    pub shard: Option<crate::shard::ShardSpec>,
+    /// With --shard: frames of each channel measured before the shard's own, not logged
+    /// [default: a keyframe interval; 1 for previous and channel:NAME; 0 for fixed:FILE].
+    #[arg(long, value_name = "FRAMES", requires = "shard")]
+    pub shard_overlap: Option<usize>,
 }
 
 pub const EXAMPLES: &str = "\
@@ -24,15 +33,37 @@ Examples:
   sunjitter replay data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits \\
       data/real/iris_l2_20140329_140938_3860258481_SJI_2796_t000_deconvolved.fits \\
       --config examples/demo.toml --out out/demo
-  sunjitter replay 'data/real/iris_*_SJI_*.fits' --reference previous --out out/iris --json";
+  sunjitter replay 'data/real/iris_*_SJI_*.fits' --reference previous --out out/iris --json
+Past one machine: run --shard K/N for K = 0…N−1 (e.g. a Slurm job array, examples/slurm/),
+each into its own --out, then join them with `sunjitter merge`.";
 
 pub fn run(args: &Args) -> Result<i32> {
     let config = effective_config(&args.run)?;
     let files = expand_inputs(&args.paths, &config)?;
+    if args.shard.is_some() && args.run.aligned.is_some() {
+        // A shard's chains start at its own origin and its overlap frames are not its own:
+        // products of different shards would not share one pointing.
+        return Err(crate::Error::Usage(
+            "--aligned cannot be combined with --shard: write the products from a single run"
+                .into(),
+        ));
+    }
     let products = crate::products::for_replay(&args.run, &args.paths, &files)?;
-    let (sink, history) = open_output(&args.run.out, &config)?;
     let reader = FitsReader::from_config(&config);
-    let inputs = replay_inputs(&files, &config, &reader, &history);
+    let (sink, history, inputs, shard) = match args.shard {
+        None => {
+            let (sink, history) = open_output(&args.run.out, &config)?;
+            let inputs = replay_inputs(&files, &config, &reader, &history);
+            (sink, history, inputs, None)
+        }
+        // A shard starts afresh: a requeued attempt replaces its earlier output.
+        Some(spec) => {
+            let all = replay_inputs(&files, &config, &reader, &History::default());
+            let (sink, inputs, plan) =
+                crate::shard::open_shard(&args.run.out, &config, spec, args.shard_overlap, all)?;
+            (sink, History::default(), inputs, Some(plan))
+        }
+    };
     let total = inputs
         .iter()
         .filter(|i| matches!(i, Input::Frame(_) | Input::Record(_)))
@@ -72,20 +103,41 @@ pub fn run(args: &Args) -> Result<i32> {
     });
     drop(bar);
     let progress = result?;
-    eprintln!(
-        "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped",
-        progress.frames,
-        crate::text::path(&args.run.out),
-        progress.ok,
-        progress.degraded,
-        progress.failed,
-        progress.skipped
-    );
+    match &shard {
+        None => eprintln!(
+            "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped",
+            progress.frames,
+            crate::text::path(&args.run.out),
+            progress.ok,
+            progress.degraded,
+            progress.failed,
+            progress.skipped
+        ),
+        Some(plan) => eprintln!(
+            "sunjitter: shard {}: frames {}..{} of {} logged to {} ({} own; {} measured with \
+             the overlap: {} ok, {} degraded, {} failed), {} inputs skipped",
+            plan.spec,
+            plan.start,
+            plan.end,
+            plan.total,
+            crate::text::path(&args.run.out),
+            plan.owned.len(),
+            progress.frames,
+            progress.ok,
+            progress.degraded,
+            progress.failed,
+            progress.skipped
+        ),
+    }
     if args.json {
         println!("{}", summary_json(&progress, &args.run.out));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.
     let measured = progress.ok + progress.degraded;
-    Ok(if total > 0 && measured == 0 { 1 } else { 0 })
+    Ok(if total > 0 && measured == 0 {
+        exit::FAILED
+    } else {
+        exit::OK
+    })
 }

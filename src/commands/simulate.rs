@@ -1,8 +1,9 @@
 //! `sunjitter simulate IMAGE [--trials N] [--seed S] [--noise K] [--json]`: the Monte Carlo
-//! accuracy test of Wang et al. (§4.1 of their paper, docs/METHOD.md) on one real image, with
+//! accuracy test of Wang et al. (§4.1 of their paper, docs/method.md) on one real image, with
 //! the cross-correlation baseline.
 
 use crate::engine::{self, Image};
+use crate::error::exit;
 use crate::fits::{self, FrameSpec};
 use crate::geometry::Similarity;
 use crate::resample::{HighOrder, HighOrderSpline};
@@ -236,9 +237,9 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     Ok(
         if report.similarity_trials.succeeded == 0 && args.trials > 0 {
-            1
+            exit::FAILED
         } else {
-            0
+            exit::OK
         },
     )
 }

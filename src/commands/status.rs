@@ -1,5 +1,6 @@
 //! `sunjitter status [PATH|OUTDIR] [--json]`: print a daemon's health status file.
 
+use crate::error::exit;
 use crate::monitor::status;
 use crate::Result;
 use std::path::PathBuf;
@@ -41,5 +42,5 @@ pub fn run(args: &Args) -> Result<i32> {
             status::render_diagnosed(&s, now, diagnosis.as_deref())
         );
     }
-    Ok(0)
+    Ok(exit::OK)
 }

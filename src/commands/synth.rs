@@ -15,6 +15,7 @@ use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
 use crate::time::{parse_fits_time, TimeScale};
 
 /// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
+use crate::error::exit;
 use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
@@ -163,7 +164,7 @@ pub fn run(args: &Args) -> Result<i32> {
             per_frame.map_or(String::new(), |s| format!("; {s:.2} s per frame"))
         );
     }
-    Ok(0)
+    Ok(exit::OK)
 }
 
 fn start_time(args: &Args) -> Result<i64> {

@@ -1,6 +1,7 @@
 //! `sunjitter watch DIR --out OUT`: the daemon.
 
 use crate::config::{Config, Overrides};
+use crate::error::exit;
 use crate::monitor::{Monitor, MonitorSetup};
 use crate::outputs::{check_outputs, OutputLock};
 use crate::pipeline::{read_history, EngineAligner, FitsReader, Progress, RunParts};
@@ -107,7 +108,7 @@ pub fn run(args: &Args) -> Result<i32> {
     if args.json {
         println!("{}", summary_json(&progress, &args.run.out));
     }
-    Ok(0)
+    Ok(exit::OK)
 }
 
 /// `--live ADDR:PORT` (a host name is resolved; its first address is used).

@@ -1,7 +1,7 @@
 //! The MCAP sink: a run's log as segment files in an output directory, and the reader that
 //! reads them back (also unfinished ones, after a crash).
 //!
-//! Layout (CONTRACT.md, "MCAP layout"): `/jitter/<channel>` (`sunjitter.FrameAlignment`),
+//! Layout (contract.md, "MCAP layout"): `/jitter/<channel>` (`sunjitter.FrameAlignment`),
 //! `/reference/<channel>` (`sunjitter.ReferenceChange`), `/log` (`foxglove.Log`), all JSON with
 //! JSON Schemas; a `sunjitter` metadata record (`version`, `config`) at the start of every
 //! segment; zstd chunks, message indexes and a summary.
@@ -198,6 +198,8 @@ pub struct McapSink {
     paths: Vec<PathBuf>,
     /// Released when the sink is dropped, after its last write.
     lock: Option<crate::outputs::OutputLock>,
+    /// Further metadata records written at the start of every segment, after `sunjitter`.
+    segment_metadata: Vec<(String, BTreeMap<String, String>)>,
 }
 
 impl McapSink {
@@ -236,7 +238,42 @@ impl McapSink {
             budget: Arc::new(AtomicU64::new(UNLIMITED)),
             paths: Vec::new(),
             lock: None,
+            segment_metadata: Vec::new(),
         })
+    }
+
+    /// Also write the metadata record `name` at the start of every segment (e.g. which part
+    /// of a sharded run the log holds).
+    pub fn with_segment_metadata(
+        mut self,
+        name: impl Into<String>,
+        metadata: BTreeMap<String, String>,
+    ) -> McapSink {
+        self.segment_metadata.push((name.into(), metadata));
+        self
+    }
+
+    /// Write a metadata record into the open segment (opening one if needed), flushed at once.
+    pub fn write_metadata(
+        &mut self,
+        name: &str,
+        metadata: BTreeMap<String, String>,
+        publish_time_ns: u64,
+    ) -> Result<()> {
+        self.prepare(publish_time_ns)?;
+        let Some(seg) = self.open.as_mut() else {
+            return Err(Error::output(&self.dir, "no open segment"));
+        };
+        let record = mcap::records::Metadata {
+            name: name.to_string(),
+            metadata,
+        };
+        if let Err(e) = seg.writer.write_metadata(&record) {
+            let path = seg.path.clone();
+            self.break_open();
+            return Err(Error::output(path, format!("cannot write metadata: {e}")));
+        }
+        self.flush_open()
     }
 
     /// The sink keeps the output directory's lock for as long as it lives.
@@ -582,6 +619,12 @@ impl McapSink {
                 name: METADATA_NAME.to_string(),
                 metadata,
             })?;
+            for (name, metadata) in &self.segment_metadata {
+                writer.write_metadata(&mcap::records::Metadata {
+                    name: name.clone(),
+                    metadata: metadata.clone(),
+                })?;
+            }
             writer.flush()?;
             Ok::<_, mcap::McapError>(writer)
         })();

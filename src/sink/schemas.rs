@@ -1,4 +1,4 @@
-//! The MCAP channels' message types and their JSON Schemas (CONTRACT.md, "MCAP layout").
+//! The MCAP channels' message types and their JSON Schemas (contract.md, "MCAP layout").
 //!
 //! Schema names are the contract: `sunjitter.FrameAlignment`, `sunjitter.ReferenceChange` and
 //! Foxglove's well-known `foxglove.Log` (so the Foxglove Log panel shows `/log`).
@@ -320,7 +320,7 @@ pub fn frame_alignment_schema() -> Value {
     );
     json!({
         "title": FRAME_ALIGNMENT_SCHEMA,
-        "description": "Alignment of one frame to its reference (sunjitter CONTRACT.md)",
+        "description": "Alignment of one frame to its reference (sunjitter contract.md)",
         "type": "object",
         "properties": properties,
         "required": required

@@ -1,4 +1,4 @@
-//! Shared by the integration tests: the contract's field lists (CONTRACT.md), written once,
+//! Shared by the integration tests: the contract's field lists (contract.md), written once,
 //! and the reader of `inspect --csv` output.
 #![allow(dead_code)]
 

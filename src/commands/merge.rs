@@ -1,0 +1,61 @@
+//! `sunjitter merge SHARD_OUT… --out OUT`: join the logs of `replay --shard K/N`.
+
+use crate::Result;
+use std::path::PathBuf;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Output directories of `replay --shard K/N`, one per shard (any order).
+    #[arg(required = true, value_name = "SHARD_OUT")]
+    pub shards: Vec<PathBuf>,
+    /// Output directory for the MCAP log segments (and watch's status.json).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    #[arg(long, help = super::JSON_HELP)]
+    pub json: bool,
+}
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter merge out/iris-0 out/iris-1 out/iris-2 out/iris-3 --out out/iris
+  sunjitter merge out/shards/* --out out/merged --json
+The shards are the outputs of `sunjitter replay … --shard K/N` for K = 0…N−1. A set with a
+shard missing, given twice, unfinished or made from other inputs or configuration is refused
+and nothing is written; a merge run again replaces its own earlier output.";
+
+pub fn run(args: &Args) -> Result<i32> {
+    let mut shards = args
+        .shards
+        .iter()
+        .map(|p| crate::merge::read_shard(p))
+        .collect::<Result<Vec<_>>>()?;
+    crate::merge::check_set(&mut shards)?;
+    let replace = crate::merge::check_output(&args.out, &shards)?;
+    let merged = crate::merge::merge(&shards);
+    let segments = crate::merge::write(&args.out, &shards, &merged, &replace)?;
+    let frames: u64 = merged.frames.values().sum();
+    eprintln!(
+        "sunjitter: {} shards merged into {}: {frames} frames, {} with chained values carried across shards{}",
+        shards.len(),
+        crate::text::path(&args.out),
+        merged.stitched,
+        if merged.unlinked > 0 {
+            format!(", {} left without (see /log)", merged.unlinked)
+        } else {
+            String::new()
+        }
+    );
+    if args.json {
+        let doc = serde_json::json!({
+            "out": crate::text::path(&args.out),
+            "shards": shards.len(),
+            "frames": frames,
+            "per_channel": merged.frames,
+            "stitched": merged.stitched,
+            "unlinked": merged.unlinked,
+            "segments": segments.iter().map(|p| crate::text::path(p).into_owned()).collect::<Vec<_>>(),
+        });
+        println!("{doc}");
+    }
+    Ok(crate::error::exit::OK)
+}
