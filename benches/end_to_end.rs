@@ -8,12 +8,18 @@
 //! (channel SYNTH_171, default jitter) into a temporary directory; frame 0 is the reference
 //! (prepared once and held in memory, as the daemon keeps it), frame 1 is read, aligned and
 //! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see docs/PERFORMANCE.md).
+//!
+//! `cold_N`: the paths that prepare a new reference for the frame, both images in memory:
+//! `same_channel` (`align_images`), `previous` (a reference prepared from frame 0 just after
+//! frame 0 was aligned as a frame, as `replay --reference previous` runs) and `cross_channel`
+//! (frame 1 as another channel shows it: blurred by 1.5 px, intensities bent by a power 0.8,
+//! another channel name; the flow's answer is final).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::engine::{EngineConfig, PreparedReference};
+use sunjitter::engine::{align_images, EngineConfig, Image, PreparedReference};
 use sunjitter::fits::{read_frame, FrameSpec};
 use sunjitter::sink::{McapSink, SinkConfig};
 use sunjitter::FrameAlignment;
@@ -65,22 +71,73 @@ fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k:
 }
 
 /// Criterion filters benchmarks by name after setup; skip writing 4096² frames (seconds and
-/// 64 MiB each) when the command line's filter cannot select that size.
-fn selected(size: usize) -> bool {
+/// 64 MiB each) when the command line's filter cannot select that group.
+fn selected(group: &str) -> bool {
     let filters: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| !a.starts_with('-'))
         .collect();
-    filters.is_empty()
-        || filters
-            .iter()
-            .any(|f| format!("end_to_end_{size}").contains(f.as_str()))
+    filters.is_empty() || filters.iter().any(|f| group.contains(f.as_str()))
+}
+
+/// `frame` as another channel shows it: blurred, its intensities bent, another channel name.
+fn other_channel(frame: &Image) -> Image {
+    let mut data = sunjitter::preprocess::gaussian_smooth(frame.data.view(), 1.5);
+    let lo = data
+        .iter()
+        .copied()
+        .filter(|v| v.is_finite())
+        .fold(f32::INFINITY, f32::min);
+    data.mapv_inplace(|v| (v - lo).powf(0.8) + lo);
+    let mut meta = frame.meta.clone();
+    meta.channel = format!("{}_OTHER", meta.channel);
+    Image { data, meta }
+}
+
+fn cold(c: &mut Criterion) {
+    let cfg = EngineConfig::default();
+    for size in [1024usize, 2048, 4096] {
+        let name = format!("cold_{size}");
+        if !selected(&name) {
+            continue;
+        }
+        let frames = tempfile::tempdir().expect("temp dir");
+        let (reference_path, frame_path) = synth_pair(frames.path(), size);
+        let reference = read_frame(&FrameSpec::file(&reference_path)).expect("read reference");
+        let frame = read_frame(&FrameSpec::file(&frame_path)).expect("read frame");
+        let cross = other_channel(&frame);
+        // Frame 0's own reference, against which it is aligned before it becomes one.
+        let before = PreparedReference::new(&frame, &cfg);
+        black_box(before.align(&reference));
+        let mut group = c.benchmark_group(name);
+        group.sample_size(10);
+        group.bench_function("same_channel", |b| {
+            b.iter(|| black_box(align_images(&reference, &frame, &cfg)))
+        });
+        group.bench_function("previous", |b| {
+            b.iter_batched(
+                || before.align_keeping(&reference, cfg.solar_rotation).1,
+                |kept| {
+                    let prepared = match kept {
+                        Some(work) => PreparedReference::from_frame_work(&reference, &cfg, work),
+                        None => PreparedReference::new(&reference, &cfg),
+                    };
+                    black_box(prepared.align_keeping(&frame, cfg.solar_rotation))
+                },
+                criterion::BatchSize::PerIteration,
+            )
+        });
+        group.bench_function("cross_channel", |b| {
+            b.iter(|| black_box(align_images(&reference, &cross, &cfg)))
+        });
+        group.finish();
+    }
 }
 
 fn bench(c: &mut Criterion) {
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
-        if !selected(size) {
+        if !selected(&format!("end_to_end_{size}")) {
             continue;
         }
         let frames = tempfile::tempdir().expect("temp dir");
@@ -104,5 +161,5 @@ fn bench(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, bench);
+criterion_group!(benches, bench, cold);
 criterion_main!(benches);

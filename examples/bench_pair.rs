@@ -7,15 +7,22 @@
 //! - `align`: the whole engine (`align_images`, default configuration), cold: the reference
 //!   prepared and its self-test run inside the timing;
 //! - `align_per_frame`: one frame against a reference prepared (and self-tested) beforehand,
-//!   as the daemon aligns every frame after the first against a reference.
+//!   as the daemon aligns every frame after the first against a reference;
+//! - `align_previous`: NEXT against a reference prepared from PREV, cold, as `replay
+//!   --reference previous` aligns every frame: PREV was aligned as a frame just before (not
+//!   timed), and what that did for it is reused when it is prepared as the reference;
+//! - `align_cross`: the whole engine, cold, PREV against CROSS.fits, a frame of another channel
+//!   (its channel differs from PREV's; `tools/bench_side_by_side.py` makes one, blurred and with
+//!   its intensities bent): the flow's answer is final, at full resolution.
 //!
-//!     cargo run --release --example bench_pair -- PREV.fits NEXT.fits [REPEATS] [CASES]
+//!     cargo run --release --example bench_pair -- PREV.fits NEXT.fits [REPEATS] [CASES] [CROSS.fits]
 //!
-//! CASES is a comma list of the names above (default: all). Prints one JSON line per case with
-//! the wall and CPU seconds (all threads, /proc/self/stat) of every repeat.
+//! CASES is a comma list of the names above (default: all but `align_cross`, which needs
+//! CROSS.fits). Prints one JSON line per case with the wall and CPU seconds (all threads,
+//! /proc/self/stat) of every repeat.
 
 use std::time::Instant;
-use sunjitter::engine::{align_images, EngineConfig};
+use sunjitter::engine::{align_images, EngineConfig, PreparedReference};
 use sunjitter::fits::{read_frame, FrameSpec};
 use sunjitter::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
 
@@ -35,15 +42,22 @@ fn cpu_seconds() -> f64 {
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 2 {
-        anyhow::bail!("usage: bench_pair PREV.fits NEXT.fits [REPEATS] [CASES]");
+        anyhow::bail!("usage: bench_pair PREV.fits NEXT.fits [REPEATS] [CASES] [CROSS.fits]");
     }
     let prev = read_frame(&FrameSpec::parse(&args[0]))?;
     let next = read_frame(&FrameSpec::parse(&args[1]))?;
     let repeats: usize = args.get(2).map_or(Ok(3), |s| s.parse())?;
-    let cases = args
-        .get(3)
-        .cloned()
-        .unwrap_or_else(|| "flow_opencv_semantics,flow_engine,align,align_per_frame".into());
+    let cases = args.get(3).cloned().unwrap_or_else(|| {
+        "flow_opencv_semantics,flow_engine,align,align_per_frame,align_previous".into()
+    });
+    let cross = args
+        .get(4)
+        .map(|p| read_frame(&FrameSpec::parse(p)))
+        .transpose()?;
+    if cases.contains("align_cross") && cross.is_none() {
+        anyhow::bail!("align_cross needs CROSS.fits");
+    }
+    let cfg = EngineConfig::default();
     let (h, w) = prev.data.dim();
     let meta = &prev.meta;
     let plate = meta.plate_scale_arcsec[0].abs();
@@ -70,14 +84,24 @@ fn main() -> anyhow::Result<()> {
     };
     let threads = rayon::current_num_threads();
     let prepared = cases.contains("align_per_frame").then(|| {
-        let prepared = sunjitter::engine::PreparedReference::new(&prev, &EngineConfig::default());
+        let prepared = PreparedReference::new(&prev, &cfg);
         std::hint::black_box(prepared.align(&next)); // the reference's one-off work
+        prepared
+    });
+    // PREV's own reference, against which it is aligned as a frame before it becomes one.
+    let before_prev = cases.contains("align_previous").then(|| {
+        let prepared = PreparedReference::new(&next, &cfg);
+        std::hint::black_box(prepared.align(&prev));
         prepared
     });
     for case in cases.split(',') {
         let mut walls = Vec::new();
         let mut cpus = Vec::new();
         for _ in 0..repeats {
+            let kept = before_prev
+                .as_ref()
+                .filter(|_| case == "align_previous")
+                .and_then(|p| p.align_keeping(&prev, cfg.solar_rotation).1);
             let c0 = cpu_seconds();
             let t0 = Instant::now();
             match case {
@@ -102,11 +126,23 @@ fn main() -> anyhow::Result<()> {
                     )?);
                 }
                 "align" => {
-                    std::hint::black_box(align_images(&prev, &next, &EngineConfig::default()));
+                    std::hint::black_box(align_images(&prev, &next, &cfg));
                 }
                 "align_per_frame" => {
                     if let Some(p) = &prepared {
                         std::hint::black_box(p.align(&next));
+                    }
+                }
+                "align_previous" => {
+                    let reference = match kept {
+                        Some(work) => PreparedReference::from_frame_work(&prev, &cfg, work),
+                        None => PreparedReference::new(&prev, &cfg),
+                    };
+                    std::hint::black_box(reference.align_keeping(&next, cfg.solar_rotation));
+                }
+                "align_cross" => {
+                    if let Some(cross) = &cross {
+                        std::hint::black_box(align_images(&prev, cross, &cfg));
                     }
                 }
                 other => anyhow::bail!("unknown case {other}"),

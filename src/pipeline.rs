@@ -14,7 +14,7 @@
 //! apart from `publish_time` and the engine's own `elapsed_ms`.
 
 use crate::config::Config;
-use crate::engine::{AlignOutcome, EngineConfig, Image, PreparedReference};
+use crate::engine::{AlignOutcome, EngineConfig, FrameWork, Image, PreparedReference};
 use crate::fits::FrameSpec;
 use crate::meta::FrameMeta;
 use crate::record::{FrameAlignment, Status};
@@ -206,6 +206,9 @@ pub struct EngineAligner {
     config: EngineConfig,
     rotation: ChannelRotation,
     prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
+    /// Each channel's last aligned frame, cleaned and disk-checked: under `previous` it is the
+    /// next reference.
+    last_frames: Mutex<Vec<(String, ReferenceKey, FrameWork)>>,
 }
 
 /// At most this many prepared references are kept (a 4096² one holds ≈ 150 MB): enough for
@@ -248,6 +251,7 @@ impl EngineAligner {
             config,
             rotation: Default::default(),
             prepared: Mutex::new(Vec::new()),
+            last_frames: Mutex::new(Vec::new()),
         }
     }
 
@@ -276,8 +280,19 @@ impl EngineAligner {
         if let Some((_, p)) = lock().iter().find(|(k, _)| *k == key) {
             return p.clone();
         }
+        let kept = {
+            let mut last = match self.last_frames.lock() {
+                Ok(g) => g,
+                Err(poisoned) => poisoned.into_inner(),
+            };
+            let at = last.iter().position(|(_, k, _)| *k == key);
+            at.map(|i| last.swap_remove(i).2)
+        };
         // Prepared outside the lock: other channels keep aligning meanwhile.
-        let made = Arc::new(PreparedReference::new(reference, &self.config));
+        let made = Arc::new(match kept {
+            Some(work) => PreparedReference::from_frame_work(reference, &self.config, work),
+            None => PreparedReference::new(reference, &self.config),
+        });
         let mut cache = lock();
         if cache.len() >= PREPARED_REFERENCES {
             cache.remove(0);
@@ -306,8 +321,18 @@ impl Aligner for EngineAligner {
         let channel = &frame.meta.channel;
         let name = self.rotation.names.get(channel).unwrap_or(channel);
         let profile = self.rotation.by_channel.get(name).copied();
-        self.prepared(reference)
-            .align_with(frame, profile.unwrap_or(self.config.solar_rotation))
+        let (outcome, kept) = self
+            .prepared(reference)
+            .align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
+        if let Some(work) = kept {
+            let mut last = match self.last_frames.lock() {
+                Ok(g) => g,
+                Err(poisoned) => poisoned.into_inner(),
+            };
+            last.retain(|(c, _, _)| c != channel);
+            last.push((channel.clone(), ReferenceKey::of(frame), work));
+        }
+        outcome
     }
 
     fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {

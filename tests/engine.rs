@@ -491,3 +491,39 @@ fn a_frame_brighter_or_dimmer_than_its_reference_gives_the_same_transform() {
         }
     }
 }
+
+/// Under `previous` a frame becomes the next reference: preparing it from the work its own
+/// alignment did (cleaning, disk check) must give what preparing it afresh gives.
+#[test]
+fn a_reference_prepared_from_its_alignment_as_a_frame_aligns_as_one_prepared_afresh() {
+    use sunjitter::engine::PreparedReference;
+    let first = synthetic_full_disk();
+    let cfg = EngineConfig::default();
+    let second = transformed(
+        &first,
+        &Similarity {
+            scale: 1.0004,
+            rotation_rad: 0.002,
+            dx: 1.3,
+            dy: -0.7,
+            center: Similarity::array_center(first.data.ncols(), first.data.nrows()),
+        },
+    );
+    let third = transformed(
+        &first,
+        &Similarity {
+            scale: 0.9997,
+            rotation_rad: -0.001,
+            dx: -0.4,
+            dy: 2.1,
+            center: Similarity::array_center(first.data.ncols(), first.data.nrows()),
+        },
+    );
+    let (_, kept) = PreparedReference::new(&first, &cfg).align_keeping(&second, cfg.solar_rotation);
+    let kept = kept.expect("the frame aligned");
+    let reused = PreparedReference::from_frame_work(&second, &cfg, kept).align(&third);
+    let fresh = PreparedReference::new(&second, &cfg).align(&third);
+    assert_eq!(reused.transform, fresh.transform);
+    assert_eq!(reused.covariance, fresh.covariance);
+    assert_eq!(reused.result.message, fresh.result.message);
+}

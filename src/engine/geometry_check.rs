@@ -79,6 +79,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
 ///   otherwise differ by a few tenths of a percent, and that difference would be taken as a
 ///   resolution difference and smoothed away;
 /// - no disk seen in the reference, so its header stands: the frame keeps its header too.
+#[cfg(test)]
 pub(super) fn checked_frame(
     frame: &FrameMeta,
     frame_data: &Array2<f32>,
@@ -88,6 +89,19 @@ pub(super) fn checked_frame(
 ) -> FrameMeta {
     let mut own_notes = Vec::new();
     let own = checked(frame, frame_data, &mut own_notes);
+    frame_against_reference(frame, own, own_notes, reference_header, reference, notes)
+}
+
+/// [`checked_frame`] from the frame's own check (`checked` of its header and image, with the
+/// notes that check made).
+pub(super) fn frame_against_reference(
+    frame: &FrameMeta,
+    own: Checked,
+    own_notes: Vec<String>,
+    reference_header: &FrameMeta,
+    reference: &Checked,
+    notes: &mut Vec<String>,
+) -> FrameMeta {
     let (reference_corrected, frame_corrected) = (reference.corrected, own.corrected);
     let name = frame
         .file

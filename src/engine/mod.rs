@@ -266,13 +266,40 @@ struct Matched {
 /// At most this many resolution-matched versions are kept per reference.
 const MATCHED_CACHE: usize = 4;
 
+/// A frame's cleaned image and its own disk check, as preparing it as a reference makes them:
+/// a frame that becomes the next reference (`previous`) is not cleaned and checked twice.
+pub struct FrameWork {
+    cleaned: Array2<f32>,
+    check: geometry_check::Checked,
+    notes: Vec<String>,
+    hot_pixel_fraction: f32,
+}
+
 impl PreparedReference {
     pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
+        PreparedReference::prepare(reference, cfg, None)
+    }
+
+    /// As [`PreparedReference::new`], reusing the work done on `reference` when it was
+    /// aligned as a frame ([`PreparedReference::align_keeping`] of this same image).
+    pub fn from_frame_work(
+        reference: &Image,
+        cfg: &EngineConfig,
+        work: FrameWork,
+    ) -> PreparedReference {
+        PreparedReference::prepare(reference, cfg, Some(work))
+    }
+
+    fn prepare(
+        reference: &Image,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> PreparedReference {
         crate::keep_freed_memory();
         PreparedReference {
             cfg: cfg.clone(),
             file: crate::text::path(&reference.meta.file).into_owned(),
-            work: ReferenceWork::new(reference, cfg),
+            work: ReferenceWork::new(reference, cfg, kept),
         }
     }
 
@@ -297,21 +324,44 @@ impl PreparedReference {
         frame: &Image,
         profile: crate::solar_rotation::Profile,
     ) -> AlignOutcome {
+        self.align_inner(frame, profile, false).0
+    }
+
+    /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
+    /// as a reference would repeat (`None` when the alignment failed).
+    pub fn align_keeping(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        self.align_inner(frame, profile, true)
+    }
+
+    fn align_inner(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+        keep: bool,
+    ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
         let cfg = EngineConfig {
             solar_rotation: profile,
             ..self.cfg.clone()
         };
         let result = match &self.work {
-            Ok(work) => align_inner(work, frame, &cfg),
+            Ok(work) => align_inner(work, frame, &cfg, keep),
             Err(reason) => Err(reason.clone()),
+        };
+        let (result, kept) = match result {
+            Ok((outcome, kept)) => (Ok(outcome), kept),
+            Err(e) => (Err(e), None),
         };
         let mut outcome = result.unwrap_or_else(|reason| {
             AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
         });
         outcome.reference_geometry = self.geometry();
         outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
-        outcome
+        (outcome, kept)
     }
 }
 
@@ -325,12 +375,24 @@ impl ReferenceWork {
         }
     }
 
-    fn new(reference: &Image, cfg: &EngineConfig) -> Result<ReferenceWork, String> {
+    fn new(
+        reference: &Image,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> Result<ReferenceWork, String> {
         let (h, w) = reference.data.dim();
         check_usable("reference", &reference.data)?;
-        let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
-        let mut notes = Vec::new();
-        let reference_check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+        let (cleaned, reference_check, notes) = match kept {
+            Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
+                (k.cleaned, k.check, k.notes)
+            }
+            _ => {
+                let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
+                let mut notes = Vec::new();
+                let check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+                (cleaned, check, notes)
+            }
+        };
         let (checked, disk_px) = (&reference_check.meta, reference_check.disk_px);
 
         // Mask on the reference grid: the disk without its limb, or the whole valid field.
@@ -432,7 +494,8 @@ fn align_inner(
     work: &ReferenceWork,
     frame: &Image,
     cfg: &EngineConfig,
-) -> Result<AlignOutcome, String> {
+    keep: bool,
+) -> Result<(AlignOutcome, Option<FrameWork>), String> {
     check_usable("frame", &frame.data)?;
     let mut notes: Vec<String> = work.notes.clone();
 
@@ -441,9 +504,13 @@ fn align_inner(
     let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
-    let frame_meta = geometry_check::checked_frame(
+    let mut own_notes = Vec::new();
+    let own = geometry_check::checked(&frame.meta, &frame_data, &mut own_notes);
+    let kept_check = keep.then(|| (own.clone(), own_notes.clone()));
+    let frame_meta = geometry_check::frame_against_reference(
         &frame.meta,
-        &frame_data,
+        own,
+        own_notes,
         &work.meta,
         &work.reference_check,
         &mut notes,
@@ -486,7 +553,12 @@ fn align_inner(
     // An exposure change is no motion: the frame in the reference's intensity units.
     let photometry =
         photometry::Photometry::estimate(ref_data.view(), mask, frame_data.view(), &coarse);
-    if let Some(p) = photometry {
+    // The frame as cleaned, for its preparation as a reference.
+    let mut kept_cleaned = None;
+    if let Some(p) = photometry.filter(|p| !p.is_identity()) {
+        if keep {
+            kept_cleaned = Some(frame_data.clone());
+        }
         p.remove(&mut frame_data);
     }
     tracing::debug!(?photometry, "frame intensities matched");
@@ -885,7 +957,7 @@ fn align_inner(
     // A partial field has no disk to check its header pointing against: where that pointing
     // leads to no match, the frame is measured from the reference's pointing instead.
     let moved = max_motion_px(&coarse.recentered(Similarity::array_center(w, h)), 0.0);
-    match first {
+    let outcome = match first {
         Err(why) if partial && moved > 1.0 => {
             let still = Similarity {
                 dx: 0.0,
@@ -899,7 +971,14 @@ fn align_inner(
             measure(still, None, None, notes).map_err(|_| why)
         }
         other => other,
-    }
+    }?;
+    let kept = kept_check.map(|(check, notes)| FrameWork {
+        cleaned: kept_cleaned.unwrap_or(frame_data),
+        check,
+        notes,
+        hot_pixel_fraction: cfg.hot_pixel_fraction,
+    });
+    Ok((outcome, kept))
 }
 
 /// The grid the quality checks compare on: the reference's, or binned copies of it.

@@ -73,6 +73,11 @@ impl Photometry {
     }
 
     /// The frame in the reference's intensity units: `(frame − offset) / gain`.
+    /// Whether removing it changes no value.
+    pub fn is_identity(&self) -> bool {
+        self.gain == 1.0 && self.offset == 0.0
+    }
+
     pub fn remove(&self, frame: &mut Array2<f32>) {
         let (scale, shift) = (1.0 / self.gain, -self.offset / self.gain);
         frame.mapv_inplace(|v| (v as f64 * scale + shift) as f32);
