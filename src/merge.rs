@@ -17,7 +17,7 @@
 use crate::config::Config;
 use crate::geometry::{compose_with_covariance, Similarity, ARCSEC_PER_RAD};
 use crate::record::FrameAlignment;
-use crate::reference::{chain_from_message, Chain, PolicySpec};
+use crate::reference::{chain_from_message, set_chain, Chain, PolicySpec};
 use crate::shard::{ChainStart, ShardDone, ShardSpec, SHARD_DONE_METADATA, SHARD_METADATA};
 use crate::sink::{LogContents, LogEntry, ReferenceChange};
 use crate::{Error, Result};
@@ -316,28 +316,6 @@ fn chain_at(starts: &[ChainStart], t: i64) -> Option<usize> {
 /// correlations).
 fn message_chain(m: &FrameAlignment, center: [f64; 2]) -> Option<Chain> {
     chain_from_message(m, Some(center))
-}
-
-/// Write `chain` into a message's chained fields (`None`: no chain), as the pipeline does.
-pub fn set_chain(m: &mut FrameAlignment, chain: Option<&Chain>) {
-    let sig = chain.and_then(|c| c.sigmas());
-    let arcsec = chain.and_then(|c| c.shift_arcsec());
-    let plate = chain.and_then(|c| c.plate_scale_arcsec);
-    let sig_arcsec = sig
-        .zip(plate)
-        .map(|(s, p)| [s[2] * p[0].abs(), s[3] * p[1].abs()]);
-    m.chained_dx_px = chain.map(|c| c.transform.dx);
-    m.chained_dy_px = chain.map(|c| c.transform.dy);
-    m.chained_dx_arcsec = arcsec.map(|a| a[0]);
-    m.chained_dy_arcsec = arcsec.map(|a| a[1]);
-    m.chained_rotation_arcsec = chain.map(|c| c.transform.rotation_arcsec());
-    m.chained_scale = chain.map(|c| c.transform.scale);
-    m.sigma_chained_dx_px = sig.map(|s| s[2]);
-    m.sigma_chained_dy_px = sig.map(|s| s[3]);
-    m.sigma_chained_dx_arcsec = sig_arcsec.map(|s| s[0]);
-    m.sigma_chained_dy_arcsec = sig_arcsec.map(|s| s[1]);
-    m.sigma_chained_rotation_arcsec = sig.map(|s| s[1] * ARCSEC_PER_RAD);
-    m.sigma_chained_scale = sig.map(|s| s[0]);
 }
 
 /// The link through a frame `g` measured by the shard (`c_g`, on the shard's chain) and

@@ -984,38 +984,55 @@ impl ChannelState {
         chain: Option<Chain>,
         records: &mut Vec<Record>,
     ) -> Emitted {
-        let sig = chain.and_then(|c| c.sigmas());
-        let arcsec = chain.and_then(|c| c.shift_arcsec());
-        let plate = chain.and_then(|c| c.plate_scale_arcsec);
-        let sig_arcsec = sig
-            .zip(plate)
-            .map(|(s, p)| [s[2] * p[0].abs(), s[3] * p[1].abs()]);
-        let message = FrameAlignment {
+        let mut message = FrameAlignment {
             align,
             channel: self.name.clone(),
             obs_time: iso8601_utc(frame.obs_time_ns),
             sequence,
             reference_kind: kind.into(),
-            chained_dx_px: chain.map(|c| c.transform.dx),
-            chained_dy_px: chain.map(|c| c.transform.dy),
-            chained_dx_arcsec: arcsec.map(|a| a[0]),
-            chained_dy_arcsec: arcsec.map(|a| a[1]),
-            chained_rotation_arcsec: chain.map(|c| c.transform.rotation_arcsec()),
-            chained_scale: chain.map(|c| c.transform.scale),
-            sigma_chained_dx_px: sig.map(|s| s[2]),
-            sigma_chained_dy_px: sig.map(|s| s[3]),
-            sigma_chained_dx_arcsec: sig_arcsec.map(|s| s[0]),
-            sigma_chained_dy_arcsec: sig_arcsec.map(|s| s[1]),
-            sigma_chained_rotation_arcsec: sig.map(|s| s[1] * ARCSEC_PER_RAD),
-            sigma_chained_scale: sig.map(|s| s[0]),
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_dx_arcsec: None,
+            chained_dy_arcsec: None,
+            chained_rotation_arcsec: None,
+            chained_scale: None,
+            sigma_chained_dx_px: None,
+            sigma_chained_dy_px: None,
+            sigma_chained_dx_arcsec: None,
+            sigma_chained_dy_arcsec: None,
+            sigma_chained_rotation_arcsec: None,
+            sigma_chained_scale: None,
             pixel_checksum: None,
         };
+        set_chain(&mut message, chain.as_ref());
         records.push(Record::Frame {
             message: Box::new(message.clone()),
             log_time_ns: frame.obs_time_ns,
         });
         Emitted { message, chain }
     }
+}
+
+/// Write `chain` into a message's chained fields (`None`: no chain).
+pub fn set_chain(m: &mut FrameAlignment, chain: Option<&Chain>) {
+    let sig = chain.and_then(|c| c.sigmas());
+    let arcsec = chain.and_then(|c| c.shift_arcsec());
+    let plate = chain.and_then(|c| c.plate_scale_arcsec);
+    let sig_arcsec = sig
+        .zip(plate)
+        .map(|(s, p)| [s[2] * p[0].abs(), s[3] * p[1].abs()]);
+    m.chained_dx_px = chain.map(|c| c.transform.dx);
+    m.chained_dy_px = chain.map(|c| c.transform.dy);
+    m.chained_dx_arcsec = arcsec.map(|a| a[0]);
+    m.chained_dy_arcsec = arcsec.map(|a| a[1]);
+    m.chained_rotation_arcsec = chain.map(|c| c.transform.rotation_arcsec());
+    m.chained_scale = chain.map(|c| c.transform.scale);
+    m.sigma_chained_dx_px = sig.map(|s| s[2]);
+    m.sigma_chained_dy_px = sig.map(|s| s[3]);
+    m.sigma_chained_dx_arcsec = sig_arcsec.map(|s| s[0]);
+    m.sigma_chained_dy_arcsec = sig_arcsec.map(|s| s[1]);
+    m.sigma_chained_rotation_arcsec = sig.map(|s| s[1] * ARCSEC_PER_RAD);
+    m.sigma_chained_scale = sig.map(|s| s[0]);
 }
 
 /// The chain of a frame aligned by `outcome` to a reference whose chain is `ref_chain`.
