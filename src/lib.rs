@@ -1,98 +1,35 @@
 //! sunjitter: pointing-jitter monitor for solar telescopes.
 //!
-//! The modules follow the pipeline a frame goes through:
+//! Three library crates hold the pipeline, each depending only on the one before:
 //!
-//! FITS ingestion ([`fits`], [`header`]) → header metadata ([`meta`], [`time`]) →
-//! coarse alignment ([`coarse`], [`resample`], [`preprocess`]) → dense flow ([`flow`]) →
-//! sampling ([`sampling`]) → fit and covariance ([`fit`]) → one alignment ([`engine`]) →
-//! reference policy ([`reference`]) → sinks ([`sink`]) → daemon and replay ([`pipeline`],
-//! [`daemon`]) → inspection ([`inspect`]). [`synth`] and [`simulate`] make ground truth.
+//! - `sunjitter-core`: numerics, no I/O and no process-wide state. Header metadata
+//!   ([`header`], [`meta`], [`time`]) → coarse alignment ([`coarse`], [`preprocess`],
+//!   [`resample`]) → solar rotation ([`solar_rotation`]) → dense flow ([`flow`]) → sampling
+//!   ([`sampling`]) → fit and covariance ([`fit`], [`geometry`]) → one alignment
+//!   ([`engine`]). [`synth`] and [`simulate`] make ground truth.
+//! - `sunjitter-io`: FITS in ([`fits`]), MCAP out and back ([`sink`], [`records`]), corrected
+//!   frames ([`aligned`]), output paths ([`outputs`]).
+//! - `sunjitter-runtime`: files found ([`ingest`]) → reference policy ([`reference`]) →
+//!   pipeline ([`pipeline`]) → daemon and replay ([`daemon`], [`shard`], [`merge`]) →
+//!   [`monitor`], [`products`] → [`inspect`].
 //!
-//! Numerics (flow, sampling, fit, resample, preprocess) do no I/O.
+//! This crate is the command line ([`cli`]) and the process: the allocator and exit codes.
+//! It re-exports the three crates' modules under one name for the binary, tests and examples.
 
-pub mod error;
-pub mod geometry;
-pub mod record;
-pub mod text;
+pub use sunjitter_core::{
+    blur, coarse, crosscorr, engine, error, fit, flow, geometry, header, meta, preprocess, record,
+    resample, sampling, simulate, solar_rotation, stats, synth, text, time,
+};
+pub use sunjitter_io::{aligned, fits, font, outputs, records, sink};
+pub use sunjitter_runtime::{
+    config, daemon, ingest, inspect, merge, monitor, pipeline, ports, products, reference, shard,
+};
 
-pub mod fits;
-pub mod header;
-pub mod meta;
-pub mod time;
+pub mod allocator;
+pub mod cli;
 
-pub mod blur;
-pub mod coarse;
-pub mod preprocess;
-pub mod resample;
-pub mod solar_rotation;
-
-pub mod crosscorr;
-pub mod fit;
-pub mod flow;
-pub mod sampling;
-pub mod stats;
-
-pub mod engine;
-pub mod simulate;
-
-pub mod config;
-pub mod daemon;
-pub mod merge;
-pub mod monitor;
-pub mod outputs;
-pub mod pipeline;
-pub mod products;
-pub mod reference;
-pub mod shard;
-pub mod sink;
-
-pub mod inspect;
-pub mod synth;
-
-pub mod commands;
-
-// Frames are tens of MB and every alignment allocates a few dozen such arrays. glibc maps and
-// unmaps each one, and on a virtual machine faulting fresh pages in cost as much CPU as the
-// numerics (1.4 s of system time per GB at 4096²). mimalloc keeps them for reuse.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// Tell the allocator to keep freed pages for reuse instead of returning them to the system
-/// 10 ms after they are freed (mimalloc's default): every frame allocates and frees the same
-/// few frame-sized arrays, and faulting them in again costs about 0.13 s per 4096² frame
-/// (examples/bench_e2e.rs: 0.61–0.66 s median per frame with the pages kept, 0.75–0.80 s
-/// with `MIMALLOC_PURGE_DELAY=10`; peak RSS 0.93–0.97 GiB against 0.70 GiB). Idempotent;
-/// called whenever a reference is prepared. A `MIMALLOC_PURGE_DELAY` set in the environment
-/// is left to govern.
-pub fn keep_freed_memory() {
-    static ONCE: std::sync::Once = std::sync::Once::new();
-    ONCE.call_once(|| {
-        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
-            // SAFETY: sets a plain integer option; mimalloc synchronises option access.
-            unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
-        }
-    });
-}
-
-/// `mi_option_purge_delay` in the mimalloc v3 header vendored by libmimalloc-sys 0.1.49
-/// (`gcc -E` of `mimalloc.h`: the 16th enumerator), whose Rust bindings do not name it.
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-
+pub use allocator::keep_freed_memory;
 pub use error::{Error, Result};
 pub use geometry::Similarity;
 pub use meta::FrameMeta;
 pub use record::{AlignResult, FrameAlignment, Status};
-
-#[cfg(test)]
-mod allocator_tests {
-    #[test]
-    fn freed_memory_is_kept_once_asked() {
-        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_some() {
-            return; // the environment governs
-        }
-        super::keep_freed_memory();
-        // SAFETY: reads a plain integer option.
-        let delay = unsafe { libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY) };
-        assert_eq!(delay, -1);
-    }
-}

@@ -1,7 +1,7 @@
 //! Thin binary: parse the command line, run the library, map errors to exit codes.
 
 use clap::{Parser, Subcommand};
-use sunjitter::commands;
+use sunjitter::cli;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -25,37 +25,37 @@ Each command's --help has its own examples.";
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Print the header metadata sunjitter uses, one line per image or frame of a cube.
-    #[command(after_help = commands::info::EXAMPLES)]
-    Info(commands::info::Args),
+    #[command(after_help = cli::info::EXAMPLES)]
+    Info(cli::info::Args),
     /// Align one frame to one reference: shift, rotation and scale with 1-σ errors.
-    #[command(after_help = commands::align::EXAMPLES)]
-    Align(commands::align::Args),
+    #[command(after_help = cli::align::EXAMPLES)]
+    Align(cli::align::Args),
     /// Watch a directory and log every new frame's alignment to MCAP (the daemon).
-    #[command(after_help = commands::watch::EXAMPLES)]
-    Watch(commands::watch::Args),
+    #[command(after_help = cli::watch::EXAMPLES)]
+    Watch(cli::watch::Args),
     /// Run the watch pipeline over archived files, directories, globs or cubes.
-    #[command(after_help = commands::replay::EXAMPLES)]
-    Replay(commands::replay::Args),
+    #[command(after_help = cli::replay::EXAMPLES)]
+    Replay(cli::replay::Args),
     /// Join the logs of `replay --shard K/N` into one, chained series stitched across shards.
-    #[command(after_help = commands::merge::EXAMPLES)]
-    Merge(commands::merge::Args),
+    #[command(after_help = cli::merge::EXAMPLES)]
+    Merge(cli::merge::Args),
     /// Summarise MCAP logs: statistics, jitter spectrum, outliers, CSV and plots.
-    #[command(after_help = commands::inspect::EXAMPLES)]
-    Inspect(commands::inspect::Args),
+    #[command(after_help = cli::inspect::EXAMPLES)]
+    Inspect(cli::inspect::Args),
     /// Wang et al.'s Monte Carlo accuracy test on one image.
     ///
     /// Applies random similarities (scale, rotation, shift) to the image, aligns each copy back
     /// with the engine (Farnebäck flow, RANSAC similarity fit, errors from the Jacobian
     /// covariance, "UABJM") and reports the residuals against the truth and how often they
     /// fall within 1σ and 3σ; a translation-only run compares with cross-correlation.
-    #[command(after_help = commands::simulate::EXAMPLES)]
-    Simulate(commands::simulate::Args),
+    #[command(after_help = cli::simulate::EXAMPLES)]
+    Simulate(cli::simulate::Args),
     /// Write a synthetic FITS sequence with known jitter, and its truth.csv.
-    #[command(after_help = commands::synth::EXAMPLES)]
-    Synth(commands::synth::Args),
+    #[command(after_help = cli::synth::EXAMPLES)]
+    Synth(cli::synth::Args),
     /// Print a running (or stopped) daemon's health status.
-    #[command(after_help = commands::status::EXAMPLES)]
-    Status(commands::status::Args),
+    #[command(after_help = cli::status::EXAMPLES)]
+    Status(cli::status::Args),
 }
 
 /// Log fields as the default format writes them, with control characters escaped: a value
@@ -74,12 +74,13 @@ fn escaped_fields() -> impl for<'w> tracing_subscriber::fmt::FormatFields<'w> {
 }
 
 fn main() {
+    sunjitter::keep_freed_memory();
     // Colour only for a person at a terminal, and never when NO_COLOR is set (no-color.org).
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
         && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
         .with_ansi(colour)
-        .with_writer(sunjitter::commands::BarAwareStderr)
+        .with_writer(sunjitter::cli::BarAwareStderr)
         .fmt_fields(escaped_fields())
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG")
@@ -102,15 +103,15 @@ fn main() {
     // Decompressed copies a killed run left behind (their names carry the dead process's id).
     sunjitter::fits::remove_stale_gunzipped_copies();
     let outcome = match &cli.command {
-        Command::Info(a) => commands::info::run(a),
-        Command::Align(a) => commands::align::run(a),
-        Command::Watch(a) => commands::watch::run(a),
-        Command::Replay(a) => commands::replay::run(a),
-        Command::Merge(a) => commands::merge::run(a),
-        Command::Inspect(a) => commands::inspect::run(a),
-        Command::Simulate(a) => commands::simulate::run(a),
-        Command::Synth(a) => commands::synth::run(a),
-        Command::Status(a) => commands::status::run(a),
+        Command::Info(a) => cli::info::run(a),
+        Command::Align(a) => cli::align::run(a),
+        Command::Watch(a) => cli::watch::run(a),
+        Command::Replay(a) => cli::replay::run(a),
+        Command::Merge(a) => cli::merge::run(a),
+        Command::Inspect(a) => cli::inspect::run(a),
+        Command::Simulate(a) => cli::simulate::run(a),
+        Command::Synth(a) => cli::synth::run(a),
+        Command::Status(a) => cli::status::run(a),
     };
     match outcome {
         Ok(code) => std::process::exit(code),

@@ -12,7 +12,10 @@ use std::sync::Arc;
 use sunjitter::engine::Image;
 use sunjitter::fits::FrameSpec;
 use sunjitter::meta::FrameMeta;
-use sunjitter::pipeline::{EngineAligner, FitsReader, FrameReader, LogLevel, MemorySink};
+use sunjitter::pipeline::{EngineAligner, FitsReader};
+use sunjitter::ports::FrameReader;
+use sunjitter::records::MemorySink;
+use sunjitter::sink::LogLevel;
 use sunjitter::Result;
 
 /// The real reader, except that one file is deleted just before it is first read: the
@@ -267,7 +270,7 @@ async fn every_bad_input_gets_one_log_entry_and_the_daemon_goes_on() {
         let entries: Vec<_> = records
             .iter()
             .filter_map(|r| match r {
-                sunjitter::pipeline::Record::Log { file, message, .. }
+                sunjitter::records::Record::Log { file, message, .. }
                     if file_name(file) == base && file.ends_with(name) && !waiting(message) =>
                 {
                     Some(message.clone())

@@ -13,13 +13,14 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 use sunjitter::config::{ChannelConfig, Config};
-use sunjitter::pipeline::fake::{FakeFrame, FakeReader, TruthAligner};
-use sunjitter::pipeline::{
-    expand_inputs, parse_iso8601_utc, replay_inputs, History, LogLevel, MemorySink, Progress,
-    Record, RunParts,
-};
+use sunjitter::ingest::expand_inputs;
+use sunjitter::pipeline::{parse_iso8601_utc, replay_inputs, Progress, RunParts};
+use sunjitter::records::{MemorySink, Record};
+use sunjitter::reference::History;
 use sunjitter::reference::PolicySpec;
+use sunjitter::sink::LogLevel;
 use sunjitter::FrameAlignment;
+use sunjitter_runtime::fake::{FakeFrame, FakeReader, TruthAligner};
 use tokio::sync::{oneshot, watch};
 
 const S: i64 = 1_000_000_000;
@@ -433,9 +434,10 @@ async fn replay_writes_what_the_daemon_wrote() {
 
 mod real {
     use super::*;
-    use sunjitter::pipeline::fake::{split_cube, SplitFrame};
+    use sunjitter_runtime::fake::{split_cube, SplitFrame};
 
-    use sunjitter::pipeline::{open_output, EngineAligner, FitsReader, RecordSink};
+    use sunjitter::pipeline::{open_output, EngineAligner, FitsReader};
+    use sunjitter::records::RecordSink;
 
     pub const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
     pub const SJI_2796: &str =
@@ -552,7 +554,7 @@ mod real {
 
     impl RecordSink for Crash {
         fn write(&mut self, r: &Record, t: i64) -> sunjitter::Result<()> {
-            sunjitter::pipeline::McapRecordSink::write_to(&mut self.0, r, t)
+            sunjitter::records::McapRecordSink::write_to(&mut self.0, r, t)
         }
         fn flush(&mut self) -> sunjitter::Result<()> {
             self.0.flush()
@@ -680,7 +682,7 @@ async fn real_cross_channel_frames_use_the_nearest_partner() {
     );
     let mut daemon = start_real(dir.path(), out.path(), config, false);
     daemon.watching().await;
-    let mut all: Vec<&sunjitter::pipeline::fake::SplitFrame> = a.iter().chain(&b).collect();
+    let mut all: Vec<&sunjitter_runtime::fake::SplitFrame> = a.iter().chain(&b).collect();
     all.sort_by_key(|f| f.obs_time_ns);
     for f in &all {
         write_renamed(dir.path(), &f.name, &f.bytes, "incoming.tmp");

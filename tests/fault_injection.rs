@@ -17,7 +17,10 @@ use std::time::Duration;
 use sunjitter::engine::Image;
 use sunjitter::fits::FrameSpec;
 use sunjitter::meta::FrameMeta;
-use sunjitter::pipeline::{FitsReader, FrameReader, LogLevel, McapRecordSink, MemorySink};
+use sunjitter::pipeline::FitsReader;
+use sunjitter::ports::FrameReader;
+use sunjitter::records::{McapRecordSink, MemorySink};
+use sunjitter::sink::LogLevel;
 
 fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, MemorySink) {
     let sink = MemorySink::default();
@@ -227,7 +230,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
         )
     };
 
-    let first = run(sunjitter::pipeline::History::default());
+    let first = run(sunjitter::reference::History::default());
     first.watching().await;
     publish(&root, &frames[0]);
     first.wait_for("the first frame", |p| p.finished >= 1).await;

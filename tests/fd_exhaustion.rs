@@ -8,7 +8,9 @@ mod faults;
 
 use faults::*;
 use std::sync::Arc;
-use sunjitter::pipeline::{FitsReader, LogLevel, MemorySink};
+use sunjitter::pipeline::FitsReader;
+use sunjitter::records::MemorySink;
+use sunjitter::sink::LogLevel;
 
 /// The soft descriptor limit lowered so that no new descriptor can be opened; restored on
 /// drop (a failing assertion included).

@@ -13,7 +13,7 @@
 //! magnitude above the measured rounding floor and one below the 0.01 px that matters to the
 //! engine. Against the truth, both implementations must have the same error (to 1e-3 px):
 //! box 0.0558 px, Gaussian 0.0366 px — OpenCV's algorithm is biased on this warp (see
-//! src/flow/tests.rs `affine_window_recovers_rotation_and_scale` for the unbiased option).
+//! crates/sunjitter-core/src/flow/tests.rs `affine_window_recovers_rotation_and_scale` for the unbiased option).
 
 use ndarray::Array2;
 use sunjitter::flow::{farneback, FarnebackParams};

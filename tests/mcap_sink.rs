@@ -149,6 +149,7 @@ fn reference_change(i: u64) -> ReferenceChange {
         reference_kind: "keyframe".into(),
         sequence: i,
         replaces: (i > 0).then(|| "/data/SJI_1400/f0000.fits".into()),
+        chain: None,
     }
 }
 

@@ -9,7 +9,7 @@ use common::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CON
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use sunjitter::pipeline::fake::{split_cube, SplitFrame};
+use sunjitter_runtime::fake::{split_cube, SplitFrame};
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 

@@ -7,7 +7,7 @@ mod common;
 use common::{sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use sunjitter::pipeline::fake::split_cube;
+use sunjitter_runtime::fake::split_cube;
 
 const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";

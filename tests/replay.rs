@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 use sunjitter::config::{Config, Overrides};
-use sunjitter::pipeline::fake::split_cube;
 use sunjitter::pipeline::{open_output, EngineAligner, FitsReader, Progress, RunParts};
+use sunjitter_runtime::fake::split_cube;
 use tokio::sync::{oneshot, watch};
 
 mod common;

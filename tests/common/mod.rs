@@ -214,7 +214,7 @@ pub fn exit_status_within(
 
 /// Publish a split frame into `watched` as instruments do: written under a hidden temporary
 /// name, then renamed into place.
-pub fn publish(watched: &Path, f: &sunjitter::pipeline::fake::SplitFrame) {
+pub fn publish(watched: &Path, f: &sunjitter_runtime::fake::SplitFrame) {
     let tmp = watched.join(format!(".{}.tmp", f.name));
     std::fs::write(&tmp, &f.bytes).unwrap();
     std::fs::rename(&tmp, watched.join(&f.name)).unwrap();

@@ -15,9 +15,13 @@ use std::sync::Arc;
 use std::time::Duration;
 use sunjitter::config::Config;
 use sunjitter::engine::{AlignOutcome, Image};
-use sunjitter::pipeline::fake::outcome;
-use sunjitter::pipeline::{Aligner, History, LogLevel, Progress, Record, RecordSink, RunParts};
+use sunjitter::pipeline::{Progress, RunParts};
+use sunjitter::ports::Aligner;
+use sunjitter::records::{Record, RecordSink};
+use sunjitter::reference::History;
+use sunjitter::sink::LogLevel;
 use sunjitter::{FrameAlignment, Similarity, Status};
+use sunjitter_runtime::fake::outcome;
 use tokio::sync::{oneshot, watch};
 
 pub const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
@@ -216,7 +220,7 @@ pub struct Daemon {
 pub fn start(
     dir: &Path,
     config: Config,
-    reader: Arc<dyn sunjitter::pipeline::FrameReader>,
+    reader: Arc<dyn sunjitter::ports::FrameReader>,
     aligner: Arc<dyn Aligner>,
     sink: Box<dyn RecordSink>,
 ) -> Daemon {
@@ -227,7 +231,7 @@ pub fn start(
 pub fn resume(
     dir: &Path,
     config: Config,
-    reader: Arc<dyn sunjitter::pipeline::FrameReader>,
+    reader: Arc<dyn sunjitter::ports::FrameReader>,
     aligner: Arc<dyn Aligner>,
     sink: Box<dyn RecordSink>,
     history: History,
@@ -310,7 +314,7 @@ pub fn read_back(out: &Path) -> Vec<Record> {
         })
         .chain(logs.logs.iter().map(|m| {
             Record::log(
-                LogLevel::from_foxglove(m.entry.level as u8),
+                m.entry.level,
                 &m.entry.file,
                 m.entry.message.clone(),
                 m.log_time_ns as i64,

@@ -1,0 +1,257 @@
+//! Small statistics helpers for Monte Carlo evaluation, and a seeded PRNG.
+//!
+//! The summary functions ignore non-finite values (a failed trial is counted by the
+//! caller, not smuggled into an RMSE) and return `None` when nothing finite is left.
+
+/// SplitMix64 (Steele, Lea & Flood 2014): a tiny, fast, well-mixed 64-bit generator.
+/// Deterministic for a given seed on every platform.
+#[derive(Debug, Clone)]
+pub struct SplitMix64 {
+    state: u64,
+}
+
+impl SplitMix64 {
+    pub fn new(seed: u64) -> Self {
+        SplitMix64 { state: seed }
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1) with 53 random bits.
+    pub fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+
+    /// Uniform in [lo, hi).
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.next_f64()
+    }
+
+    /// Uniform integer in [0, n) (Lemire's multiply-shift; bias < n / 2⁶⁴, negligible here).
+    pub fn below(&mut self, n: usize) -> usize {
+        ((self.next_u64() as u128 * n as u128) >> 64) as usize
+    }
+
+    /// Standard normal deviate (Box–Muller; one of the pair is discarded for simplicity).
+    pub fn gaussian(&mut self) -> f64 {
+        // 1 − U lies in (0, 1], so the logarithm is finite.
+        let u1 = 1.0 - self.next_f64();
+        let u2 = self.next_f64();
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+}
+
+fn finite(values: &[f64]) -> Vec<f64> {
+    values.iter().copied().filter(|v| v.is_finite()).collect()
+}
+
+/// Root mean square of the finite values (residuals against a known truth).
+pub fn rmse(residuals: &[f64]) -> Option<f64> {
+    let v = finite(residuals);
+    if v.is_empty() {
+        return None;
+    }
+    Some((v.iter().map(|r| r * r).sum::<f64>() / v.len() as f64).sqrt())
+}
+
+/// Fraction of pairs with `|residual| ≤ k·sigma`, over pairs where both are finite.
+pub fn fraction_within(residuals: &[f64], sigmas: &[f64], k: f64) -> Option<f64> {
+    let pairs: Vec<(f64, f64)> = residuals
+        .iter()
+        .zip(sigmas)
+        .map(|(&r, &s)| (r, s))
+        .filter(|(r, s)| r.is_finite() && s.is_finite())
+        .collect();
+    if pairs.is_empty() {
+        return None;
+    }
+    let inside = pairs.iter().filter(|(r, s)| r.abs() <= k * s).count();
+    Some(inside as f64 / pairs.len() as f64)
+}
+
+/// Median of the finite values (mean of the two middle values for an even count).
+pub fn median(values: &[f64]) -> Option<f64> {
+    let mut v = finite(values);
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    })
+}
+
+/// Median absolute deviation about the median, scaled by 1.4826 so that it estimates σ
+/// for Gaussian data.
+pub fn mad_sigma(values: &[f64]) -> Option<f64> {
+    let m = median(values)?;
+    let dev: Vec<f64> = finite(values).iter().map(|v| (v - m).abs()).collect();
+    Some(1.482_602_218_505_602 * median(&dev)?)
+}
+
+/// The `k`-th smallest (0-based) of `values`, which must all be finite: the value
+/// `select_nth_unstable` finds, but by parallel histogram passes that narrow the candidates
+/// to one bin each time, so that the refinement's robust scale is not a serial step.
+pub fn par_select(values: &[f64], k: usize) -> f64 {
+    use rayon::prelude::*;
+    const SERIAL_BELOW: usize = 1 << 16;
+    const BINS: usize = 4096;
+    const CHUNK: usize = 1 << 14;
+    assert!(k < values.len(), "par_select: k out of range");
+    let mut owned: Option<Vec<f64>> = None;
+    let mut k = k;
+    // Each pass keeps the bin that holds the k-th value. Bins are monotone in the value, so
+    // the rank inside the kept bin is known. Whatever is left after eight passes (only for
+    // pathological spreads) goes to one serial selection, so the result is exact either way.
+    for _ in 0..8 {
+        let candidates: &[f64] = owned.as_deref().unwrap_or(values);
+        if candidates.len() < SERIAL_BELOW {
+            break;
+        }
+        let (lo, hi) = candidates
+            .par_chunks(CHUNK)
+            .map(|c| {
+                c.iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+                        (a.min(v), b.max(v))
+                    })
+            })
+            .reduce(
+                || (f64::INFINITY, f64::NEG_INFINITY),
+                |x, y| (x.0.min(y.0), x.1.max(y.1)),
+            );
+        if lo >= hi {
+            return lo;
+        }
+        let scale = BINS as f64 / (hi - lo);
+        let bin = move |v: f64| (((v - lo) * scale) as usize).min(BINS - 1);
+        let counts = candidates
+            .par_chunks(CHUNK)
+            .map(|c| {
+                let mut h = vec![0usize; BINS];
+                c.iter().for_each(|&v| h[bin(v)] += 1);
+                h
+            })
+            .reduce(
+                || vec![0usize; BINS],
+                |mut a, b| {
+                    a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        let mut below = 0;
+        let mut target = BINS - 1;
+        for (i, &c) in counts.iter().enumerate() {
+            if below + c > k {
+                target = i;
+                break;
+            }
+            below += c;
+        }
+        let kept: Vec<f64> = candidates
+            .par_iter()
+            .copied()
+            .filter(|&v| bin(v) == target)
+            .collect();
+        k -= below;
+        owned = Some(kept);
+    }
+    let mut rest = owned.unwrap_or_else(|| values.to_vec());
+    *rest.select_nth_unstable_by(k, f64::total_cmp).1
+}
+
+/// Whether every pixel is finite, checked row by row in parallel.
+pub fn all_finite(img: ndarray::ArrayView2<f32>) -> bool {
+    use rayon::prelude::*;
+    img.axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .all(|row| row.iter().all(|v| v.is_finite()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn par_select_finds_the_same_order_statistic_as_a_full_sort() {
+        // Heavy-tailed values with ties and a far outlier: most values share a few bins.
+        let mut rng = SplitMix64::new(9);
+        let mut values: Vec<f64> = (0..300_000)
+            .map(|i| match i % 7 {
+                0 => 1e9,
+                1 => 0.25,
+                _ => rng.gaussian() * (1.0 + (i % 3) as f64),
+            })
+            .collect();
+        values.push(-1e12);
+        let mut sorted = values.clone();
+        sorted.sort_by(f64::total_cmp);
+        for k in [
+            0,
+            1,
+            1000,
+            values.len() / 2,
+            values.len() - 2,
+            values.len() - 1,
+        ] {
+            assert_eq!(par_select(&values, k), sorted[k], "k = {k}");
+        }
+        let small = [3.0, 1.0, 2.0];
+        assert_eq!(par_select(&small, 1), 2.0);
+        let same = vec![4.5; 100_000];
+        assert_eq!(par_select(&same, 77_777), 4.5);
+    }
+
+    #[test]
+    fn splitmix64_matches_reference_sequence() {
+        // Published reference outputs for seed 1234567 (Rosetta Code task
+        // "Pseudo-random numbers/Splitmix64", from Vigna's splitmix64.c).
+        let mut r = SplitMix64::new(1234567);
+        assert_eq!(r.next_u64(), 6457827717110365317);
+        assert_eq!(r.next_u64(), 3203168211198807973);
+        assert_eq!(r.next_u64(), 9817491932198370423);
+    }
+
+    #[test]
+    fn gaussian_deviates_have_unit_variance() {
+        let mut r = SplitMix64::new(7);
+        let x: Vec<f64> = (0..200_000).map(|_| r.gaussian()).collect();
+        let mean = x.iter().sum::<f64>() / x.len() as f64;
+        let var = x.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / x.len() as f64;
+        // Standard errors: mean 0.0022, variance 0.0032.
+        assert!(mean.abs() < 0.01, "mean {mean}");
+        assert!((var - 1.0).abs() < 0.015, "var {var}");
+        // 68.27 % of a standard normal lies within ±1 (σ of the fraction: 0.001).
+        let ones = vec![1.0; x.len()];
+        let f = fraction_within(&x, &ones, 1.0).unwrap();
+        assert!((f - 0.6827).abs() < 0.005, "fraction {f}");
+        // MAD·1.4826 estimates σ = 1.
+        assert!((mad_sigma(&x).unwrap() - 1.0).abs() < 0.01);
+    }
+
+    #[test]
+    fn summaries_on_hand_computed_values() {
+        assert_eq!(rmse(&[3.0, -4.0]), Some((12.5f64).sqrt()));
+        assert_eq!(rmse(&[f64::NAN]), None);
+        assert_eq!(median(&[5.0, 1.0, 3.0]), Some(3.0));
+        assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(&[f64::NAN, 2.0]), Some(2.0));
+        assert_eq!(median(&[]), None);
+        // |x − 3| = 2, 1, 0, 1, 7 → median 1.
+        let m = mad_sigma(&[1.0, 2.0, 3.0, 4.0, 10.0]).unwrap();
+        assert!((m - 1.482_602_218_505_602).abs() < 1e-12);
+        assert_eq!(
+            fraction_within(&[0.5, -1.5, 2.0, f64::NAN], &[1.0, 1.0, 1.0, 1.0], 1.0),
+            Some(1.0 / 3.0)
+        );
+    }
+}

@@ -1,0 +1,52 @@
+//! Test-only reading of the bundled real images (`data/real`, plain primary HDUs), through
+//! fitsio for the pixels and this crate's own header parser for the metadata.
+use ndarray::Array2;
+
+use crate::header::{Header, BLOCK};
+use crate::meta::{self, ImagePlace};
+
+pub fn real_path(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../data/real")
+        .join(name)
+}
+
+/// The primary image (first plane of a cube) as f32, shape (height, width).
+pub fn read_real(name: &str) -> Array2<f32> {
+    let mut f = fitsio::FitsFile::open(real_path(name)).expect("open bundled FITS");
+    let hdu = f.primary_hdu().expect("primary HDU");
+    let (h, w) = match &hdu.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } => {
+            let n = shape.len();
+            (shape[n - 2], shape[n - 1])
+        }
+        _ => panic!("not an image"),
+    };
+    let data: Vec<f32> = hdu.read_image(&mut f).expect("read image");
+    Array2::from_shape_vec((h, w), data[..h * w].to_vec()).expect("shape")
+}
+
+/// The primary image with the metadata its header gives.
+pub fn read_real_image(name: &str) -> (Array2<f32>, crate::meta::FrameMeta) {
+    let path = real_path(name);
+    let bytes = std::fs::read(&path).expect("read bundled FITS");
+    let mut header = Header::new();
+    let complete = bytes.chunks(BLOCK).any(|block| header.push_block(block));
+    assert!(complete, "{name}: no END card");
+    let data = read_real(name);
+    let (height, width) = data.dim();
+    let bitpix = header
+        .get("BITPIX")
+        .and_then(|v| v.as_i64())
+        .expect("BITPIX") as i32;
+    let place = ImagePlace {
+        file: path,
+        hdu: 0,
+        frame: None,
+        width,
+        height,
+        bitpix,
+    };
+    let meta = meta::from_header(&header, place).expect("bundled header");
+    (data, meta)
+}

@@ -1,0 +1,191 @@
+//! `inspect --csv`: one row per frame with every field of the `/jitter` record (RFC 4180).
+//!
+//! Columns: `log_time_ns`, then the record's fields in [`COLUMNS`] order (`header_residual`
+//! flattened to `header_residual_<field>`), then any field a newer record adds, by name.
+//! Empty cells are `null`. Rows are grouped by channel (sorted) and ordered by time.
+
+use super::ChannelAnalysis;
+use serde_json::Value;
+use std::io::Write;
+
+/// Known fields, in the order the columns appear.
+pub const COLUMNS: &[&str] = &[
+    "channel",
+    "sequence",
+    "obs_time",
+    "status",
+    "reference_kind",
+    "reference",
+    "frame",
+    "dx_px",
+    "dy_px",
+    "rotation_arcsec",
+    "scale",
+    "dx_arcsec",
+    "dy_arcsec",
+    "sigma_dx_px",
+    "sigma_dy_px",
+    "sigma_rotation_arcsec",
+    "sigma_scale",
+    "sigma_dx_arcsec",
+    "sigma_dy_arcsec",
+    "uabjm_sigma_dx_px",
+    "uabjm_sigma_dy_px",
+    "uabjm_sigma_rotation_arcsec",
+    "uabjm_sigma_scale",
+    "chained_dx_px",
+    "chained_dy_px",
+    "chained_rotation_arcsec",
+    "chained_scale",
+    "chained_dx_arcsec",
+    "chained_dy_arcsec",
+    "sigma_chained_dx_px",
+    "sigma_chained_dy_px",
+    "sigma_chained_rotation_arcsec",
+    "sigma_chained_scale",
+    "sigma_chained_dx_arcsec",
+    "sigma_chained_dy_arcsec",
+    "header_residual_dx_px",
+    "header_residual_dy_px",
+    "header_residual_rotation_arcsec",
+    "header_residual_scale",
+    "solar_rotation_profile",
+    "solar_rotation_dt_s",
+    "solar_rotation_dx_px",
+    "solar_rotation_dy_px",
+    "solar_rotation_tracked",
+    "points",
+    "inliers",
+    "residual_rms_px",
+    "similarity",
+    "message",
+    "elapsed_ms",
+];
+
+/// A record as flat `name → value` (nested objects become `parent_child`).
+fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
+    match v {
+        Value::Object(map) => {
+            for (k, child) in map {
+                let name = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}_{k}")
+                };
+                match child {
+                    Value::Object(_) => flatten(&name, child, out),
+                    // `header_residual: null` still yields its (empty) columns via COLUMNS.
+                    _ => out.push((name, child.clone())),
+                }
+            }
+        }
+        other => out.push((prefix.to_string(), other.clone())),
+    }
+}
+
+fn cell(v: Option<&Value>) -> String {
+    match v {
+        None | Some(Value::Null) => String::new(),
+        Some(Value::String(s)) => quote(s),
+        Some(Value::Number(n)) => n.to_string(),
+        Some(Value::Bool(b)) => b.to_string(),
+        Some(other) => quote(&other.to_string()),
+    }
+}
+
+fn quote(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// Write the time series of every channel.
+pub fn write_csv<W: Write>(out: &mut W, analyses: &[ChannelAnalysis]) -> std::io::Result<()> {
+    let mut rows = Vec::new();
+    let mut extra: Vec<String> = Vec::new();
+    for a in analyses {
+        for f in &a.frames {
+            let v = serde_json::to_value(&f.record).map_err(std::io::Error::other)?;
+            let mut flat = Vec::new();
+            flatten("", &v, &mut flat);
+            for (k, _) in &flat {
+                if !COLUMNS.contains(&k.as_str())
+                    && k != "header_residual"
+                    && k != "solar_rotation"
+                    && !extra.contains(k)
+                {
+                    extra.push(k.clone());
+                }
+            }
+            rows.push((f.log_time_ns, flat));
+        }
+    }
+    extra.sort();
+    let header: Vec<&str> = std::iter::once("log_time_ns")
+        .chain(COLUMNS.iter().copied())
+        .chain(extra.iter().map(|s| s.as_str()))
+        .collect();
+    writeln!(out, "{}", header.join(","))?;
+    for (t, flat) in rows {
+        let lookup = |name: &str| flat.iter().find(|(k, _)| k == name).map(|(_, v)| v);
+        let cells: Vec<String> = std::iter::once(t.to_string())
+            .chain(header[1..].iter().map(|name| cell(lookup(name))))
+            .collect();
+        writeln!(out, "{}", cells.join(","))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testdata::frame;
+    use super::super::{analyse, InspectOptions};
+    use super::*;
+    use sunjitter_core::record::{Status, TransformFields};
+
+    #[test]
+    fn one_row_per_frame_with_every_field() {
+        let mut frames = vec![
+            frame("SYNTH_171", 0, 0.0, 0.25, -0.5, Status::Ok),
+            frame("SYNTH_171", 1, 12.0, 0.0, 0.0, Status::Failed),
+        ];
+        frames[0].record.align.message = "few inliers, \"low\" similarity".into();
+        frames[0].record.align.header_residual = Some(TransformFields {
+            scale: 1.0,
+            rotation_arcsec: 0.5,
+            dx_px: 0.125,
+            dy_px: -0.25,
+        });
+        let a = analyse(&frames, &InspectOptions::default());
+        let mut buf = Vec::new();
+        write_csv(&mut buf, &a).unwrap();
+        let text = String::from_utf8(buf).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 3);
+        let header: Vec<&str> = lines[0].split(',').collect();
+        assert_eq!(header.len(), 1 + COLUMNS.len());
+        // Every serialised field of the record has a column.
+        let v = serde_json::to_value(&frames[0].record).unwrap();
+        for k in v.as_object().unwrap().keys() {
+            assert!(
+                header
+                    .iter()
+                    .any(|h| h == k || h.starts_with(&format!("{k}_"))),
+                "no column for {k}"
+            );
+        }
+        let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+        // The quoted message holds a comma, so compare the leading, unquoted cells only.
+        let row0: Vec<&str> = lines[1].split(',').collect();
+        assert_eq!(row0[col("dx_px")], "0.25");
+        assert_eq!(row0[col("header_residual_dx_px")], "0.125");
+        assert_eq!(row0[col("status")], "ok");
+        assert!(lines[1].contains("\"few inliers, \"\"low\"\" similarity\""));
+        let row1: Vec<&str> = lines[2].split(',').collect();
+        assert_eq!(row1[col("status")], "failed");
+        assert_eq!(row1[col("dx_px")], "");
+        assert_eq!(row1[0], "1714564812000000000");
+    }
+}

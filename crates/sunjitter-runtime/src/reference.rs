@@ -1,0 +1,1765 @@
+//! Reference policies: which image each frame of a channel is aligned to, and the chained
+//! ("absolute") pointing series built from those alignments.
+//!
+//! Everything here is deterministic given the frames of a channel in observation-time order
+//! (and, for `channel:NAME`, the partner frame the scheduler picked), which is what makes
+//! `replay` write the same messages as the daemon.
+
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashSet};
+use std::fmt;
+use std::str::FromStr;
+use std::sync::Arc;
+use sunjitter_core::chain::{chain_after, chain_from_message, set_chain, Chain};
+use sunjitter_core::engine::{AlignOutcome, Image};
+use sunjitter_core::geometry::Similarity;
+use sunjitter_core::record::{AlignResult, FrameAlignment, Status, TransformFields};
+use sunjitter_core::time::format_iso_utc as iso8601_utc;
+use sunjitter_io::fits::FrameSpec;
+use sunjitter_io::fits::{frame_key, parse_frame_key};
+use sunjitter_io::records::Record;
+use sunjitter_io::sink::LogLevel;
+use sunjitter_io::sink::ReferenceChange;
+
+/// Covariance of (scale, rotation_rad, dx_px, dy_px).
+pub type Cov4 = sunjitter_core::geometry::Covariance4;
+
+// ---------------------------------------------------------------------------------------------
+// Policy names
+
+/// A reference policy as written in the configuration or on the command line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PolicySpec {
+    /// Each frame aligned to the previous (good) frame of its channel.
+    Previous,
+    /// A keyframe refreshed every N frames / T seconds / when the match degrades.
+    Keyframe,
+    /// One fixed image (`FILE` or `FILE[N]` for frame N of a cube).
+    Fixed(String),
+    /// The nearest-in-time frame of another channel.
+    Channel(String),
+}
+
+impl PolicySpec {
+    /// The `reference_kind` written in messages for frames aligned under this policy.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            PolicySpec::Previous => "previous",
+            PolicySpec::Keyframe => "keyframe",
+            PolicySpec::Fixed(_) => "fixed",
+            PolicySpec::Channel(_) => "channel",
+        }
+    }
+}
+
+impl FromStr for PolicySpec {
+    type Err = sunjitter_core::Error;
+    fn from_str(s: &str) -> sunjitter_core::Result<Self> {
+        let bad = || {
+            sunjitter_core::Error::Usage(format!(
+                "reference policy `{s}`: expected previous, keyframe, fixed:FILE or channel:NAME"
+            ))
+        };
+        match s.trim() {
+            "previous" => Ok(PolicySpec::Previous),
+            "keyframe" => Ok(PolicySpec::Keyframe),
+            other => match other.split_once(':') {
+                Some(("fixed", file)) if !file.is_empty() => Ok(PolicySpec::Fixed(file.into())),
+                Some(("channel", name)) if !name.is_empty() => Ok(PolicySpec::Channel(name.into())),
+                _ => Err(bad()),
+            },
+        }
+    }
+}
+
+impl fmt::Display for PolicySpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            PolicySpec::Previous => f.write_str("previous"),
+            PolicySpec::Keyframe => f.write_str("keyframe"),
+            PolicySpec::Fixed(file) => write!(f, "fixed:{file}"),
+            PolicySpec::Channel(name) => write!(f, "channel:{name}"),
+        }
+    }
+}
+
+impl Serialize for PolicySpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for PolicySpec {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        s.parse().map_err(serde::de::Error::custom)
+    }
+}
+
+/// The resolved reference settings of one channel.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ChannelPolicy {
+    pub policy: PolicySpec,
+    /// Keyframe: refresh after this many frames aligned to it (0 = never by count).
+    pub keyframe_every_frames: u32,
+    /// Keyframe: refresh when the frame is this much later than the keyframe (0 = never).
+    pub keyframe_every_s: f64,
+    /// Keyframe: frames a keyframe serves before its age can refresh it, so that at a
+    /// cadence sparser than `keyframe_every_s` frames are still measured against a keyframe.
+    pub keyframe_min_frames: u32,
+    /// Keyframe: a match with a similarity below this counts as degraded (0 = engine status only).
+    pub refresh_below_similarity: f64,
+    /// After this many consecutive failed frames the next frame starts a new chain.
+    pub restart_after_failures: u32,
+    /// `channel:NAME`: largest |Δt| between a frame and its partner.
+    pub tolerance_s: f64,
+    /// `channel:NAME`: how long (wall clock, daemon only) a frame waits for a partner.
+    pub hold_s: f64,
+}
+
+// ---------------------------------------------------------------------------------------------
+// What the state machine is given and gives back
+
+/// What a policy step needs from the outside world: the engine and image reading.
+pub trait StepContext {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+    fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image>;
+    /// Why `image` cannot start a reference, if it cannot (the aligner's requirements).
+    fn usable_as_reference(&self, _image: &Image) -> Result<(), String> {
+        Ok(())
+    }
+    /// The plate scale alignments to `image` use (arcsec/px; by default the header's).
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        Some(image.meta.plate_scale_arcsec)
+    }
+    /// The geometry alignments to `image` use, where it is not the header's.
+    fn geometry_used(&self, _image: &Image) -> Option<sunjitter_core::engine::UsedGeometry> {
+        None
+    }
+}
+
+/// A frame ready to be aligned.
+#[derive(Debug, Clone)]
+pub struct LoadedFrame {
+    pub key: String,
+    pub spec: FrameSpec,
+    pub obs_time_ns: i64,
+    pub image: Arc<Image>,
+}
+
+/// A processed frame of a partner channel, as a candidate reference for `channel:NAME`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PartnerFrame {
+    pub channel: String,
+    pub key: String,
+    pub spec: FrameSpec,
+    pub obs_time_ns: i64,
+    /// The partner frame's own chained pointing, if it has one.
+    pub chain: Option<Chain>,
+}
+
+/// A reference slot: the image is loaded lazily (it may come from a restored log).
+#[derive(Debug, Clone)]
+struct RefSlot {
+    key: String,
+    spec: FrameSpec,
+    obs_time_ns: i64,
+    chain: Option<Chain>,
+    image: Option<Arc<Image>>,
+    /// Restart: the chain as the reference's own message logged it (σ only); completed with
+    /// the image centre when the image is loaded.
+    chain_hint: Option<FrameAlignment>,
+}
+
+impl RefSlot {
+    fn from_frame(frame: &LoadedFrame, chain: Option<Chain>) -> RefSlot {
+        RefSlot {
+            key: frame.key.clone(),
+            spec: frame.spec.clone(),
+            obs_time_ns: frame.obs_time_ns,
+            chain,
+            image: Some(frame.image.clone()),
+            chain_hint: None,
+        }
+    }
+
+    /// A reference known only by name (restart, partner, fixed file): read when needed.
+    fn named(key: &str, obs_time_ns: i64, chain: Option<Chain>) -> RefSlot {
+        RefSlot {
+            key: key.to_string(),
+            spec: parse_frame_key(key),
+            obs_time_ns,
+            chain,
+            image: None,
+            chain_hint: None,
+        }
+    }
+
+    /// The image (read on first use). Always called before `chain` is used.
+    fn image(&mut self, ctx: &dyn StepContext) -> sunjitter_core::Result<Arc<Image>> {
+        if let Some(image) = &self.image {
+            return Ok(image.clone());
+        }
+        let image = Arc::new(ctx.load(&self.spec)?);
+        if self.chain.is_none() {
+            if let Some(m) = self.chain_hint.take() {
+                self.chain = chain_from_message(&m, Some(image_center(&image)));
+            }
+        }
+        self.image = Some(image.clone());
+        Ok(image)
+    }
+}
+
+/// What the state of a channel looked like in an existing log (for restart).
+#[derive(Debug, Clone, Default)]
+pub struct RestoredChannel {
+    pub next_sequence: u64,
+    pub last_obs_time_ns: Option<i64>,
+    /// The last reference change and its log time.
+    pub last_reference: Option<(ReferenceChange, i64)>,
+    /// The most recent frame messages (ascending sequence) with their log times.
+    pub recent: Vec<(FrameAlignment, i64)>,
+}
+
+// ---------------------------------------------------------------------------------------------
+// The per-channel state machine
+
+/// The reference state of one channel. Frames must be given in observation-time order.
+#[derive(Debug)]
+pub struct ChannelState {
+    pub name: String,
+    policy: ChannelPolicy,
+    next_sequence: u64,
+    last_obs_time_ns: Option<i64>,
+    reference: Option<RefSlot>,
+    /// Keyframe: the latest frame aligned well to the keyframe (promoted when the match degrades).
+    candidate: Option<RefSlot>,
+    frames_on_reference: u32,
+    consecutive_failures: u32,
+    /// Why the next frame starts a new chain (None: first frame).
+    restart_reason: Option<String>,
+    /// The last reference announced (for `replaces`).
+    announced: Option<String>,
+}
+
+/// A processed frame as the scheduler sees it afterwards.
+#[derive(Debug, Clone)]
+pub struct StepOutput {
+    pub records: Vec<Record>,
+    /// The frame as a reference for `channel:` followers (every frame that was read).
+    pub partner: Option<PartnerFrame>,
+}
+
+/// One emitted frame message and the chain it reported.
+struct Emitted {
+    message: FrameAlignment,
+    chain: Option<Chain>,
+}
+
+impl ChannelState {
+    pub fn new(name: impl Into<String>, policy: ChannelPolicy) -> ChannelState {
+        ChannelState {
+            name: name.into(),
+            policy,
+            next_sequence: 0,
+            last_obs_time_ns: None,
+            reference: None,
+            candidate: None,
+            frames_on_reference: 0,
+            consecutive_failures: 0,
+            restart_reason: None,
+            announced: None,
+        }
+    }
+
+    /// Continue a channel found in an existing log: sequence numbers go on, and the chain
+    /// continues from the last recorded reference (its image is re-read when first needed).
+    /// Only the σ of the keyframe candidate (not its correlations) survive a restart.
+    pub fn restore(
+        name: impl Into<String>,
+        policy: ChannelPolicy,
+        restored: &RestoredChannel,
+    ) -> ChannelState {
+        let mut state = ChannelState::new(name, policy);
+        state.next_sequence = restored.next_sequence;
+        state.last_obs_time_ns = restored.last_obs_time_ns;
+        let Some((change, change_time)) = &restored.last_reference else {
+            return state;
+        };
+        let key = change.key();
+        state.announced = Some(key.clone());
+        if change.reference_kind != state.policy.policy.kind() {
+            state.restart_reason = Some(format!(
+                "policy changed from {} to {}: new chain",
+                change.reference_kind,
+                state.policy.policy.kind()
+            ));
+            return state;
+        }
+        if let PolicySpec::Fixed(_) | PolicySpec::Channel(_) = state.policy.policy {
+            // Nothing to continue: the reference is re-read (and re-announced if it changes).
+            return state;
+        }
+        let own_message = |k: &str| {
+            restored
+                .recent
+                .iter()
+                .rev()
+                .find(|(m, _)| m.align.frame == k)
+                .map(|(m, _)| m.clone())
+        };
+        let after: Vec<&(FrameAlignment, i64)> = restored
+            .recent
+            .iter()
+            .filter(|(m, _)| m.sequence >= change.sequence)
+            .collect();
+        state.frames_on_reference = after
+            .iter()
+            .filter(|(m, _)| m.align.reference == key && m.reference_kind != "self")
+            .count() as u32;
+        state.consecutive_failures = restored
+            .recent
+            .iter()
+            .rev()
+            .take_while(|(m, _)| m.align.status == Status::Failed)
+            .count() as u32;
+        let ref_time = restored
+            .recent
+            .iter()
+            .find(|(m, _)| m.align.frame == key)
+            .map_or(*change_time, |(_, t)| *t);
+        let mut slot = RefSlot::named(&key, ref_time, change.chain);
+        if slot.chain.is_none() {
+            slot.chain_hint = own_message(&key);
+        }
+        state.reference = Some(slot);
+        if state.policy.policy == PolicySpec::Keyframe {
+            state.candidate = after
+                .iter()
+                .rev()
+                .find(|(m, _)| {
+                    m.align.reference == key
+                        && m.align.status == Status::Ok
+                        && m.reference_kind != "self"
+                })
+                .map(|(m, t)| {
+                    let mut slot = RefSlot::named(&m.align.frame, *t, None);
+                    slot.chain_hint = Some(m.clone());
+                    slot
+                });
+        }
+        state
+    }
+
+    pub fn policy(&self) -> &ChannelPolicy {
+        &self.policy
+    }
+
+    pub fn last_obs_time_ns(&self) -> Option<i64> {
+        self.last_obs_time_ns
+    }
+
+    pub fn next_sequence(&self) -> u64 {
+        self.next_sequence
+    }
+
+    /// Align one frame according to the policy; returns the records to log, in order.
+    /// `partner` is required for `channel:NAME` (the scheduler logs unmatched frames itself).
+    pub fn process(
+        &mut self,
+        frame: &LoadedFrame,
+        partner: Option<&PartnerFrame>,
+        ctx: &dyn StepContext,
+    ) -> StepOutput {
+        let mut records = Vec::new();
+        let sequence = self.next_sequence;
+        let emitted = match self.policy.policy.clone() {
+            PolicySpec::Previous => self.step_previous(frame, sequence, ctx, &mut records),
+            PolicySpec::Keyframe => self.step_keyframe(frame, sequence, ctx, &mut records),
+            PolicySpec::Fixed(file) => self.step_fixed(&file, frame, sequence, ctx, &mut records),
+            PolicySpec::Channel(name) => match partner {
+                Some(p) => self.step_channel(p, frame, sequence, ctx, &mut records),
+                None => {
+                    // The scheduler logs unmatched frames itself; never lose one anyway.
+                    records.push(Record::log(
+                        LogLevel::Error,
+                        &frame.key,
+                        format!("unmatched: no {name} frame to align to"),
+                        frame.obs_time_ns,
+                    ));
+                    return StepOutput {
+                        records,
+                        partner: None,
+                    };
+                }
+            },
+        };
+        self.next_sequence += 1;
+        self.last_obs_time_ns = Some(
+            self.last_obs_time_ns
+                .map_or(frame.obs_time_ns, |t| t.max(frame.obs_time_ns)),
+        );
+        // Any frame that was read can serve as a partner's reference image; its chain is
+        // absent when its own alignment failed.
+        let partner = Some(PartnerFrame {
+            channel: self.name.clone(),
+            key: frame.key.clone(),
+            spec: frame.spec.clone(),
+            obs_time_ns: frame.obs_time_ns,
+            chain: emitted.chain,
+        });
+        StepOutput { records, partner }
+    }
+
+    // -- policies ---------------------------------------------------------------------------
+
+    /// `frame` becomes the origin of a new chain.
+    fn start_chain(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        // A frame without usable pixels would fail every frame after it.
+        if let Err(why) = ctx.usable_as_reference(&frame.image) {
+            let why = format!("cannot start a reference: {why}");
+            let outcome = AlignOutcome::failed(&frame.key, &frame.key, &why);
+            return self.emit(frame, sequence, "self", &frame.key, outcome, None, records);
+        }
+        let reason = self
+            .restart_reason
+            .take()
+            .unwrap_or_else(|| "first frame".into());
+        let chain = Chain::origin(
+            image_center(&frame.image),
+            ctx.plate_scale_used(&frame.image),
+        );
+        let slot = RefSlot::from_frame(frame, Some(chain));
+        self.install(slot, frame, sequence, reason, records);
+        self.candidate = None;
+        self.frames_on_reference = 0;
+        self.consecutive_failures = 0;
+        self.emit_self(frame, sequence, Some(chain), records)
+    }
+
+    fn step_previous(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let Some(mut reference) = self.reference.take() else {
+            return self.start_chain(frame, sequence, ctx, records);
+        };
+        if reference.key == frame.key {
+            let chain = reference.chain;
+            self.reference = Some(reference);
+            return self.emit_self(frame, sequence, chain, records);
+        }
+        let ref_image = match reference.image(ctx) {
+            Ok(image) => image,
+            Err(e) => {
+                self.restart_reason =
+                    Some(format!("previous reference unreadable ({e}): new chain"));
+                return self.start_chain(frame, sequence, ctx, records);
+            }
+        };
+        let outcome = ctx.align(&ref_image, &frame.image);
+        let chain = chain_after(reference.chain.as_ref(), &outcome);
+        let emitted = self.emit(
+            frame,
+            sequence,
+            "previous",
+            &reference.key,
+            outcome,
+            chain,
+            records,
+        );
+        if emitted.message.align.status == Status::Failed {
+            self.reference = Some(reference);
+            self.note_failure();
+        } else {
+            self.consecutive_failures = 0;
+            let slot = RefSlot::from_frame(frame, chain);
+            // The first frame aligned to it is the next one.
+            self.install(slot, frame, sequence + 1, "previous frame".into(), records);
+        }
+        emitted
+    }
+
+    fn step_keyframe(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let Some(mut keyframe) = self.reference.take() else {
+            return self.start_chain(frame, sequence, ctx, records);
+        };
+        if keyframe.key == frame.key {
+            let chain = keyframe.chain;
+            self.reference = Some(keyframe);
+            return self.emit_self(frame, sequence, chain, records);
+        }
+        let key_image = match keyframe.image(ctx) {
+            Ok(image) => image,
+            Err(e) => {
+                self.restart_reason = Some(format!("keyframe unreadable ({e}): new chain"));
+                return self.start_chain(frame, sequence, ctx, records);
+            }
+        };
+        let outcome = ctx.align(&key_image, &frame.image);
+
+        if let Some(why) = self.degraded(&outcome) {
+            // Hand over to the latest frame that still matched well, then try again.
+            let mut outcome = outcome;
+            self.reference = Some(keyframe);
+            if let Some(mut candidate) = self.candidate.take() {
+                if let Ok(cand_image) = candidate.image(ctx) {
+                    let reason = format!("match degraded ({why}): promoted the last good frame");
+                    outcome = ctx.align(&cand_image, &frame.image);
+                    self.install(candidate, frame, sequence, reason, records);
+                    self.frames_on_reference = 0;
+                    if self.degraded(&outcome).is_none() {
+                        return self.keyframe_result(frame, sequence, outcome, records);
+                    }
+                }
+            }
+            // Still degraded: this frame, linked by its (degraded, honestly σ'd) alignment,
+            // becomes the keyframe rather than the old one ageing further. A failed frame
+            // gives no link and never becomes a keyframe.
+            let emitted = self.keyframe_result(frame, sequence, outcome, records);
+            if emitted.message.align.status != Status::Failed && emitted.chain.is_some() {
+                let reason = format!("match degraded ({why}): handed over to this frame");
+                let slot = RefSlot::from_frame(frame, emitted.chain);
+                self.install(slot, frame, sequence + 1, reason, records);
+                self.candidate = None;
+                self.frames_on_reference = 0;
+            }
+            return emitted;
+        }
+
+        let due_count = self.policy.keyframe_every_frames > 0
+            && self.frames_on_reference + 1 >= self.policy.keyframe_every_frames;
+        let age_s = (frame.obs_time_ns - keyframe.obs_time_ns) as f64 * 1e-9;
+        let due_time = self.policy.keyframe_every_s > 0.0
+            && age_s >= self.policy.keyframe_every_s
+            && self.frames_on_reference >= self.policy.keyframe_min_frames;
+        if (due_count || due_time) && outcome.result.status != Status::Failed {
+            // This frame becomes the keyframe: logged aligned to itself, its chain goes on.
+            let chain = chain_after(keyframe.chain.as_ref(), &outcome);
+            let reason = if due_count {
+                format!("refresh every {} frames", self.policy.keyframe_every_frames)
+            } else {
+                format!("refresh every {} s", self.policy.keyframe_every_s)
+            };
+            self.install(
+                RefSlot::from_frame(frame, chain),
+                frame,
+                sequence,
+                reason,
+                records,
+            );
+            self.candidate = None;
+            self.frames_on_reference = 0;
+            self.consecutive_failures = 0;
+            return self.emit_self(frame, sequence, chain, records);
+        }
+        self.reference = Some(keyframe);
+        self.keyframe_result(frame, sequence, outcome, records)
+    }
+
+    /// Log a frame aligned to the current keyframe and update the hand-over state.
+    fn keyframe_result(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        outcome: AlignOutcome,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let good = self.degraded(&outcome).is_none();
+        let (key, ref_chain) = match &self.reference {
+            Some(r) => (r.key.clone(), r.chain),
+            None => (String::new(), None),
+        };
+        let chain = chain_after(ref_chain.as_ref(), &outcome);
+        self.frames_on_reference += 1;
+        let emitted = self.emit(frame, sequence, "keyframe", &key, outcome, chain, records);
+        if good {
+            self.consecutive_failures = 0;
+            self.candidate = Some(RefSlot::from_frame(frame, chain));
+        } else if emitted.message.align.status == Status::Failed {
+            self.note_failure();
+        }
+        emitted
+    }
+
+    fn step_fixed(
+        &mut self,
+        file: &str,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let mut reference = match self.reference.take() {
+            Some(slot) => slot,
+            None => {
+                let spec = parse_frame_key(file);
+                let mut slot =
+                    RefSlot::named(&frame_key(&spec.path, spec.frame), frame.obs_time_ns, None);
+                match slot.image(ctx) {
+                    Ok(image) => {
+                        slot.obs_time_ns = image.meta.obs_time_ns.unwrap_or(frame.obs_time_ns);
+                        slot.chain = Some(Chain::origin(
+                            image_center(&image),
+                            ctx.plate_scale_used(&image),
+                        ));
+                        records.push(self.change_record(
+                            &slot,
+                            frame,
+                            sequence,
+                            "fixed reference".into(),
+                        ));
+                        slot
+                    }
+                    Err(e) => {
+                        // Tried again with the next frame.
+                        let why = format!("fixed reference unreadable: {e}");
+                        let outcome = AlignOutcome::failed(file, &frame.key, &why);
+                        return self.emit(frame, sequence, "fixed", file, outcome, None, records);
+                    }
+                }
+            }
+        };
+        let emitted = if reference.key == frame.key {
+            self.emit_self(frame, sequence, reference.chain, records)
+        } else {
+            let outcome = match reference.image(ctx) {
+                Ok(image) => ctx.align(&image, &frame.image),
+                Err(e) => {
+                    let why = format!("fixed reference unreadable: {e}");
+                    AlignOutcome::failed(&reference.key, &frame.key, &why)
+                }
+            };
+            let chain = chain_after(reference.chain.as_ref(), &outcome);
+            self.emit(
+                frame,
+                sequence,
+                "fixed",
+                &reference.key,
+                outcome,
+                chain,
+                records,
+            )
+        };
+        self.reference = Some(reference);
+        emitted
+    }
+
+    fn step_channel(
+        &mut self,
+        partner: &PartnerFrame,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let mut reference = match self.reference.take() {
+            Some(slot) if slot.key == partner.key => slot,
+            _ => {
+                let mut slot = RefSlot::named(&partner.key, partner.obs_time_ns, partner.chain);
+                slot.spec = partner.spec.clone();
+                let dt = (frame.obs_time_ns - partner.obs_time_ns) as f64 * 1e-9;
+                let reason = format!(
+                    "nearest {} frame (frame − reference = {dt:+.3} s)",
+                    partner.channel
+                );
+                records.push(self.change_record(&slot, frame, sequence, reason));
+                slot
+            }
+        };
+        let outcome = match reference.image(ctx) {
+            Ok(image) => ctx.align(&image, &frame.image),
+            Err(e) => {
+                let why = format!("{} frame unreadable: {e}", partner.channel);
+                AlignOutcome::failed(&partner.key, &frame.key, &why)
+            }
+        };
+        let chain = chain_after(reference.chain.as_ref(), &outcome);
+        let emitted = self.emit(
+            frame,
+            sequence,
+            "channel",
+            &reference.key,
+            outcome,
+            chain,
+            records,
+        );
+        self.reference = Some(reference);
+        emitted
+    }
+
+    // -- helpers ----------------------------------------------------------------------------
+
+    /// Why `outcome` counts as a degraded match for the keyframe policy, if it does.
+    fn degraded(&self, outcome: &AlignOutcome) -> Option<String> {
+        match outcome.result.status {
+            Status::Failed => return Some(format!("failed: {}", outcome.result.message)),
+            Status::Degraded => return Some(format!("degraded: {}", outcome.result.message)),
+            Status::Ok => {}
+        }
+        if outcome.transform.is_none() {
+            return Some("no transform".into());
+        }
+        match outcome.result.similarity {
+            Some(s) if s < self.policy.refresh_below_similarity => Some(format!(
+                "similarity {s:.4} < {}",
+                self.policy.refresh_below_similarity
+            )),
+            _ => None,
+        }
+    }
+
+    /// Count a failed frame; after too many in a row the next frame starts a new chain.
+    fn note_failure(&mut self) {
+        self.consecutive_failures += 1;
+        let limit = self.policy.restart_after_failures;
+        if limit > 0 && self.consecutive_failures >= limit {
+            self.reference = None;
+            self.candidate = None;
+            self.consecutive_failures = 0;
+            self.restart_reason = Some(format!("{limit} consecutive failed frames: new chain"));
+        }
+    }
+
+    /// The `/reference` record for `slot`; `first_sequence` is the first frame aligned to it.
+    fn change_record(
+        &mut self,
+        slot: &RefSlot,
+        frame: &LoadedFrame,
+        first_sequence: u64,
+        reason: String,
+    ) -> Record {
+        let chain = slot.chain;
+        let change = ReferenceChange {
+            channel: self.name.clone(),
+            file: sunjitter_core::text::path(&slot.spec.path).into_owned(),
+            cube_frame: slot.spec.frame,
+            obs_time: iso8601_utc(slot.obs_time_ns),
+            reason,
+            reference_kind: self.policy.policy.kind().into(),
+            sequence: first_sequence,
+            replaces: self.announced.replace(slot.key.clone()),
+            chain,
+        };
+        Record::Reference {
+            change: Box::new(change),
+            log_time_ns: frame.obs_time_ns,
+        }
+    }
+
+    /// Announce `slot` on `/reference/<channel>` and make it the current reference.
+    fn install(
+        &mut self,
+        slot: RefSlot,
+        frame: &LoadedFrame,
+        sequence: u64,
+        reason: String,
+        records: &mut Vec<Record>,
+    ) {
+        records.push(self.change_record(&slot, frame, sequence, reason));
+        self.reference = Some(slot);
+    }
+
+    fn emit_self(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        chain: Option<Chain>,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let zero = Some(0.0);
+        let align = AlignResult {
+            reference: frame.key.clone(),
+            frame: frame.key.clone(),
+            scale: Some(1.0),
+            rotation_arcsec: zero,
+            dx_px: zero,
+            dy_px: zero,
+            dx_arcsec: zero,
+            dy_arcsec: zero,
+            sigma_scale: zero,
+            sigma_rotation_arcsec: zero,
+            sigma_dx_px: zero,
+            sigma_dy_px: zero,
+            sigma_dx_arcsec: zero,
+            sigma_dy_arcsec: zero,
+            uabjm_sigma_scale: zero,
+            uabjm_sigma_rotation_arcsec: zero,
+            uabjm_sigma_dx_px: zero,
+            uabjm_sigma_dy_px: zero,
+            header_residual: Some(TransformFields {
+                scale: 1.0,
+                rotation_arcsec: 0.0,
+                dx_px: 0.0,
+                dy_px: 0.0,
+            }),
+            solar_rotation: None,
+            points: 0,
+            inliers: 0,
+            residual_rms_px: zero,
+            similarity: Some(1.0),
+            status: Status::Ok,
+            message: "starts a reference: aligned to itself".into(),
+            elapsed_ms: 0.0,
+        };
+        self.push_message(frame, sequence, "self", align, chain, records)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn emit(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        kind: &str,
+        reference_key: &str,
+        outcome: AlignOutcome,
+        chain: Option<Chain>,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let mut align = outcome.result;
+        align.reference = reference_key.into();
+        align.frame = frame.key.clone();
+        self.push_message(frame, sequence, kind, align, chain, records)
+    }
+
+    fn push_message(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        kind: &str,
+        align: AlignResult,
+        chain: Option<Chain>,
+        records: &mut Vec<Record>,
+    ) -> Emitted {
+        let mut message = FrameAlignment {
+            align,
+            channel: self.name.clone(),
+            obs_time: iso8601_utc(frame.obs_time_ns),
+            sequence,
+            reference_kind: kind.into(),
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_dx_arcsec: None,
+            chained_dy_arcsec: None,
+            chained_rotation_arcsec: None,
+            chained_scale: None,
+            sigma_chained_dx_px: None,
+            sigma_chained_dy_px: None,
+            sigma_chained_dx_arcsec: None,
+            sigma_chained_dy_arcsec: None,
+            sigma_chained_rotation_arcsec: None,
+            sigma_chained_scale: None,
+            pixel_checksum: None,
+        };
+        set_chain(&mut message, chain.as_ref());
+        records.push(Record::Frame {
+            message: Box::new(message.clone()),
+            log_time_ns: frame.obs_time_ns,
+        });
+        Emitted { message, chain }
+    }
+}
+
+fn image_center(image: &Image) -> [f64; 2] {
+    let (h, w) = image.data.dim();
+    Similarity::array_center(w, h)
+}
+
+// ---------------------------------------------------------------------------------------------
+// What an existing log says (restart)
+
+/// What earlier runs logged in the output: which frames are finished, and each channel's
+/// state to continue from. Built from the sink's reader with [`History::add`].
+#[derive(Debug, Clone, Default)]
+pub struct History {
+    /// Frame keys (and file keys) already logged as a measurement or a terminal `/log` entry.
+    pub done: HashSet<String>,
+    pub channels: BTreeMap<String, RestoredChannel>,
+}
+
+/// Frame messages kept per channel for restoring its state.
+const RESTORE_TAIL: usize = 256;
+
+impl History {
+    pub fn add(&mut self, record: &Record) {
+        match record {
+            Record::Frame {
+                message,
+                log_time_ns,
+            } => {
+                self.done.insert(message.align.frame.clone());
+                let ch = self.channels.entry(message.channel.clone()).or_default();
+                ch.next_sequence = ch.next_sequence.max(message.sequence + 1);
+                ch.last_obs_time_ns = ch.last_obs_time_ns.max(Some(*log_time_ns));
+                let at = ch
+                    .recent
+                    .partition_point(|(m, _)| m.sequence < message.sequence);
+                if ch
+                    .recent
+                    .get(at)
+                    .is_none_or(|(m, _)| m.sequence != message.sequence)
+                {
+                    ch.recent.insert(at, ((**message).clone(), *log_time_ns));
+                }
+                if ch.recent.len() > RESTORE_TAIL {
+                    let excess = ch.recent.len() - RESTORE_TAIL;
+                    ch.recent.drain(..excess);
+                }
+            }
+            Record::Reference {
+                change,
+                log_time_ns,
+            } => {
+                let ch = self.channels.entry(change.channel.clone()).or_default();
+                let newer = ch
+                    .last_reference
+                    .as_ref()
+                    .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
+                if newer {
+                    ch.last_reference = Some(((**change).clone(), *log_time_ns));
+                }
+            }
+            Record::Log { level, file, .. } => {
+                if *level >= LogLevel::Error && !file.is_empty() {
+                    self.done.insert(file.clone());
+                }
+            }
+        }
+    }
+
+    pub fn is_done(&self, key: &str) -> bool {
+        self.done.contains(key)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fake::{FakeFrame, TruthAligner, HEIGHT, WIDTH};
+    use crate::ports::Aligner;
+    use std::collections::HashMap;
+    use std::path::{Path, PathBuf};
+    use sunjitter_core::geometry::ARCSEC_PER_RAD;
+
+    const SX: f64 = 0.05; // σ of dx, dy per alignment (px)
+
+    fn diag(s: f64, r: f64, x: f64, y: f64) -> Cov4 {
+        let mut c = [[0.0; 4]; 4];
+        c[0][0] = s * s;
+        c[1][1] = r * r;
+        c[2][2] = x * x;
+        c[3][3] = y * y;
+        c
+    }
+
+    /// Frames in memory; the aligner answers the true relative transform.
+    struct World {
+        frames: HashMap<PathBuf, FakeFrame>,
+        aligner: TruthAligner,
+        calls: std::cell::RefCell<Vec<(String, String)>>,
+    }
+
+    impl World {
+        fn new(frames: &[(String, FakeFrame)], cov: Cov4) -> World {
+            let map: HashMap<PathBuf, FakeFrame> = frames
+                .iter()
+                .map(|(k, f)| (PathBuf::from(k), f.clone()))
+                .collect();
+            let lookup = map.clone();
+            World {
+                frames: map,
+                aligner: TruthAligner {
+                    cov,
+                    truth: Box::new(move |p: &Path| lookup.get(p).cloned()),
+                },
+                calls: Default::default(),
+            }
+        }
+        fn loaded(&self, key: &str) -> LoadedFrame {
+            let f = &self.frames[Path::new(key)];
+            LoadedFrame {
+                key: key.into(),
+                spec: parse_frame_key(key),
+                obs_time_ns: f.obs_time_ns.unwrap(),
+                image: Arc::new(f.image(Path::new(key))),
+            }
+        }
+    }
+
+    impl StepContext for World {
+        fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+            self.calls.borrow_mut().push((
+                reference.meta.file.display().to_string(),
+                frame.meta.file.display().to_string(),
+            ));
+            self.aligner.align(reference, frame)
+        }
+        fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image> {
+            self.frames
+                .get(&spec.path)
+                .map(|f| f.image(&spec.path))
+                .ok_or_else(|| sunjitter_core::Error::bad_input(&spec.path, "no such fake"))
+        }
+    }
+
+    fn policy(spec: PolicySpec) -> ChannelPolicy {
+        ChannelPolicy {
+            policy: spec,
+            keyframe_every_frames: 0,
+            keyframe_every_s: 0.0,
+            keyframe_min_frames: 0,
+            refresh_below_similarity: 0.0,
+            restart_after_failures: 3,
+            tolerance_s: 30.0,
+            hold_s: 60.0,
+        }
+    }
+
+    /// A drifting, rotating, breathing pointing series: frame i at 10 s cadence.
+    fn series(n: usize) -> Vec<(String, FakeFrame)> {
+        (0..n)
+            .map(|i| {
+                let x = i as f64;
+                let f = if i == 0 {
+                    FakeFrame::new("C", 0, 1.0, 0.0, 0.0, 0.0)
+                } else {
+                    FakeFrame::new(
+                        "C",
+                        i as i64 * 10_000_000_000,
+                        1.0 + 1e-4 * x.sin(),
+                        2e-4 * x,
+                        0.7 * x.cos() + 0.1 * x,
+                        -0.4 * (0.5 * x).sin(),
+                    )
+                };
+                (format!("/d/f{i:02}.fits"), f)
+            })
+            .collect()
+    }
+
+    /// The history a restart reads back from `records`, with `strip` applied to every
+    /// reference change (fields an older log or the MCAP schema lacks).
+    fn history_stripped(records: &[Record], strip: impl Fn(&mut ReferenceChange)) -> History {
+        let mut history = History::default();
+        for r in records {
+            match r {
+                Record::Reference {
+                    change,
+                    log_time_ns,
+                } => {
+                    let mut c = (**change).clone();
+                    strip(&mut c);
+                    history.add(&Record::Reference {
+                        change: Box::new(c),
+                        log_time_ns: *log_time_ns,
+                    });
+                }
+                other => history.add(other),
+            }
+        }
+        history
+    }
+
+    fn run(state: &mut ChannelState, world: &World, keys: &[String]) -> Vec<Record> {
+        let mut out = Vec::new();
+        for key in keys {
+            out.extend(state.process(&world.loaded(key), None, world).records);
+        }
+        out
+    }
+
+    fn messages(records: &[Record]) -> Vec<&FrameAlignment> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Frame { message, .. } => Some(message.as_ref()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn changes(records: &[Record]) -> Vec<&ReferenceChange> {
+        records
+            .iter()
+            .filter_map(|r| match r {
+                Record::Reference { change, .. } => Some(change.as_ref()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn assert_chained_is_truth(m: &FrameAlignment, truth: &Similarity) {
+        let tol = 1e-9;
+        assert!(
+            (m.chained_scale.unwrap() - truth.scale).abs() < tol,
+            "{m:?}"
+        );
+        let rot = m.chained_rotation_arcsec.unwrap() / ARCSEC_PER_RAD;
+        assert!((rot - truth.rotation_rad).abs() < tol, "{m:?}");
+        assert!(
+            (m.chained_dx_px.unwrap() - truth.dx).abs() < tol,
+            "{} vs {}",
+            m.chained_dx_px.unwrap(),
+            truth.dx
+        );
+        assert!((m.chained_dy_px.unwrap() - truth.dy).abs() < tol, "{m:?}");
+    }
+
+    #[test]
+    fn policy_names_parse_and_print() {
+        for s in [
+            "previous",
+            "keyframe",
+            "fixed:/a/b.fits[2]",
+            "channel:SJI_1400",
+        ] {
+            assert_eq!(s.parse::<PolicySpec>().unwrap().to_string(), s);
+        }
+        assert_eq!(
+            "fixed:x.fits".parse::<PolicySpec>().unwrap(),
+            PolicySpec::Fixed("x.fits".into())
+        );
+        for bad in ["", "fixed:", "channel:", "nearest"] {
+            assert_eq!(bad.parse::<PolicySpec>().unwrap_err().exit_code(), 2);
+        }
+        assert_eq!(parse_frame_key("/a/cube.fits[12]").frame, Some(12));
+        assert_eq!(parse_frame_key("/a/odd[name].fits").frame, None);
+        assert_eq!(frame_key(Path::new("/a/c.fits"), Some(3)), "/a/c.fits[3]");
+    }
+
+    #[test]
+    fn first_frame_is_logged_aligned_to_itself() {
+        let frames = series(1);
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let records = run(&mut state, &world, &[frames[0].0.clone()]);
+        // One reference change, then the frame message.
+        assert!(matches!(records[0], Record::Reference { .. }));
+        let m = messages(&records)[0];
+        assert_eq!((m.reference_kind.as_str(), m.sequence), ("self", 0));
+        assert_eq!(m.align.status, Status::Ok);
+        assert_eq!(
+            (m.align.scale, m.align.dx_px, m.align.dy_px),
+            (Some(1.0), Some(0.0), Some(0.0))
+        );
+        assert_eq!(
+            (m.align.sigma_dx_px, m.sigma_chained_dx_px),
+            (Some(0.0), Some(0.0))
+        );
+        assert_eq!((m.chained_scale, m.chained_dx_px), (Some(1.0), Some(0.0)));
+        assert_eq!(m.align.reference, m.align.frame);
+        assert_eq!(changes(&records)[0].reason, "first frame");
+        assert!(
+            world.calls.borrow().is_empty(),
+            "no engine call for the self frame"
+        );
+    }
+
+    #[test]
+    fn keyframe_chain_reproduces_the_true_pointing() {
+        // Keyframes every 4 frames: hand-overs at 4, 8, 12; chained values must equal the
+        // injected pointing of each frame relative to frame 0 throughout.
+        let frames = series(14);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut p = policy(PolicySpec::Keyframe);
+        p.keyframe_every_frames = 4;
+        let mut state = ChannelState::new("C", p);
+        let records = run(&mut state, &world, &keys);
+        let msgs = messages(&records);
+        assert_eq!(msgs.len(), 14);
+        for (i, m) in msgs.iter().enumerate() {
+            assert_eq!(m.sequence, i as u64);
+            assert_eq!(m.align.frame, keys[i]);
+            assert_chained_is_truth(m, &frames[i].1.truth);
+            let expect_self = i % 4 == 0;
+            assert_eq!(m.reference_kind == "self", expect_self, "frame {i}");
+            if !expect_self {
+                assert_eq!(m.align.reference, keys[i / 4 * 4], "frame {i}");
+                assert_eq!(m.reference_kind, "keyframe");
+            }
+        }
+        let ch = changes(&records);
+        assert_eq!(ch.len(), 4);
+        assert_eq!(
+            ch.iter().map(|c| c.file.as_str()).collect::<Vec<_>>(),
+            [&keys[0], &keys[4], &keys[8], &keys[12]]
+        );
+        assert!(ch[1].reason.contains("every 4 frames"), "{}", ch[1].reason);
+        // Each change carries the keyframe's chain (what a restart continues from).
+        let c8 = ch[2].chain.unwrap();
+        assert!((c8.transform.dx - frames[8].1.truth.dx).abs() < 1e-9);
+    }
+
+    #[test]
+    fn at_a_cadence_sparser_than_the_refresh_age_a_keyframe_still_serves_frames() {
+        // Frames 800 s apart, refresh by age after 600 s: each keyframe serves 4 frames before
+        // its age counts, so frames 0, 5, 10 are keyframes and the rest are measured against
+        // them; without the minimum, every frame would start its own reference.
+        let frames: Vec<(String, FakeFrame)> = series(12)
+            .into_iter()
+            .enumerate()
+            .map(|(i, (key, f))| {
+                let t = f.truth;
+                let f = FakeFrame::new(
+                    "C",
+                    i as i64 * 800_000_000_000,
+                    t.scale,
+                    t.rotation_rad,
+                    t.dx,
+                    t.dy,
+                );
+                (key, f)
+            })
+            .collect();
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        for (min_frames, keyframes) in [(4, vec![0, 5, 10]), (0, (0..12).collect())] {
+            let mut p = policy(PolicySpec::Keyframe);
+            p.keyframe_every_s = 600.0;
+            p.keyframe_min_frames = min_frames;
+            let mut state = ChannelState::new("C", p);
+            let records = run(&mut state, &world, &keys);
+            let msgs = messages(&records);
+            let selves: Vec<usize> = msgs
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| m.reference_kind == "self")
+                .map(|(i, _)| i)
+                .collect();
+            assert_eq!(selves, keyframes, "minimum {min_frames}");
+            for (i, m) in msgs.iter().enumerate() {
+                assert_chained_is_truth(m, &frames[i].1.truth);
+                if !keyframes.contains(&i) {
+                    let keyframe = keyframes.iter().rev().find(|&&k| k < i).unwrap();
+                    assert_eq!(m.align.reference, keys[*keyframe], "frame {i}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn chained_sigma_grows_with_each_hand_over() {
+        // Pure translations with σ = SX per alignment: a frame k hand-overs away from the
+        // origin, aligned to its keyframe, has σ² = (k + 1)·SX²; a keyframe itself k·SX².
+        let frames: Vec<(String, FakeFrame)> = (0..9)
+            .map(|i| {
+                let f = FakeFrame::new(
+                    "C",
+                    i * 1_000_000_000,
+                    1.0,
+                    0.0,
+                    0.3 * i as f64,
+                    -0.2 * i as f64,
+                );
+                (format!("/d/t{i}.fits"), f)
+            })
+            .collect();
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut p = policy(PolicySpec::Keyframe);
+        p.keyframe_every_frames = 3;
+        let mut state = ChannelState::new("C", p);
+        let records = run(&mut state, &world, &keys);
+        for (i, m) in messages(&records).iter().enumerate() {
+            let handovers = (i / 3) as f64;
+            let links = if i % 3 == 0 {
+                handovers
+            } else {
+                handovers + 1.0
+            };
+            let expect = (links * SX * SX).sqrt();
+            // (geometry's Jacobian is numerical: agreement to 1e-8 relative)
+            assert!(
+                (m.sigma_chained_dx_px.unwrap() - expect).abs() <= 1e-8 * expect,
+                "frame {i}"
+            );
+            assert!(
+                (m.sigma_chained_dy_px.unwrap() - expect).abs() <= 1e-8 * expect,
+                "frame {i}"
+            );
+        }
+    }
+
+    #[test]
+    fn chained_covariance_matches_monte_carlo_composition() {
+        // Independent truth: perturb both factors with their covariances (correlated, via
+        // Cholesky), compose with Similarity::after, and measure the spread of the result.
+        let a = Similarity {
+            scale: 1.003,
+            rotation_rad: 0.02,
+            dx: 1.5,
+            dy: -2.0,
+            center: [40.0, 30.0],
+        };
+        let t = Similarity {
+            scale: 0.998,
+            rotation_rad: -0.01,
+            dx: -3.0,
+            dy: 0.7,
+            center: [50.5, 20.5],
+        };
+        let ca = [
+            [1e-6, 2e-8, 1e-5, 0.0],
+            [2e-8, 4e-8, 0.0, 3e-6],
+            [1e-5, 0.0, 0.01, 0.002],
+            [0.0, 3e-6, 0.002, 0.02],
+        ];
+        let ct = diag(2e-4, 3e-4, 0.05, 0.08);
+        let chain = Chain {
+            transform: t,
+            covariance: Some(ct),
+            plate_scale_arcsec: None,
+        }
+        .then(&a, Some(&ca));
+        let cov = chain.covariance.unwrap();
+        let la = cholesky(&ca);
+        let lt = cholesky(&ct);
+        let mut rng = sunjitter_core::stats::SplitMix64::new(7);
+        let n = 40_000;
+        let mut samples = Vec::with_capacity(n);
+        for _ in 0..n {
+            let za: [f64; 4] = std::array::from_fn(|_| rng.gaussian());
+            let zt: [f64; 4] = std::array::from_fn(|_| rng.gaussian());
+            let pa = perturb(&a, &la, &za);
+            let pt = perturb(&t, &lt, &zt);
+            let c = pa.after(&pt);
+            samples.push([c.scale, c.rotation_rad, c.dx, c.dy]);
+        }
+        let mean: [f64; 4] =
+            std::array::from_fn(|k| samples.iter().map(|s| s[k]).sum::<f64>() / n as f64);
+        for r in 0..4 {
+            for k in 0..4 {
+                let emp = samples
+                    .iter()
+                    .map(|s| (s[r] - mean[r]) * (s[k] - mean[k]))
+                    .sum::<f64>()
+                    / (n - 1) as f64;
+                // Sampling error of a covariance ≈ sqrt((σ_r²σ_k² + c_rk²)/n) ≤ 1.5 % here.
+                let scale = (cov[r][r] * cov[k][k]).sqrt();
+                assert!(
+                    (emp - cov[r][k]).abs() < 0.03 * scale,
+                    "[{r}][{k}] empirical {emp} vs {}",
+                    cov[r][k]
+                );
+            }
+        }
+    }
+
+    fn cholesky(c: &Cov4) -> Cov4 {
+        let mut l = [[0.0; 4]; 4];
+        for i in 0..4 {
+            for j in 0..=i {
+                let sum: f64 = (0..j).map(|k| l[i][k] * l[j][k]).sum();
+                l[i][j] = if i == j {
+                    (c[i][i] - sum).sqrt()
+                } else {
+                    (c[i][j] - sum) / l[j][j]
+                };
+            }
+        }
+        l
+    }
+
+    fn perturb(s: &Similarity, l: &Cov4, z: &[f64; 4]) -> Similarity {
+        let d: [f64; 4] = std::array::from_fn(|i| (0..4).map(|k| l[i][k] * z[k]).sum());
+        Similarity {
+            scale: s.scale + d[0],
+            rotation_rad: s.rotation_rad + d[1],
+            dx: s.dx + d[2],
+            dy: s.dy + d[3],
+            center: s.center,
+        }
+    }
+
+    #[test]
+    fn degraded_match_hands_over_to_the_last_good_frame() {
+        let mut frames = series(6);
+        frames[4].1.degraded = true; // degraded against keyframe 0 … and against frame 3 too
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        // Make only the pair (f00, f04) degraded: frame 4 is fine against frame 3.
+        let lookup: HashMap<PathBuf, FakeFrame> = frames
+            .iter()
+            .map(|(k, f)| (PathBuf::from(k), f.clone()))
+            .collect();
+        let mut world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let k0 = PathBuf::from(&keys[0]);
+        world.aligner = TruthAligner {
+            cov: diag(0.0, 0.0, SX, SX),
+            truth: Box::new(move |p: &Path| lookup.get(p).cloned()),
+        };
+        struct PairDegraded<'a>(&'a World, PathBuf, PathBuf);
+        impl StepContext for PairDegraded<'_> {
+            fn align(&self, r: &Image, f: &Image) -> AlignOutcome {
+                let mut o = self.0.align(r, f);
+                let pair = r.meta.file == self.1 && f.meta.file == self.2;
+                o.result.status = if pair { Status::Degraded } else { Status::Ok };
+                o
+            }
+            fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image> {
+                self.0.load(spec)
+            }
+        }
+        let ctx = PairDegraded(&world, k0, PathBuf::from(&keys[4]));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let mut records = Vec::new();
+        for k in &keys {
+            records.extend(state.process(&world.loaded(k), None, &ctx).records);
+        }
+        let msgs = messages(&records);
+        assert_eq!(msgs.len(), 6);
+        assert_eq!(
+            msgs[4].align.reference, keys[3],
+            "frame 4 re-aligned to frame 3"
+        );
+        assert_eq!(msgs[4].align.status, Status::Ok);
+        assert_eq!(msgs[5].align.reference, keys[3]);
+        for (i, m) in msgs.iter().enumerate() {
+            assert_chained_is_truth(m, &frames[i].1.truth);
+        }
+        let ch = changes(&records);
+        assert_eq!(ch.len(), 2);
+        assert_eq!(ch[1].file, keys[3]);
+        assert!(
+            ch[1].reason.starts_with("match degraded"),
+            "{}",
+            ch[1].reason
+        );
+        // Frame 3 was logged once (aligned to frame 0), never as `self`.
+        assert_eq!(msgs.iter().filter(|m| m.align.frame == keys[3]).count(), 1);
+    }
+
+    #[test]
+    fn a_degraded_match_without_a_good_frame_hands_over_to_that_frame() {
+        // Frame 1 matches keyframe 0 only `degraded` (and there is no good frame yet):
+        // frame 1 becomes the keyframe through its degraded link; frame 2 aligns to it.
+        let frames = series(4);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        struct Degrade<'a>(&'a World, String);
+        impl StepContext for Degrade<'_> {
+            fn align(&self, r: &Image, f: &Image) -> AlignOutcome {
+                let mut o = self.0.align(r, f);
+                if f.meta.file == Path::new(&self.1) {
+                    o.result.status = Status::Degraded;
+                }
+                o
+            }
+            fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image> {
+                self.0.load(spec)
+            }
+        }
+        let ctx = Degrade(&world, keys[1].clone());
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let mut records = Vec::new();
+        for k in &keys {
+            records.extend(state.process(&world.loaded(k), None, &ctx).records);
+        }
+        let msgs = messages(&records);
+        assert_eq!(msgs[1].align.status, Status::Degraded);
+        assert_eq!(msgs[1].align.reference, keys[0]);
+        assert_eq!(msgs[2].align.reference, keys[1]);
+        assert_eq!(msgs[3].align.reference, keys[1]);
+        for (i, m) in msgs.iter().enumerate() {
+            assert_chained_is_truth(m, &frames[i].1.truth);
+        }
+        let ch = changes(&records);
+        assert_eq!(ch.len(), 2);
+        assert_eq!((ch[1].file.as_str(), ch[1].sequence), (keys[1].as_str(), 2));
+        assert!(
+            ch[1].reason.contains("handed over to this frame"),
+            "{}",
+            ch[1].reason
+        );
+        // A failed frame is never handed over to.
+        let mut bad = series(3);
+        bad[1].1.bad = true;
+        let bad_keys: Vec<String> = bad.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&bad, diag(0.0, 0.0, SX, SX));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Keyframe));
+        let records = run(&mut state, &world, &bad_keys);
+        assert_eq!(messages(&records)[2].align.reference, bad_keys[0]);
+        assert_eq!(changes(&records).len(), 1);
+    }
+
+    #[test]
+    fn repeated_failures_start_a_new_chain() {
+        let mut frames = series(8);
+        for f in &mut frames[2..5] {
+            f.1.bad = true;
+        }
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Previous));
+        let records = run(&mut state, &world, &keys);
+        let msgs = messages(&records);
+        assert_eq!(msgs.len(), 8, "every frame gets exactly one message");
+        for m in &msgs[2..5] {
+            assert_eq!(m.align.status, Status::Failed);
+            assert_eq!((m.chained_dx_px, m.align.dx_px), (None, None));
+            // A failed frame never becomes the reference: all three tried against frame 1.
+            assert_eq!(m.align.reference, keys[1]);
+        }
+        // Three failures in a row (restart_after_failures = 3): frame 5 starts a new chain.
+        assert_eq!(msgs[5].reference_kind, "self");
+        assert_eq!(msgs[5].chained_dx_px, Some(0.0));
+        let last = changes(&records)
+            .into_iter()
+            .find(|c| c.file == keys[5])
+            .unwrap();
+        assert!(
+            last.reason.contains("3 consecutive failed"),
+            "{}",
+            last.reason
+        );
+        // Frames 6, 7 continue the new chain: pointing relative to frame 5.
+        let rel = frames[7].1.truth.after(&frames[5].1.truth.inverse());
+        assert_chained_is_truth(msgs[7], &rel);
+        assert_eq!(
+            msgs.iter().map(|m| m.sequence).collect::<Vec<_>>(),
+            (0..8).collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
+    fn previous_policy_chains_frame_to_frame() {
+        let frames = series(6);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut state = ChannelState::new("C", policy(PolicySpec::Previous));
+        let records = run(&mut state, &world, &keys);
+        let msgs = messages(&records);
+        // Isotropic translation errors stay isotropic through a similarity; each link adds
+        // SX² and scales what came before by the link's s²: var_i = SX² + s_i² var_(i−1).
+        let mut var = 0.0;
+        for (i, m) in msgs.iter().enumerate().skip(1) {
+            assert_eq!(m.align.reference, keys[i - 1]);
+            assert_eq!(m.reference_kind, "previous");
+            assert_chained_is_truth(m, &frames[i].1.truth);
+            let s = frames[i].1.truth.scale / frames[i - 1].1.truth.scale;
+            var = SX * SX + s * s * var;
+            // (geometry's Jacobian is numerical: agreement to 1e-8 relative)
+            assert!((m.sigma_chained_dx_px.unwrap() - var.sqrt()).abs() <= 1e-8 * var.sqrt());
+            assert!((m.sigma_chained_dy_px.unwrap() - var.sqrt()).abs() <= 1e-8 * var.sqrt());
+        }
+        // Every frame becomes the next one's reference: one change per frame.
+        assert_eq!(changes(&records).len(), 6);
+    }
+
+    #[test]
+    fn fixed_reference_reports_pointing_relative_to_the_file() {
+        let mut frames = series(4);
+        let fixed = FakeFrame::new("REF", 5, 1.001, 0.003, 2.0, -1.0);
+        frames.push(("/d/ref.fits".into(), fixed.clone()));
+        let world = World::new(&frames, diag(1e-5, 1e-5, SX, SX));
+        let keys: Vec<String> = frames[..4].iter().map(|(k, _)| k.clone()).collect();
+        let mut state = ChannelState::new("C", policy(PolicySpec::Fixed("/d/ref.fits".into())));
+        let records = run(&mut state, &world, &keys);
+        let msgs = messages(&records);
+        for (i, m) in msgs.iter().enumerate() {
+            assert_eq!(
+                (m.reference_kind.as_str(), m.align.reference.as_str()),
+                ("fixed", "/d/ref.fits")
+            );
+            let rel = frames[i].1.truth.after(&fixed.truth.inverse());
+            assert_chained_is_truth(m, &rel);
+            assert!((m.align.dx_px.unwrap() - rel.dx).abs() < 1e-9);
+        }
+        assert_eq!(changes(&records).len(), 1);
+    }
+
+    #[test]
+    fn channel_policy_aligns_to_the_partner_and_chains_through_it() {
+        let frames = series(3);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let partner_frame = FakeFrame::new("P", 12_000_000_000, 0.999, -0.002, 1.0, 3.0);
+        let mut all = frames.clone();
+        all.push(("/d/p.fits".into(), partner_frame.clone()));
+        let world = World::new(&all, diag(0.0, 0.0, SX, SX));
+        // The partner frame's own chain (e.g. its keyframe series): origin → partner.
+        let partner_chain = Chain::origin(Similarity::array_center(WIDTH, HEIGHT), None)
+            .then(&partner_frame.truth, Some(&diag(0.0, 0.0, SX, SX)));
+        let partner = PartnerFrame {
+            channel: "P".into(),
+            key: "/d/p.fits".into(),
+            spec: parse_frame_key("/d/p.fits"),
+            obs_time_ns: 12_000_000_000,
+            chain: Some(partner_chain),
+        };
+        let mut state = ChannelState::new("C", policy(PolicySpec::Channel("P".into())));
+        let mut records = Vec::new();
+        for k in &keys[1..3] {
+            records.extend(
+                state
+                    .process(&world.loaded(k), Some(&partner), &world)
+                    .records,
+            );
+        }
+        let msgs = messages(&records);
+        for (m, i) in msgs.iter().zip(1..) {
+            assert_eq!(
+                (m.reference_kind.as_str(), m.align.reference.as_str()),
+                ("channel", "/d/p.fits")
+            );
+            // Partner chain then partner→frame = the frame's true pointing.
+            assert_chained_is_truth(m, &frames[i].1.truth);
+            // One link (partner → frame) after the partner's own: SX² + s² SX².
+            let s = frames[i].1.truth.scale / partner_frame.truth.scale;
+            let expect = (SX * SX * (1.0 + s * s)).sqrt();
+            assert!((m.sigma_chained_dx_px.unwrap() - expect).abs() <= 1e-8 * expect);
+        }
+        let ch = changes(&records);
+        assert_eq!(ch.len(), 1, "same partner twice: one change");
+        assert!(ch[0].reason.contains("nearest P frame"), "{}", ch[0].reason);
+    }
+
+    #[test]
+    fn restored_state_continues_exactly_where_the_log_stopped() {
+        // Run 11 frames straight, and 6 + restart + 5: the second half must be identical
+        // (pure translations: diagonal covariances, so nothing is lost by the log's σ).
+        let frames: Vec<(String, FakeFrame)> = (0..11)
+            .map(|i| {
+                let f = FakeFrame::new(
+                    "C",
+                    i * 1_000_000_000,
+                    1.0,
+                    0.0,
+                    (i as f64).sin(),
+                    0.1 * i as f64,
+                );
+                (format!("/d/r{i:02}.fits"), f)
+            })
+            .collect();
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let mut p = policy(PolicySpec::Keyframe);
+        p.keyframe_every_frames = 4;
+        let mut straight = ChannelState::new("C", p.clone());
+        let all = run(&mut straight, &world, &keys);
+
+        let mut first = ChannelState::new("C", p.clone());
+        let before = run(&mut first, &world, &keys[..6]);
+        let n_before = before.len();
+        let mut history = History::default();
+        for r in &before {
+            history.add(r);
+        }
+        let mut resumed = ChannelState::restore("C", p.clone(), &history.channels["C"]);
+        let after = run(&mut resumed, &world, &keys[6..]);
+        assert_eq!(&all[n_before..], &after[..]);
+
+        // The MCAP schema keeps no chain in /reference messages: the restart then takes the
+        // chain from the reference frame's own message (σ only), which for these diagonal
+        // covariances is the same to rounding.
+        let bare = history_stripped(&before, |c| {
+            c.chain = None;
+        });
+        let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
+        let after = run(&mut resumed, &world, &keys[6..]);
+        let expect = messages(&all[n_before..]);
+        let got = messages(&after);
+        assert_eq!(expect.len(), got.len());
+        for (e, g) in expect.iter().zip(&got) {
+            assert_eq!(
+                (&e.align.frame, &e.align.reference, e.sequence),
+                (&g.align.frame, &g.align.reference, g.sequence)
+            );
+            assert_chained_is_truth(g, &frames[g.sequence as usize].1.truth);
+            let (es, gs) = (
+                e.sigma_chained_dx_px.unwrap(),
+                g.sigma_chained_dx_px.unwrap(),
+            );
+            assert!((es - gs).abs() <= 1e-9 * es, "{es} vs {gs}");
+        }
+    }
+
+    /// Injected: alignments to the origin use 0.6″/px along x and −0.6 along y (a flipped
+    /// axis), while every outcome claims 7″/px for its own reference. The chained series in
+    /// arcsec is the chained one in px times the origin's, through keyframe hand-overs and a
+    /// restart from a log whose `/reference` messages keep no chain.
+    #[test]
+    fn chained_arcsec_use_the_plate_scale_of_the_chains_origin() {
+        const ORIGIN: [f64; 2] = [0.6, -0.6];
+        struct Plated<'a>(&'a World);
+        impl StepContext for Plated<'_> {
+            fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+                let mut outcome = self.0.align(reference, frame);
+                if let Some(g) = outcome.reference_geometry.as_mut() {
+                    g.plate_scale_arcsec = [7.0, 7.0];
+                }
+                outcome
+            }
+            fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image> {
+                self.0.load(spec)
+            }
+            fn plate_scale_used(&self, _image: &Image) -> Option<[f64; 2]> {
+                Some(ORIGIN)
+            }
+        }
+        let frames = series(11);
+        let keys: Vec<String> = frames.iter().map(|(k, _)| k.clone()).collect();
+        let world = World::new(&frames, diag(0.0, 0.0, SX, SX));
+        let ctx = Plated(&world);
+        let mut p = policy(PolicySpec::Keyframe);
+        p.keyframe_every_frames = 3;
+        let run_on = |state: &mut ChannelState, keys: &[String]| {
+            let mut out = Vec::new();
+            for key in keys {
+                out.extend(state.process(&world.loaded(key), None, &ctx).records);
+            }
+            out
+        };
+        let check = |m: &FrameAlignment| {
+            let pairs = [
+                (m.chained_dx_arcsec, m.chained_dx_px, ORIGIN[0]),
+                (m.chained_dy_arcsec, m.chained_dy_px, ORIGIN[1]),
+                (
+                    m.sigma_chained_dx_arcsec,
+                    m.sigma_chained_dx_px,
+                    ORIGIN[0].abs(),
+                ),
+                (
+                    m.sigma_chained_dy_arcsec,
+                    m.sigma_chained_dy_px,
+                    ORIGIN[1].abs(),
+                ),
+            ];
+            for (arcsec, px, plate) in pairs {
+                let (a, p) = (arcsec.unwrap(), px.unwrap());
+                assert!((a - p * plate).abs() <= 1e-12 * (1.0 + a.abs()), "{m:?}");
+            }
+        };
+        let mut straight = ChannelState::new("C", p.clone());
+        let all = run_on(&mut straight, &keys);
+        let msgs = messages(&all);
+        assert!(changes(&all).len() >= 3, "keyframes handed over");
+        assert!(msgs.iter().any(|m| m.chained_dx_px.unwrap().abs() > 0.1));
+        msgs.iter().for_each(|m| check(m));
+
+        let mut first = ChannelState::new("C", p.clone());
+        let before = run_on(&mut first, &keys[..5]);
+        let bare = history_stripped(&before, |c| {
+            c.chain = None;
+        });
+        let mut resumed = ChannelState::restore("C", p, &bare.channels["C"]);
+        let after = run_on(&mut resumed, &keys[5..]);
+        assert_eq!(messages(&after).len(), 6);
+        messages(&after).iter().for_each(|m| check(m));
+    }
+}

@@ -1,0 +1,129 @@
+//! `sunjitter align REFERENCE FRAME [--json] [--aligned OUT.fits] [--quicklook OUT.png]`
+
+use crate::engine::{self, EngineConfig};
+use crate::error::exit;
+use crate::fits::{self, FrameSpec};
+use crate::record::Status;
+use crate::{Error, Result};
+use std::path::PathBuf;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The reference image (`FILE.fits`, or `FILE.fits[N]` for frame N of a cube).
+    pub reference: String,
+    /// The frame to align to the reference (`FILE.fits` or `FILE.fits[N]`).
+    pub frame: String,
+    #[arg(long, help = super::JSON_HELP)]
+    pub json: bool,
+    /// Write the frame resampled onto the reference grid, with a matching WCS.
+    #[arg(long, value_name = "OUT.fits")]
+    pub aligned: Option<PathBuf>,
+    /// Write a red (reference) / cyan (frame) composite, before and after fine alignment.
+    #[arg(long, value_name = "OUT.png")]
+    pub quicklook: Option<PathBuf>,
+    #[arg(long, value_name = "FILE.toml", help = super::CONFIG_HELP)]
+    pub config: Option<PathBuf>,
+}
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter align 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[1]'
+  sunjitter align 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[0]' 'data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits[5]' --json --quicklook pair.png
+  sunjitter align data/real/eit_171_20040301T010016_128.fits \\
+      data/real/eit_195_20040301T000010_128.fits --aligned eit_195_on_171.fits";
+
+pub fn run(args: &Args) -> Result<i32> {
+    let reference_spec = FrameSpec::parse(&args.reference);
+    let frame_spec = FrameSpec::parse(&args.frame);
+    let outputs: Vec<&std::path::Path> = [&args.aligned, &args.quicklook]
+        .into_iter()
+        .filter_map(|p| p.as_deref())
+        .collect();
+    let mut inputs = vec![reference_spec.path.as_path(), frame_spec.path.as_path()];
+    inputs.extend(args.config.as_deref());
+    crate::outputs::check_outputs(&outputs, &inputs)?;
+    let cfg = load_engine_config(args.config.as_deref())?;
+    for path in args.aligned.iter().chain(&args.quicklook) {
+        crate::error::check_writable(path)?;
+    }
+    let reference = fits::read_frame(&reference_spec)?;
+    let frame = fits::read_frame(&frame_spec)?;
+    let outcome = engine::align_images(&reference, &frame, &cfg);
+    let mut result = outcome.result.clone();
+    result.reference = args.reference.clone();
+    result.frame = args.frame.clone();
+
+    if args.json {
+        let text = serde_json::to_string_pretty(&result)
+            .map_err(|e| Error::Usage(format!("cannot encode result: {e}")))?;
+        println!("{text}");
+    } else {
+        print_human(&result);
+    }
+
+    // After the report, so `--json` prints its document even when a file cannot be written.
+    if let Some(path) = &args.aligned {
+        crate::aligned::write_aligned(path, &reference, &frame, &outcome)?;
+    }
+    if let Some(path) = &args.quicklook {
+        crate::aligned::write_quicklook(path, &reference, &frame, &outcome)?;
+    }
+    Ok(if result.status == Status::Failed {
+        exit::FAILED
+    } else {
+        exit::OK
+    })
+}
+
+pub(crate) fn load_engine_config(path: Option<&std::path::Path>) -> Result<EngineConfig> {
+    let Some(path) = path else {
+        return Ok(EngineConfig::default());
+    };
+    #[derive(serde::Deserialize, Default)]
+    struct Partial {
+        #[serde(default)]
+        engine: EngineConfig,
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let parsed: Partial = toml::from_str(&text)
+        .map_err(|e| Error::bad_input(path, format!("invalid configuration: {}", e.message())))?;
+    Ok(parsed.engine)
+}
+
+fn print_human(r: &crate::record::AlignResult) {
+    let status = match r.status {
+        Status::Ok => "ok",
+        Status::Degraded => "degraded",
+        Status::Failed => "failed",
+    };
+    use crate::text::{escape, value_pm};
+    println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
+    if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
+    {
+        println!("  scale     {}", value_pm(s, r.sigma_scale, ""));
+        println!(
+            "  rotation  {}",
+            value_pm(rot, r.sigma_rotation_arcsec, "″")
+        );
+        println!("  dx        {}", value_pm(dx, r.sigma_dx_px, " px"));
+        println!("  dy        {}", value_pm(dy, r.sigma_dy_px, " px"));
+        if let (Some(ax), Some(ay)) = (r.dx_arcsec, r.dy_arcsec) {
+            println!(
+                "  shift     {}, {}",
+                value_pm(ax, r.sigma_dx_arcsec, "″"),
+                value_pm(ay, r.sigma_dy_arcsec, "″")
+            );
+        }
+    }
+    println!(
+        "  points {} inliers {} residual rms {} similarity {}",
+        r.points,
+        r.inliers,
+        r.residual_rms_px
+            .map_or("-".into(), |v| format!("{v:.4} px")),
+        r.similarity.map_or("-".into(), |v| format!("{v:.3}"))
+    );
+    if !r.message.is_empty() {
+        println!("  {}", escape(&r.message));
+    }
+}

@@ -1,0 +1,156 @@
+//! One module per subcommand: its arguments (clap), its `EXAMPLES` and its `run`.
+//! `run` returns the process exit code for work that ran (0 or 1); errors carry their own
+//! code through [`crate::Error::exit_code`].
+//!
+//! Flags that several commands take are defined here once, so that each means and reads the
+//! same everywhere: [`PipelineArgs`] (`watch`, `replay`), [`CONFIG_HELP`] and [`JSON_HELP`].
+
+pub mod align;
+pub mod info;
+pub mod inspect;
+pub mod merge;
+pub mod replay;
+pub mod simulate;
+pub mod status;
+pub mod synth;
+pub mod watch;
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+/// `--config` of every command that takes one.
+pub const CONFIG_HELP: &str =
+    "Configuration file, TOML as examples/sunjitter.toml (align, simulate: its [engine] only)";
+
+/// `--json` of every command.
+pub const JSON_HELP: &str = "Print the result as one JSON document on stdout";
+
+/// The options of the pipeline's runs, `watch` and `replay`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PipelineArgs {
+    /// Output directory for the MCAP log segments (and watch's status.json).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Reference policy of every channel: keyframe, previous, fixed:FILE, channel:NAME
+    /// [default: --config's, else keyframe].
+    #[arg(long, value_name = "POLICY")]
+    pub reference: Option<String>,
+    #[arg(long, value_name = "FILE.toml", help = CONFIG_HELP)]
+    pub config: Option<PathBuf>,
+    /// Take the files in subdirectories of the directories given too.
+    #[arg(long)]
+    pub recursive: bool,
+    /// Write each measured frame, resampled onto its chain origin's grid with that WCS, as
+    /// DIR/NAME.aligned.fits (the input tree mirrored; DIR outside it and apart from --out).
+    #[arg(long, value_name = "DIR")]
+    pub aligned: Option<PathBuf>,
+    /// With --aligned: keep each frame's own pixels and correct only its header's pointing
+    /// (CRPIXi, CDELTi, PCi_j), as DIR/NAME.wcs.fits.
+    #[arg(long, requires = "aligned")]
+    pub wcs_only: bool,
+}
+
+impl PipelineArgs {
+    /// What `--aligned`/`--wcs-only` ask for.
+    pub fn products(&self) -> crate::products::Request<'_> {
+        crate::products::Request {
+            dir: self.aligned.as_deref(),
+            wcs_only: self.wcs_only,
+            out: &self.out,
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Progress bars that log lines do not tear
+
+static ACTIVE_BAR: Mutex<Option<indicatif::ProgressBar>> = Mutex::new(None);
+
+fn set_active_bar(bar: Option<indicatif::ProgressBar>) {
+    if let Ok(mut active) = ACTIVE_BAR.lock() {
+        *active = bar;
+    }
+}
+
+/// A progress bar on stderr, drawn only when stderr is a terminal (on a pipe or a file,
+/// nothing). While it lives, log lines written through [`BarAwareStderr`] hide it for the
+/// moment they are written; dropping it clears it.
+pub struct Bar(indicatif::ProgressBar);
+
+impl Bar {
+    /// `len` steps of `what` (`frames`, `trials`).
+    pub fn new(len: u64, what: &str) -> Bar {
+        let bar = indicatif::ProgressBar::with_draw_target(
+            Some(len),
+            indicatif::ProgressDrawTarget::hidden(),
+        );
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "[{elapsed_precise}] [{bar:30}] {pos}/{len} {prefix} ({eta}) {msg}",
+        ) {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        bar.set_prefix(what.to_string());
+        if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+            bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+        }
+        set_active_bar(Some(bar.clone()));
+        Bar(bar)
+    }
+}
+
+impl std::ops::Deref for Bar {
+    type Target = indicatif::ProgressBar;
+    fn deref(&self) -> &indicatif::ProgressBar {
+        &self.0
+    }
+}
+
+impl Drop for Bar {
+    fn drop(&mut self) {
+        self.0.finish_and_clear();
+        set_active_bar(None);
+    }
+}
+
+/// A `tracing_subscriber` writer for stderr that hides the active [`Bar`] while a log line
+/// is written, so bars and logs never tear. Use it in the binary:
+/// `tracing_subscriber::fmt().with_writer(sunjitter::commands::BarAwareStderr)`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct BarAwareStderr;
+
+/// One log event's bytes, written in one piece when dropped.
+pub struct BarAwareLine(Vec<u8>);
+
+impl Write for BarAwareLine {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.extend_from_slice(buf);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+impl Drop for BarAwareLine {
+    fn drop(&mut self) {
+        let bytes = std::mem::take(&mut self.0);
+        let write = || {
+            let mut err = std::io::stderr().lock();
+            let _ = err.write_all(&bytes);
+            let _ = err.flush();
+        };
+        let bar = ACTIVE_BAR.lock().ok().and_then(|b| b.clone());
+        match bar {
+            Some(bar) => bar.suspend(write),
+            None => write(),
+        }
+    }
+}
+
+impl<'a> tracing_subscriber::fmt::MakeWriter<'a> for BarAwareStderr {
+    type Writer = BarAwareLine;
+    fn make_writer(&'a self) -> Self::Writer {
+        BarAwareLine(Vec::with_capacity(256))
+    }
+}

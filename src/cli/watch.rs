@@ -1,0 +1,186 @@
+//! `sunjitter watch DIR --out OUT`: the daemon.
+
+use crate::config::{Config, Overrides};
+use crate::error::exit;
+use crate::monitor::{Monitor, MonitorSetup};
+use crate::outputs::{check_outputs, OutputLock};
+use crate::pipeline::{read_history, EngineAligner, FitsReader, Progress, RunParts};
+use crate::{Error, Result};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Directory to watch for new FITS frames.
+    pub dir: PathBuf,
+    #[command(flatten)]
+    pub run: super::PipelineArgs,
+    /// Also serve the logged topics live to Foxglove over WebSocket [no value: 127.0.0.1:8765;
+    /// port 0: any free port].
+    #[arg(
+        long,
+        value_name = "ADDR:PORT",
+        num_args = 0..=1,
+        default_missing_value = "127.0.0.1:8765"
+    )]
+    pub live: Option<String>,
+    #[arg(long, help = super::JSON_HELP)]
+    pub json: bool,
+}
+
+pub const EXAMPLES: &str = "\
+Examples:
+  sunjitter watch incoming/ --out out/watch
+  sunjitter watch incoming/ --out out/watch --config examples/sunjitter.toml --recursive
+  sunjitter watch incoming/ --out out/watch --live 127.0.0.1:8765
+Each logged frame gets one line on stderr; `sunjitter status out/watch` shows the health.
+With --json, the run's summary is printed when the daemon stops.
+A --live address beyond loopback serves the data (read-only) to the network.";
+
+/// Resolve the configuration from `--config` and the flags.
+pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
+    let overrides = Overrides {
+        reference: args.reference.as_deref().map(str::parse).transpose()?,
+        recursive: args.recursive,
+    };
+    let mut config = Config::load(args.config.as_deref(), &overrides)?;
+    config.canonicalize_fixed_paths()?;
+    Ok(config)
+}
+
+pub fn run(args: &Args) -> Result<i32> {
+    let live = args.live.as_deref().map(parse_live_address).transpose()?;
+    let config = effective_config(&args.run)?;
+    if !args.dir.is_dir() {
+        return Err(Error::bad_input(&args.dir, "not a directory"));
+    }
+    let root = args
+        .dir
+        .canonicalize()
+        .map_err(|e| Error::io(&args.dir, e))?;
+    let products =
+        crate::products::open(args.run.products(), std::slice::from_ref(&root), &[], &root)?;
+    // Before reading (and recovering) the log: another daemon may be writing it.
+    let lock = OutputLock::acquire(&args.run.out)?;
+    let status_file = config.health.status_path(&args.run.out);
+    let config_file: Vec<&std::path::Path> = args.run.config.as_deref().into_iter().collect();
+    check_outputs(&[&status_file], &config_file)?;
+    let history = read_history(&args.run.out)?;
+    let mcap = crate::sink::McapSink::new(
+        &args.run.out,
+        config.sink.clone(),
+        config.to_json().to_string(),
+    )?
+    .holding(lock);
+    let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
+    let runtime = runtime()?;
+    let setup = MonitorSetup {
+        config: &config,
+        watching: &args.dir,
+        out: &args.run.out,
+        live,
+        progress: progress_rx,
+    };
+    let (monitor, sink) = runtime.block_on(Monitor::start(setup, mcap))?;
+    let config = Arc::new(config);
+    let parts = RunParts {
+        config: config.clone(),
+        reader: Arc::new(FitsReader::from_config(&config)),
+        aligner: Arc::new(EngineAligner::from_config(&config)),
+        sink: Box::new(sink),
+        history,
+        progress: progress_tx,
+        live: true,
+        products,
+    };
+    let result = runtime
+        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()).await });
+    let stopped = {
+        let _inside = runtime.enter();
+        monitor.stop()
+    };
+    let progress = result?;
+    stopped?;
+    tracing::info!(
+        frames = progress.frames,
+        skipped = progress.skipped,
+        "stopped cleanly"
+    );
+    if args.json {
+        println!("{}", summary_json(&progress, &args.run.out));
+    }
+    Ok(exit::OK)
+}
+
+/// `--live ADDR:PORT` (a host name is resolved; its first address is used).
+pub fn parse_live_address(text: &str) -> Result<std::net::SocketAddr> {
+    use std::net::ToSocketAddrs;
+    let bad = || {
+        Error::Usage(format!(
+            "--live {text}: expected ADDR:PORT, e.g. 127.0.0.1:8765"
+        ))
+    };
+    if let Ok(addr) = text.parse() {
+        return Ok(addr);
+    }
+    text.to_socket_addrs()
+        .map_err(|_| bad())?
+        .next()
+        .ok_or_else(bad)
+}
+
+pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("sunjitter")
+        .build()
+        .map_err(|e| Error::output("runtime", e.to_string()))
+}
+
+/// Resolves on SIGINT or SIGTERM. Call it inside the runtime: the handlers are installed at
+/// once, so a signal that arrives before the future is first polled still stops the run
+/// cleanly (instead of killing the process with the default action).
+pub(crate) fn termination() -> impl std::future::Future<Output = ()> + Send + 'static {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let handlers = (
+            signal(SignalKind::terminate()),
+            signal(SignalKind::interrupt()),
+        );
+        async move {
+            match handlers {
+                (Ok(mut term), Ok(mut int)) => {
+                    tokio::select! {
+                        _ = term.recv() => {}
+                        _ = int.recv() => {}
+                    }
+                }
+                _ => {
+                    let _ = tokio::signal::ctrl_c().await;
+                }
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        async {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+    }
+}
+
+/// The run summary printed with `--json`.
+pub(crate) fn summary_json(p: &Progress, out: &std::path::Path) -> serde_json::Value {
+    serde_json::json!({
+        "out": out.display().to_string(),
+        "frames": p.frames,
+        "ok": p.ok,
+        "degraded": p.degraded,
+        "failed": p.failed,
+        "skipped": p.skipped,
+        "reference_changes": p.references,
+        "channels": p.per_channel,
+        "write_errors": p.write_errors,
+    })
+}
