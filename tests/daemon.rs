@@ -108,7 +108,8 @@ impl Daemon {
             .expect("daemon alive");
     }
 
-    /// Wait (bounded) until `finished` inputs have been logged.
+    /// Wait (bounded) until `finished` inputs have been logged. The bound only stops a hung
+    /// daemon: the real-data tests of this file share two cores and run at once.
     async fn wait_finished(&mut self, finished: u64) -> Progress {
         let mut rx = self.progress.clone();
         let wait = async move {
@@ -116,7 +117,7 @@ impl Daemon {
                 .await
                 .map(|p| p.clone())
         };
-        match tokio::time::timeout(Duration::from_secs(60), wait).await {
+        match tokio::time::timeout(Duration::from_secs(600), wait).await {
             Ok(Ok(p)) => p,
             _ => panic!("timed out: {:?}", *self.progress.borrow()),
         }
