@@ -49,7 +49,7 @@ fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k:
         channel: frame.meta.channel.clone(),
         align: outcome.result,
         sequence: k,
-        reference_kind: "fixed".into(),
+        reference_kind: sunjitter::record::ReferenceKind::Fixed,
         chained_dx_px: None,
         chained_dy_px: None,
         chained_dx_arcsec: None,

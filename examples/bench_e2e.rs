@@ -107,7 +107,7 @@ fn main() -> anyhow::Result<()> {
             channel: frame.meta.channel.clone(),
             align: outcome.result,
             sequence: k as u64,
-            reference_kind: "fixed".into(),
+            reference_kind: sunjitter::record::ReferenceKind::Fixed,
             chained_dx_px: None,
             chained_dy_px: None,
             chained_dx_arcsec: None,

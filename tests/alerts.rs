@@ -4,12 +4,12 @@
 //! the MCAP log, in the live view (the independent `@foxglove/ws-protocol` client) and through
 //! the alert command (a shell command appending its stdin to a file).
 
-mod monitor_support;
+mod support;
 
-use monitor_support::*;
 use std::collections::BTreeMap;
 use std::path::Path;
 use sunjitter::sink::Alert;
+use support::monitor::*;
 
 /// Frame indices of the IRIS cube fed in phase 1, with their alteration.
 const PHASE_1: [(usize, Alter); 13] = [

@@ -4,7 +4,7 @@
 //! contract (field set, exit codes, null numbers on failure), the FITS standard (a PNG's and a
 //! FITS header's structure) and astropy's reading of the WCS.
 
-mod common;
+mod support;
 
 use ndarray::{s, Array2};
 use serde_json::Value;
@@ -19,7 +19,7 @@ const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const TRACE: &str = "trace_171_19980519T222143_1024.fits";
 const IRIS: &str = "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 
-use common::ALIGN_FIELDS as FIELDS;
+use support::ALIGN_FIELDS as FIELDS;
 const TRANSFORM_FIELDS: [&str; 4] = ["scale", "rotation_arcsec", "dx_px", "dy_px"];
 
 struct Run {
@@ -564,7 +564,7 @@ fn known_truth_pair(name: &str, truth: &[(&str, f64)]) -> (Value, Vec<(String, f
 /// `tests/data/lasco_c3_noisy/README.md`): the frame is the image moved by a known similarity,
 /// with Gaussian noise of 3× the background in both. Its flow answer is 8σ off while the
 /// intensity refinement is right; whatever is reported, `ok` must not come with an error
-/// beyond 3σ (before, `ok` with dx 8.4σ off).
+/// beyond 3σ (the failure this prevents: `ok` with dx 8.4σ off).
 #[test]
 fn a_noisy_coronagraph_pair_gets_no_confident_wrong_answer() {
     let truth = [
@@ -689,9 +689,9 @@ fn a_refinement_that_runs_off_is_not_taken() {
 /// A band-limited (Fourier) quarter-pixel shift of a real TRACE crop
 /// (`tests/data/trace_fourier_shift/README.md`): the frame is not the refinement's own spline
 /// resampling, and a spline moves near-Nyquist structure differently. The σ must cover the
-/// error (before the per-frame interpolation check: `ok`, dx 7.8σ off), and the answer must be
-/// within 2e-4 px: the refinement's quintic model comes within 7.1e-5 px; the cubic model it
-/// replaced was 5.6e-4 px off.
+/// error (without the per-frame interpolation check: `ok`, dx 7.8σ off), and the answer must be
+/// within 2e-4 px: the refinement's quintic model comes within 7.1e-5 px, a cubic one
+/// 5.6e-4 px off.
 #[test]
 fn a_band_limited_subpixel_shift_is_covered_by_its_sigma() {
     let truth = [

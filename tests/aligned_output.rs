@@ -4,13 +4,13 @@
 //! bundled real files. The header-only products are checked by sunpy and astropy
 //! (`tools/check_pointing_products.py`), not by sunjitter's own WCS code.
 
-mod common;
+mod support;
 
-use common::{logged, sunjitter, sunjitter_ok, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use sunjitter::fits::{self, FrameSpec};
-use sunjitter::record::Status;
+use sunjitter::record::{ReferenceKind, Status};
+use support::{logged, sunjitter, sunjitter_ok, WatchProcess, QUICK_DAEMON_CONFIG};
 
 /// Synthetic frames of 256² with a 1.5 px sinusoid, a random walk and a roll drift; the Sun
 /// does not turn, so a feature's true coordinates do not change.
@@ -42,16 +42,13 @@ fn still_sun_config(dir: &Path) -> PathBuf {
 }
 
 /// Logged frames: key → (status, reference kind).
-fn logged_frames(out: &Path) -> BTreeMap<String, (Status, String)> {
+fn logged_frames(out: &Path) -> BTreeMap<String, (Status, ReferenceKind)> {
     let logs = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
     logs.jitter
         .iter()
         .map(|m| {
             let r = &m.record;
-            (
-                r.align.frame.clone(),
-                (r.align.status, r.reference_kind.clone()),
-            )
+            (r.align.frame.clone(), (r.align.status, r.reference_kind))
         })
         .collect()
 }
@@ -179,7 +176,7 @@ fn resampled_products_register_every_frame_on_the_origin() {
     let read = |p: &Path| fits::read_frame(&FrameSpec::parse(p.to_str().unwrap())).unwrap();
     let origin = read(&frames.join("synth_0000.fits"));
     let (_, origin_header) = fits::read_image_header(&frames.join("synth_0000.fits")).unwrap();
-    let truth = common::read_csv(&frames.join("truth.csv"));
+    let truth = support::read_csv(&frames.join("truth.csv"));
     let motion = |k: usize| {
         let v = |k: usize, c: &str| truth[k][c].parse::<f64>().unwrap();
         (v(k, "dx_px") - v(0, "dx_px")).hypot(v(k, "dy_px") - v(0, "dy_px"))

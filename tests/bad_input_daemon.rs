@@ -3,9 +3,8 @@
 //! the real engine as usual, and memory stays bounded (this test is alone in its binary, so
 //! the process's peak RSS is the daemon's).
 
-mod faults;
+mod support;
 
-use faults::*;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -17,6 +16,7 @@ use sunjitter::ports::FrameReader;
 use sunjitter::records::MemorySink;
 use sunjitter::sink::LogLevel;
 use sunjitter::Result;
+use support::faults::*;
 
 /// The real reader, except that one file is deleted just before it is first read: the
 /// "deleted between event and read" race, made deterministic.

@@ -8,16 +8,15 @@
 //! The log is left in `$CARGO_TARGET_TMPDIR/crash_restart/out` for the official Python reader
 //! (`.ci/run` runs `tools/check_mcap.py` on it).
 
-mod common;
-mod faults;
+mod support;
 
-use common::{logged, publish};
-use faults::Lcg;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use sunjitter_runtime::fake::split_cube;
+use support::faults::Lcg;
+use support::{logged, publish};
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =

@@ -6,7 +6,7 @@
 //! is on observable progress (the pipeline's progress channel) with generous time bounds;
 //! the pauses inside writers only imitate slow instruments.
 
-mod common;
+mod support;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -61,75 +61,39 @@ fn frame(channel: &str, t: i64) -> FakeFrame {
     )
 }
 
+/// The daemon harness, with the in-memory log it writes to (unused by the real-data tests,
+/// whose MCAP files are the record).
 struct Daemon {
-    progress: watch::Receiver<Progress>,
-    stop: oneshot::Sender<()>,
-    handle: tokio::task::JoinHandle<sunjitter::Result<Progress>>,
+    inner: support::daemon::Daemon,
     sink: MemorySink,
 }
 
 fn start(dir: &Path, config: Config, history: History) -> Daemon {
     let sink = MemorySink::default();
-    let (progress_tx, progress) = watch::channel(Progress::default());
-    let parts = RunParts {
-        config: Arc::new(config),
-        reader: Arc::new(FakeReader::default()),
-        aligner: Arc::new(TruthAligner::from_files(cov())),
-        sink: Box::new(sink.clone()),
+    let inner = support::daemon::spawn(
+        dir,
+        config,
+        Arc::new(FakeReader::default()),
+        Arc::new(TruthAligner::from_files(cov())),
+        Box::new(sink.clone()),
         history,
-        progress: progress_tx,
-        live: true,
-        products: None,
-    };
-    let (stop, stopped) = oneshot::channel::<()>();
-    let dir = dir.to_path_buf();
-    let handle = tokio::spawn(async move {
-        sunjitter::daemon::run_daemon(&dir, parts, async {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    Daemon {
-        progress,
-        stop,
-        handle,
-        sink,
-    }
+    );
+    Daemon { inner, sink }
 }
 
 impl Daemon {
-    /// Wait (bounded) until the daemon watches its directory.
     async fn watching(&mut self) {
-        let mut rx = self.progress.clone();
-        let wait = async move { rx.wait_for(|p| p.watching).await.map(|_| ()) };
-        tokio::time::timeout(Duration::from_secs(60), wait)
-            .await
-            .expect("the daemon starts watching")
-            .expect("daemon alive");
+        self.inner.watching().await
     }
 
-    /// Wait (bounded) until `finished` inputs have been logged. The bound only stops a hung
-    /// daemon: the real-data tests of this file share two cores and run at once.
+    /// Wait until `finished` inputs have been logged.
     async fn wait_finished(&mut self, finished: u64) -> Progress {
-        let mut rx = self.progress.clone();
-        let wait = async move {
-            rx.wait_for(|p| p.finished >= finished)
-                .await
-                .map(|p| p.clone())
-        };
-        match tokio::time::timeout(Duration::from_secs(600), wait).await {
-            Ok(Ok(p)) => p,
-            _ => panic!("timed out: {:?}", *self.progress.borrow()),
-        }
+        let what = format!("{finished} inputs logged");
+        self.inner.wait_for(&what, |p| p.finished >= finished).await
     }
 
     async fn shutdown(self) -> (Progress, Vec<Record>) {
-        let _ = self.stop.send(());
-        let progress = tokio::time::timeout(Duration::from_secs(60), self.handle)
-            .await
-            .expect("stops in time")
-            .expect("task")
-            .expect("clean run");
+        let progress = self.inner.shutdown().await;
         assert!(self.sink.log.lock().unwrap().finished, "the log was closed");
         (progress, self.sink.records())
     }
@@ -248,7 +212,7 @@ async fn watch_takes_each_complete_frame_once_in_time_order() {
             "frame {t}"
         );
         assert_eq!(
-            m.reference_kind == "self",
+            m.reference_kind == sunjitter::record::ReferenceKind::Itself,
             t % 4 == 0,
             "keyframes every 4 frames"
         );
@@ -521,31 +485,16 @@ mod real {
         } else {
             open_output(out, &config).unwrap()
         };
-        let memory = MemorySink::default(); // unused here: the MCAP file is the record
-        let (progress_tx, progress) = watch::channel(Progress::default());
-        let parts = RunParts {
-            aligner: Arc::new(EngineAligner::new(config.engine.clone())),
-            config: Arc::new(config),
-            reader: Arc::new(FitsReader::default()),
-            sink,
-            history,
-            progress: progress_tx,
-            live: true,
-            products: None,
-        };
-        let (stop, stopped) = oneshot::channel::<()>();
-        let dir = dir.to_path_buf();
-        let handle = tokio::spawn(async move {
-            sunjitter::daemon::run_daemon(&dir, parts, async {
-                let _ = stopped.await;
-            })
-            .await
-        });
         Daemon {
-            progress,
-            stop,
-            handle,
-            sink: memory,
+            inner: support::daemon::spawn(
+                dir,
+                config.clone(),
+                Arc::new(FitsReader::default()),
+                Arc::new(EngineAligner::new(config.engine.clone())),
+                sink,
+                history,
+            ),
+            sink: MemorySink::default(),
         }
     }
 
@@ -567,12 +516,7 @@ mod real {
     }
 
     pub async fn stop_real(daemon: Daemon) -> Progress {
-        let _ = daemon.stop.send(());
-        tokio::time::timeout(Duration::from_secs(120), daemon.handle)
-            .await
-            .expect("stops in time")
-            .expect("task")
-            .expect("clean run")
+        daemon.inner.shutdown().await
     }
 
     pub fn frames(cube: &str, scratch: &Path) -> Vec<SplitFrame> {
@@ -638,7 +582,7 @@ async fn real_frames_are_logged_once_each_in_time_order_to_mcap() {
         );
         assert_eq!(m.message_encoding, "json");
         let object = m.json.as_object().unwrap();
-        for field in &common::jitter_fields() {
+        for field in &support::jitter_fields() {
             assert!(object.contains_key(*field), "message {i} lacks `{field}`");
         }
         assert_eq!(m.json["channel"], "SJI_1400");

@@ -2,11 +2,11 @@
 //! 80 frames of 256² with a 0.3 px sinusoid of period 10 frames (120 s at the 12 s cadence)
 //! plus a 0.05 px random walk.
 
-mod common;
+mod support;
 
-use common::{read_csv, sunjitter_ok};
 use std::collections::HashMap;
 use std::path::Path;
+use support::{read_csv, sunjitter_ok};
 
 #[test]
 fn injected_jitter_is_recovered_with_its_period() {

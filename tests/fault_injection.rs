@@ -6,9 +6,8 @@
 //! pixels and the true shift to its reference; synchronisation is on observable progress with
 //! generous bounds (pauses inside writers are the fault being injected, nothing else).
 
-mod faults;
+mod support;
 
-use faults::*;
 use std::io::Write;
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -21,6 +20,7 @@ use sunjitter::pipeline::FitsReader;
 use sunjitter::ports::FrameReader;
 use sunjitter::records::{McapRecordSink, MemorySink};
 use sunjitter::sink::LogLevel;
+use support::faults::*;
 
 fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, MemorySink) {
     let sink = MemorySink::default();
@@ -220,7 +220,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
             config.to_json().to_string(),
         )
         .unwrap();
-        resume(
+        support::daemon::spawn(
             &root,
             config.clone(),
             Arc::new(FitsReader::default()),

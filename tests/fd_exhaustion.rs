@@ -4,13 +4,13 @@
 //! the lowest free descriptor, so every open fails, exactly as long as the test wants. That
 //! limit is process-wide, hence this test is alone in its binary.
 
-mod faults;
+mod support;
 
-use faults::*;
 use std::sync::Arc;
 use sunjitter::pipeline::FitsReader;
 use sunjitter::records::MemorySink;
 use sunjitter::sink::LogLevel;
+use support::faults::*;
 
 /// The soft descriptor limit lowered so that no new descriptor can be opened; restored on
 /// drop (a failing assertion included).

@@ -5,13 +5,13 @@
 //! Truth: the exact set of files put in, and their names spelled with the escapes by hand
 //! (`\xff` for the byte 0xFF, `\n` for a newline, `\x1b` for ESC).
 
-mod monitor_support;
+mod support;
 
-use monitor_support::*;
 use std::ffi::OsStr;
 use std::os::unix::ffi::OsStrExt;
 use std::path::Path;
 use std::process::Command;
+use support::monitor::*;
 
 const AIA: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),

@@ -76,9 +76,9 @@ fn record(
             obs_time: sunjitter::time::format_iso_utc(ns),
             sequence: seq,
             reference_kind: if seq == 0 {
-                "self".into()
+                sunjitter::record::ReferenceKind::Itself
             } else {
-                "keyframe".into()
+                sunjitter::record::ReferenceKind::Keyframe
             },
             chained_dx_px: v(m[0]),
             chained_dy_px: v(m[1]),

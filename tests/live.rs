@@ -4,13 +4,12 @@
 //!
 //! Needs `npm ci --prefix tools/live_client` once (the CI script does it).
 
-mod common;
-mod monitor_support;
+mod support;
 
-use monitor_support::*;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
+use support::monitor::*;
 
 const CONFIG: &str = r#"
 [daemon]
@@ -122,7 +121,7 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     }
     for (m, logged) in live.iter().zip(&contents.jitter) {
         let payload = &m["payload"];
-        for field in common::jitter_fields() {
+        for field in support::jitter_fields() {
             assert!(payload.get(field).is_some(), "live message lacks {field}");
         }
         // Same message: the client's JSON decodes to exactly the logged record (JavaScript

@@ -5,12 +5,12 @@
 //! The layout is checked with the `mcap` crate's own summary/metadata readers, independently
 //! of `sunjitter::sink::read_logs`; `tools/check_mcap.py` checks it with the Python reader.
 
-mod common;
+mod support;
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use sunjitter::fits::FrameSpec;
-use sunjitter::record::{AlignResult, FrameAlignment, Status, TransformFields};
+use sunjitter::record::{AlignResult, FrameAlignment, ReferenceKind, Status, TransformFields};
 use sunjitter::sink::{
     logged_frames, read_logs, recover_segment, LogLevel, McapSink, RecoveryOutcome,
     ReferenceChange, SinkConfig,
@@ -98,7 +98,11 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         channel: channel.to_string(),
         obs_time: iso_time(times(i).0),
         sequence: i,
-        reference_kind: if i == 0 { "self" } else { "keyframe" }.to_string(),
+        reference_kind: if i == 0 {
+            ReferenceKind::Itself
+        } else {
+            ReferenceKind::Keyframe
+        },
         chained_dx_px: dx,
         chained_dy_px: dy,
         chained_dx_arcsec: arcsec(dx),
@@ -146,7 +150,7 @@ fn reference_change(i: u64) -> ReferenceChange {
         } else {
             format!("refresh after {i} frames")
         },
-        reference_kind: "keyframe".into(),
+        reference_kind: ReferenceKind::Keyframe,
         sequence: i,
         replaces: (i > 0).then(|| "/data/SJI_1400/f0000.fits".into()),
         chain: None,
@@ -352,7 +356,7 @@ fn layout_follows_the_contract() {
         .iter()
         .map(|v| v.as_str().unwrap())
         .collect();
-    let mut contract = common::jitter_fields();
+    let mut contract = support::jitter_fields();
     props.sort();
     required.sort();
     contract.sort();

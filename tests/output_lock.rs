@@ -3,13 +3,13 @@
 //! and the first daemon logs every frame once. A daemon killed with SIGKILL leaves its lock
 //! file, which does not block a restart.
 
-mod common;
+mod support;
 
-use common::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use sunjitter_runtime::fake::{split_cube, SplitFrame};
+use support::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CONFIG};
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 
@@ -137,7 +137,7 @@ fn replay_into_a_held_out_is_refused_and_leaves_the_log_alone() {
     publish(&archived, &s.frames[0]);
     let before = snapshot(&s.out);
 
-    let (code, _, stderr) = common::sunjitter(&[
+    let (code, _, stderr) = support::sunjitter(&[
         "replay".as_ref(),
         archived.as_os_str(),
         "--out".as_ref(),

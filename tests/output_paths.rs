@@ -2,12 +2,12 @@
 //! spelling, or a hard link), a log segment, or inside a directory a running daemon holds is
 //! refused (exit 2, one line naming the path and why) and nothing is written.
 
-mod common;
+mod support;
 
-use common::{sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use sunjitter_runtime::fake::split_cube;
+use support::{sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 
 const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";

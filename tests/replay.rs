@@ -9,9 +9,9 @@ use sunjitter::pipeline::{open_output, EngineAligner, FitsReader, Progress, RunP
 use sunjitter_runtime::fake::split_cube;
 use tokio::sync::{oneshot, watch};
 
-mod common;
+mod support;
 
-use common::sunjitter;
+use support::sunjitter;
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =
@@ -269,46 +269,23 @@ async fn replay_writes_what_watch_wrote_for_the_same_frames() {
     let config = Config::load(Some(&config_path), &Overrides::default()).unwrap();
     let out_watch = tmp.path().join("watch");
     let (sink, history) = open_output(&out_watch, &config).unwrap();
-    let (progress_tx, mut progress) = watch::channel(Progress::default());
-    let parts = RunParts {
-        aligner: Arc::new(EngineAligner::new(config.engine.clone())),
-        config: Arc::new(config),
-        reader: Arc::new(FitsReader::default()),
+    let daemon = support::daemon::spawn(
+        &watched,
+        config.clone(),
+        Arc::new(FitsReader::default()),
+        Arc::new(EngineAligner::new(config.engine.clone())),
         sink,
         history,
-        progress: progress_tx,
-        live: true,
-        products: None,
-    };
-    let (stop, stopped) = oneshot::channel::<()>();
-    let dir = watched.clone();
-    let daemon = tokio::spawn(async move {
-        sunjitter::daemon::run_daemon(&dir, parts, async {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    let bounded = Duration::from_secs(120);
-    tokio::time::timeout(bounded, progress.wait_for(|p| p.watching))
-        .await
-        .unwrap()
-        .unwrap();
+    );
+    daemon.watching().await;
     for f in &frames {
         let tmp_name = watched.join(format!(".{}.tmp", f.name));
         std::fs::write(&tmp_name, &f.bytes).unwrap();
         std::fs::rename(&tmp_name, watched.join(&f.name)).unwrap();
     }
     let n = frames.len() as u64;
-    tokio::time::timeout(bounded, progress.wait_for(|p| p.finished >= n))
-        .await
-        .unwrap()
-        .unwrap();
-    let _ = stop.send(());
-    tokio::time::timeout(bounded, daemon)
-        .await
-        .unwrap()
-        .unwrap()
-        .unwrap();
+    daemon.wait_for("every frame", |p| p.finished >= n).await;
+    daemon.shutdown().await;
 
     let out_replay = tmp.path().join("replay");
     let (_, stdout, stderr) = sunjitter(&[

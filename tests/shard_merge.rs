@@ -2,13 +2,13 @@
 //! IRIS slit-jaw cubes (SJI 1400 on its keyframes, SJI 2796 aligned to the nearest SJI 1400
 //! frame), with keyframes every 8 frames so that chains cross every shard boundary.
 
-mod common;
+mod support;
 
-use common::sunjitter;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use sunjitter::record::FrameAlignment;
+use support::sunjitter;
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =

@@ -1,10 +1,10 @@
 //! `sunjitter status` on a daemon that is alive but cannot write its output: it says so,
 //! naming the directory, instead of calling the status stale.
 
-mod monitor_support;
+mod support;
 
-use monitor_support::*;
 use std::process::Command;
+use support::monitor::*;
 
 const CONFIG: &str = r#"
 [health]

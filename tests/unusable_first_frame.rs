@@ -2,13 +2,11 @@
 //! `failed` with its reason, and the next usable frame starts the reference: the frames after
 //! it are measured (replay through the binary, read back with `inspect --csv`).
 
-mod common;
+mod support;
 
-mod faults;
-
-use common::{read_csv, sunjitter_ok};
-use faults::*;
 use std::path::Path;
+use support::faults::*;
+use support::{read_csv, sunjitter_ok};
 
 #[test]
 fn an_unusable_first_frame_never_becomes_the_reference() {

@@ -13,16 +13,16 @@ pub struct Args {
     pub reference: String,
     /// The frame to align to the reference (`FILE.fits` or `FILE.fits[N]`).
     pub frame: String,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
     /// Write the frame resampled onto the reference grid, with a matching WCS.
     #[arg(long, value_name = "OUT.fits")]
     pub aligned: Option<PathBuf>,
     /// Write a red (reference) / cyan (frame) composite, before and after fine alignment.
     #[arg(long, value_name = "OUT.png")]
     pub quicklook: Option<PathBuf>,
-    #[arg(long, value_name = "FILE.toml", help = super::CONFIG_HELP)]
-    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub config: super::ConfigArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -40,9 +40,9 @@ pub fn run(args: &Args) -> Result<i32> {
         .filter_map(|p| p.as_deref())
         .collect();
     let mut inputs = vec![reference_spec.path.as_path(), frame_spec.path.as_path()];
-    inputs.extend(args.config.as_deref());
+    inputs.extend(args.config.path.as_deref());
     crate::outputs::check_outputs(&outputs, &inputs)?;
-    let cfg = load_engine_config(args.config.as_deref())?;
+    let cfg = args.config.load(&Default::default())?.engine;
     for path in args.aligned.iter().chain(&args.quicklook) {
         crate::error::check_writable(path)?;
     }
@@ -53,7 +53,7 @@ pub fn run(args: &Args) -> Result<i32> {
     result.reference = args.reference.clone();
     result.frame = args.frame.clone();
 
-    if args.json {
+    if args.output.json {
         let text = serde_json::to_string_pretty(&result)
             .map_err(|e| Error::Usage(format!("cannot encode result: {e}")))?;
         println!("{text}");
@@ -73,21 +73,6 @@ pub fn run(args: &Args) -> Result<i32> {
     } else {
         exit::OK
     })
-}
-
-pub(crate) fn load_engine_config(path: Option<&std::path::Path>) -> Result<EngineConfig> {
-    let Some(path) = path else {
-        return Ok(EngineConfig::default());
-    };
-    #[derive(serde::Deserialize, Default)]
-    struct Partial {
-        #[serde(default)]
-        engine: EngineConfig,
-    }
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let parsed: Partial = toml::from_str(&text)
-        .map_err(|e| Error::bad_input(path, format!("invalid configuration: {}", e.message())))?;
-    Ok(parsed.engine)
 }
 
 fn print_human(r: &crate::record::AlignResult) {

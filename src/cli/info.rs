@@ -18,8 +18,8 @@ pub struct Args {
     /// FITS files; a cube lists every frame, `FILE.fits[N]` only frame N.
     #[arg(required = true, value_name = "FILE")]
     pub files: Vec<PathBuf>,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -83,7 +83,7 @@ pub fn run(args: &Args) -> Result<i32> {
             }
         }
     }
-    if args.json {
+    if args.output.json {
         let text = serde_json::to_string_pretty(&records)
             .map_err(|e| Error::Usage(format!("JSON output: {e}")))?;
         println!("{text}");

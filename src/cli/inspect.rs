@@ -46,8 +46,8 @@ pub struct Args {
     /// MCAP logs, or directories of them (segments of one run are read as one series).
     #[arg(required = true, value_name = "LOG")]
     pub logs: Vec<PathBuf>,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
     /// Write the time series, one row per frame with every field.
     #[arg(long, value_name = "OUT.csv")]
     pub csv: Option<PathBuf>,
@@ -100,7 +100,7 @@ pub fn run(args: &Args) -> Result<i32> {
     if let Some(path) = &args.plot {
         inspect::plot::write_plot(&analyses, path)?;
     }
-    if args.json {
+    if args.output.json {
         let doc = serde_json::to_string_pretty(&report)
             .map_err(|e| Error::Usage(format!("cannot encode the report: {e}")))?;
         println!("{doc}");

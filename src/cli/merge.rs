@@ -11,8 +11,8 @@ pub struct Args {
     /// Output directory for the MCAP log segments (and watch's status.json).
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -45,7 +45,7 @@ pub fn run(args: &Args) -> Result<i32> {
             String::new()
         }
     );
-    if args.json {
+    if args.output.json {
         let doc = serde_json::json!({
             "out": crate::text::path(&args.out),
             "shards": shards.len(),

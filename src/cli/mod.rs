@@ -21,10 +21,32 @@ use std::sync::Mutex;
 
 /// `--config` of every command that takes one.
 pub const CONFIG_HELP: &str =
-    "Configuration file, TOML as examples/sunjitter.toml (align, simulate: its [engine] only)";
+    "Configuration file, TOML as examples/sunjitter.toml (align and simulate use its [engine])";
 
 /// `--json` of every command.
 pub const JSON_HELP: &str = "Print the result as one JSON document on stdout";
+
+/// `--config FILE.toml`, for every command that reads the configuration file.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ConfigArg {
+    #[arg(long = "config", value_name = "FILE.toml", help = CONFIG_HELP)]
+    pub path: Option<PathBuf>,
+}
+
+impl ConfigArg {
+    /// The configuration: the file (or the defaults) with `overrides`, checked. The one
+    /// loader of every command; `align` and `simulate` use its `[engine]`.
+    pub fn load(&self, overrides: &crate::config::Overrides) -> Result<crate::config::Config> {
+        crate::config::Config::load(self.path.as_deref(), overrides)
+    }
+}
+
+/// `--json`, for every command.
+#[derive(Debug, Clone, Copy, Default, clap::Args)]
+pub struct JsonArg {
+    #[arg(long = "json", help = JSON_HELP)]
+    pub json: bool,
+}
 
 /// The options of the pipeline's runs, `watch` and `replay`.
 #[derive(Debug, Clone, clap::Args)]
@@ -36,8 +58,8 @@ pub struct PipelineArgs {
     /// [default: --config's, else keyframe].
     #[arg(long, value_name = "POLICY")]
     pub reference: Option<String>,
-    #[arg(long, value_name = "FILE.toml", help = CONFIG_HELP)]
-    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub config: ConfigArg,
     /// Take the files in subdirectories of the directories given too.
     #[arg(long)]
     pub recursive: bool,

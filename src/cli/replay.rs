@@ -17,8 +17,8 @@ pub struct Args {
     pub paths: Vec<String>,
     #[command(flatten)]
     pub run: super::PipelineArgs,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
     /// Measure only shard K (0-based) of N of the inputs, for `sunjitter merge` to join.
     #[arg(long, value_name = "K/N")]
     pub shard: Option<crate::shard::ShardSpec>,
@@ -130,7 +130,7 @@ pub fn run(args: &Args) -> Result<i32> {
             progress.skipped
         ),
     }
-    if args.json {
+    if args.output.json {
         println!("{}", summary_json(&progress, &args.run.out));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input

@@ -36,10 +36,10 @@ pub struct Args {
     /// Trials of the translation-only comparison with cross-correlation (0 to skip).
     #[arg(long, default_value_t = 20)]
     pub cc_trials: usize,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
-    #[arg(long, value_name = "FILE.toml", help = super::CONFIG_HELP)]
-    pub config: Option<PathBuf>,
+    #[command(flatten)]
+    pub output: super::JsonArg,
+    #[command(flatten)]
+    pub config: super::ConfigArg,
     /// Farnebäck window in pixels, instead of the one sized from the image.
     #[arg(long, value_name = "PX")]
     pub window_px: Option<usize>,
@@ -73,14 +73,14 @@ struct Report {
 }
 
 pub fn run(args: &Args) -> Result<i32> {
-    let mut cfg = super::align::load_engine_config(args.config.as_deref())?;
+    let mut cfg = args.config.load(&Default::default())?.engine;
     if args.window_px.is_some() {
         cfg.window_px = args.window_px;
     }
     let spec = FrameSpec::parse(&args.image);
     if let Some(out) = &args.trials_out {
         let mut inputs = vec![spec.path.as_path()];
-        inputs.extend(args.config.as_deref());
+        inputs.extend(args.config.path.as_deref());
         crate::outputs::check_outputs(&[out], &inputs)?;
     }
     let mut reference = fits::read_frame(&spec)?;
@@ -228,7 +228,7 @@ pub fn run(args: &Args) -> Result<i32> {
         translation_trials: (!shift_outcomes.is_empty()).then(|| summarise(&shift_outcomes)),
         mean_elapsed_ms: elapsed / (outcomes.len() + shift_outcomes.len()).max(1) as f64,
     };
-    if args.json {
+    if args.output.json {
         let text = serde_json::to_string_pretty(&report)
             .map_err(|e| Error::Usage(format!("cannot encode report: {e}")))?;
         println!("{text}");

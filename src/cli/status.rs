@@ -10,8 +10,8 @@ pub struct Args {
     /// The status file, or the output directory holding `status.json`.
     #[arg(default_value = ".", value_name = "PATH|OUTDIR")]
     pub path: PathBuf,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -22,7 +22,7 @@ Examples:
 pub fn run(args: &Args) -> Result<i32> {
     let path = status::resolve_path(&args.path);
     let s = status::read(&path)?;
-    if args.json {
+    if args.output.json {
         let text =
             serde_json::to_string(&s).map_err(|e| crate::Error::output(&path, e.to_string()))?;
         println!("{text}");

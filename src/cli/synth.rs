@@ -56,8 +56,8 @@ pub struct Args {
     /// or now with --realtime).
     #[arg(long)]
     pub start: Option<String>,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -137,7 +137,7 @@ pub fn run(args: &Args) -> Result<i32> {
         Some(began.elapsed().as_secs_f64() / args.frames as f64)
     };
 
-    if args.json {
+    if args.output.json {
         let doc = serde_json::json!({
             "out": args.out,
             "channel": synth::CHANNEL,

@@ -24,8 +24,8 @@ pub struct Args {
         default_missing_value = "127.0.0.1:8765"
     )]
     pub live: Option<String>,
-    #[arg(long, help = super::JSON_HELP)]
-    pub json: bool,
+    #[command(flatten)]
+    pub output: super::JsonArg,
 }
 
 pub const EXAMPLES: &str = "\
@@ -43,7 +43,7 @@ pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
         reference: args.reference.as_deref().map(str::parse).transpose()?,
         recursive: args.recursive,
     };
-    let mut config = Config::load(args.config.as_deref(), &overrides)?;
+    let mut config = args.config.load(&overrides)?;
     config.canonicalize_fixed_paths()?;
     Ok(config)
 }
@@ -63,7 +63,7 @@ pub fn run(args: &Args) -> Result<i32> {
     // Before reading (and recovering) the log: another daemon may be writing it.
     let lock = OutputLock::acquire(&args.run.out)?;
     let status_file = config.health.status_path(&args.run.out);
-    let config_file: Vec<&std::path::Path> = args.run.config.as_deref().into_iter().collect();
+    let config_file: Vec<&std::path::Path> = args.run.config.path.as_deref().into_iter().collect();
     check_outputs(&[&status_file], &config_file)?;
     let history = read_history(&args.run.out)?;
     let mcap = crate::sink::McapSink::new(
@@ -106,7 +106,7 @@ pub fn run(args: &Args) -> Result<i32> {
         skipped = progress.skipped,
         "stopped cleanly"
     );
-    if args.json {
+    if args.output.json {
         println!("{}", summary_json(&progress, &args.run.out));
     }
     Ok(exit::OK)

@@ -109,11 +109,6 @@ impl SimilarityFit {
     }
 }
 
-/// Standard errors (square roots of the diagonal) of a covariance matrix.
-pub fn sigmas(cov: &[[f64; 4]; 4]) -> [f64; 4] {
-    [0, 1, 2, 3].map(|i| cov[i][i].max(0.0).sqrt())
-}
-
 /// Multiply every element of a covariance by `factor`.
 pub fn scaled(cov: &[[f64; 4]; 4], factor: f64) -> [[f64; 4]; 4] {
     cov.map(|row| row.map(|v| v * factor))
@@ -619,6 +614,7 @@ pub fn correlated_covariance(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::sigmas;
     use nalgebra::DMatrix;
 
     fn truth(seed: u64, center: [f64; 2]) -> Similarity {

@@ -11,6 +11,39 @@ pub enum Status {
     Failed,
 }
 
+/// Which reference a frame was aligned to (`reference_kind`): itself, or what its channel's
+/// policy chose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ReferenceKind {
+    /// The frame is its own reference: a chain's origin, or a frame no reference could take.
+    #[serde(rename = "self")]
+    Itself,
+    Previous,
+    Keyframe,
+    Fixed,
+    Channel,
+}
+
+impl ReferenceKind {
+    /// The name in messages and logs.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ReferenceKind::Itself => "self",
+            ReferenceKind::Previous => "previous",
+            ReferenceKind::Keyframe => "keyframe",
+            ReferenceKind::Fixed => "fixed",
+            ReferenceKind::Channel => "channel",
+        }
+    }
+}
+
+impl std::fmt::Display for ReferenceKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// A transform in the contract's units (the `header_residual` object).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TransformFields {
@@ -83,8 +116,7 @@ pub struct FrameAlignment {
     /// ISO 8601 UTC.
     pub obs_time: String,
     pub sequence: u64,
-    /// `self`, `previous`, `keyframe`, `fixed`, `channel`.
-    pub reference_kind: String,
+    pub reference_kind: ReferenceKind,
     pub chained_dx_px: Option<f64>,
     pub chained_dy_px: Option<f64>,
     /// `chained_dx_px`, `chained_dy_px` times the plate scale the alignments to the chain's

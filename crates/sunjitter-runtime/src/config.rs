@@ -20,7 +20,7 @@ pub struct Config {
     pub sink: SinkConfig,
     pub daemon: DaemonConfig,
     /// Reference settings for every channel not listed in `channels`.
-    pub reference: ReferenceConfig,
+    pub reference: ChannelPolicy,
     /// Per-channel overrides of `reference`, keyed by channel name (e.g. `SJI_2796`).
     pub channels: BTreeMap<String, ChannelConfig>,
     /// Rename channels: header-derived name → name used in topics (e.g. `AIA_304 = "EUV_304"`).
@@ -104,36 +104,6 @@ impl Default for DaemonConfig {
             flush_interval_s: 5.0,
             max_frame_pixels: sunjitter_io::fits::DEFAULT_MAX_FRAME_PIXELS,
             max_channels: 64,
-        }
-    }
-}
-
-/// Reference policy settings (the defaults for every channel).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ReferenceConfig {
-    /// `keyframe`, `previous`, `fixed:FILE` (or `fixed:FILE[N]`) or `channel:NAME`.
-    pub policy: PolicySpec,
-    pub keyframe_every_frames: u32,
-    pub keyframe_every_s: f64,
-    pub keyframe_min_frames: u32,
-    pub refresh_below_similarity: f64,
-    pub restart_after_failures: u32,
-    pub tolerance_s: f64,
-    pub hold_s: f64,
-}
-
-impl Default for ReferenceConfig {
-    fn default() -> Self {
-        ReferenceConfig {
-            policy: PolicySpec::Keyframe,
-            keyframe_every_frames: 50,
-            keyframe_every_s: 600.0,
-            keyframe_min_frames: 4,
-            refresh_below_similarity: 0.0,
-            restart_after_failures: 5,
-            tolerance_s: 30.0,
-            hold_s: 120.0,
         }
     }
 }

@@ -624,11 +624,7 @@ fn examine(
         inspect_file(path, reader, config, history, config.daemon.follow_symlinks)
     }));
     let outcome = inspected.unwrap_or_else(|panic| {
-        let what = panic
-            .downcast_ref::<&str>()
-            .map(|s| s.to_string())
-            .or_else(|| panic.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "unknown".into());
+        let what = sunjitter_core::text::panic_message(panic.as_ref());
         tracing::error!(file = %sunjitter_core::text::path(path), "internal error while reading: {what}");
         FileOutcome::Skip(Some(unreadable_record(
             path,
@@ -813,7 +809,7 @@ mod tests {
     }
 
     /// A reader that panics on some file: the file is finished with one `/log` error naming
-    /// it (it used to stay "reading" forever, with only a tracing line).
+    /// it, rather than staying "reading" forever with only a tracing line.
     #[test]
     fn a_reader_panic_finishes_the_file_with_a_log_entry() {
         struct Panicking;

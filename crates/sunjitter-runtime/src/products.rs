@@ -29,7 +29,7 @@ use sunjitter_core::chain::Chain;
 use sunjitter_core::engine::Image;
 use sunjitter_core::geometry::{Similarity, ARCSEC_PER_RAD};
 use sunjitter_core::header::HeaderValue;
-use sunjitter_core::record::{FrameAlignment, Status};
+use sunjitter_core::record::{FrameAlignment, ReferenceKind, Status};
 use sunjitter_core::{Error, Result};
 use sunjitter_io::aligned::{compose_wcs, is_grid_key, Grid};
 use sunjitter_io::fits::parse_frame_key;
@@ -164,7 +164,7 @@ impl Products {
     ) -> std::result::Result<(), String> {
         let reason = |e: Error| e.reason();
         let t = chain.transform;
-        let is_self = message.reference_kind == "self";
+        let is_self = message.reference_kind == ReferenceKind::Itself;
         let anchored = if is_self && is_identity(&t) {
             None
         } else {
@@ -173,7 +173,7 @@ impl Products {
         let mut history = history(self.mode, message, &t);
         let origin = match anchored {
             Some(grid) => grid,
-            None if message.reference_kind == "fixed" => {
+            None if message.reference_kind == ReferenceKind::Fixed => {
                 self.fixed_grid(&message.align.reference, ctx)?
             }
             None => {
@@ -224,7 +224,7 @@ impl Products {
         if reference != key {
             anchors.push(reference);
         }
-        if message.reference_kind == "self" {
+        if message.reference_kind == ReferenceKind::Itself {
             for r in &step.records {
                 if let Record::Reference { change, .. } = r {
                     if let Some(replaced) = change.replaces.as_deref() {

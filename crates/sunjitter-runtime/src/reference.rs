@@ -13,7 +13,7 @@ use std::sync::Arc;
 use sunjitter_core::chain::{chain_after, chain_from_message, set_chain, Chain};
 use sunjitter_core::engine::{AlignOutcome, Image};
 use sunjitter_core::geometry::Similarity;
-use sunjitter_core::record::{AlignResult, FrameAlignment, Status, TransformFields};
+use sunjitter_core::record::{AlignResult, FrameAlignment, ReferenceKind, Status, TransformFields};
 use sunjitter_core::time::format_iso_utc as iso8601_utc;
 use sunjitter_io::fits::FrameSpec;
 use sunjitter_io::fits::{frame_key, parse_frame_key};
@@ -42,12 +42,12 @@ pub enum PolicySpec {
 
 impl PolicySpec {
     /// The `reference_kind` written in messages for frames aligned under this policy.
-    pub fn kind(&self) -> &'static str {
+    pub fn kind(&self) -> ReferenceKind {
         match self {
-            PolicySpec::Previous => "previous",
-            PolicySpec::Keyframe => "keyframe",
-            PolicySpec::Fixed(_) => "fixed",
-            PolicySpec::Channel(_) => "channel",
+            PolicySpec::Previous => ReferenceKind::Previous,
+            PolicySpec::Keyframe => ReferenceKind::Keyframe,
+            PolicySpec::Fixed(_) => ReferenceKind::Fixed,
+            PolicySpec::Channel(_) => ReferenceKind::Channel,
         }
     }
 }
@@ -96,9 +96,13 @@ impl<'de> Deserialize<'de> for PolicySpec {
     }
 }
 
-/// The resolved reference settings of one channel.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+/// A channel's reference settings: the `[reference]` table of the configuration (every
+/// channel's defaults), and the settings one channel resolves to with its own overrides
+/// (`Config::channel_policy`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ChannelPolicy {
+    /// `keyframe`, `previous`, `fixed:FILE` (or `fixed:FILE[N]`) or `channel:NAME`.
     pub policy: PolicySpec,
     /// Keyframe: refresh after this many frames aligned to it (0 = never by count).
     pub keyframe_every_frames: u32,
@@ -115,6 +119,21 @@ pub struct ChannelPolicy {
     pub tolerance_s: f64,
     /// `channel:NAME`: how long (wall clock, daemon only) a frame waits for a partner.
     pub hold_s: f64,
+}
+
+impl Default for ChannelPolicy {
+    fn default() -> Self {
+        ChannelPolicy {
+            policy: PolicySpec::Keyframe,
+            keyframe_every_frames: 50,
+            keyframe_every_s: 600.0,
+            keyframe_min_frames: 4,
+            refresh_below_similarity: 0.0,
+            restart_after_failures: 5,
+            tolerance_s: 30.0,
+            hold_s: 120.0,
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -316,7 +335,7 @@ impl ChannelState {
             .collect();
         state.frames_on_reference = after
             .iter()
-            .filter(|(m, _)| m.align.reference == key && m.reference_kind != "self")
+            .filter(|(m, _)| m.align.reference == key && m.reference_kind != ReferenceKind::Itself)
             .count() as u32;
         state.consecutive_failures = restored
             .recent
@@ -341,7 +360,7 @@ impl ChannelState {
                 .find(|(m, _)| {
                     m.align.reference == key
                         && m.align.status == Status::Ok
-                        && m.reference_kind != "self"
+                        && m.reference_kind != ReferenceKind::Itself
                 })
                 .map(|(m, t)| {
                     let mut slot = RefSlot::named(&m.align.frame, *t, None);
@@ -426,7 +445,15 @@ impl ChannelState {
         if let Err(why) = ctx.usable_as_reference(&frame.image) {
             let why = format!("cannot start a reference: {why}");
             let outcome = AlignOutcome::failed(&frame.key, &frame.key, &why);
-            return self.emit(frame, sequence, "self", &frame.key, outcome, None, records);
+            return self.emit(
+                frame,
+                sequence,
+                ReferenceKind::Itself,
+                &frame.key,
+                outcome,
+                None,
+                records,
+            );
         }
         let reason = self
             .restart_reason
@@ -472,7 +499,7 @@ impl ChannelState {
         let emitted = self.emit(
             frame,
             sequence,
-            "previous",
+            ReferenceKind::Previous,
             &reference.key,
             outcome,
             chain,
@@ -588,7 +615,15 @@ impl ChannelState {
         };
         let chain = chain_after(ref_chain.as_ref(), &outcome);
         self.frames_on_reference += 1;
-        let emitted = self.emit(frame, sequence, "keyframe", &key, outcome, chain, records);
+        let emitted = self.emit(
+            frame,
+            sequence,
+            ReferenceKind::Keyframe,
+            &key,
+            outcome,
+            chain,
+            records,
+        );
         if good {
             self.consecutive_failures = 0;
             self.candidate = Some(RefSlot::from_frame(frame, chain));
@@ -631,7 +666,15 @@ impl ChannelState {
                         // Tried again with the next frame.
                         let why = format!("fixed reference unreadable: {e}");
                         let outcome = AlignOutcome::failed(file, &frame.key, &why);
-                        return self.emit(frame, sequence, "fixed", file, outcome, None, records);
+                        return self.emit(
+                            frame,
+                            sequence,
+                            ReferenceKind::Fixed,
+                            file,
+                            outcome,
+                            None,
+                            records,
+                        );
                     }
                 }
             }
@@ -650,7 +693,7 @@ impl ChannelState {
             self.emit(
                 frame,
                 sequence,
-                "fixed",
+                ReferenceKind::Fixed,
                 &reference.key,
                 outcome,
                 chain,
@@ -694,7 +737,7 @@ impl ChannelState {
         let emitted = self.emit(
             frame,
             sequence,
-            "channel",
+            ReferenceKind::Channel,
             &reference.key,
             outcome,
             chain,
@@ -752,7 +795,7 @@ impl ChannelState {
             cube_frame: slot.spec.frame,
             obs_time: iso8601_utc(slot.obs_time_ns),
             reason,
-            reference_kind: self.policy.policy.kind().into(),
+            reference_kind: self.policy.policy.kind(),
             sequence: first_sequence,
             replaces: self.announced.replace(slot.key.clone()),
             chain,
@@ -818,7 +861,14 @@ impl ChannelState {
             message: "starts a reference: aligned to itself".into(),
             elapsed_ms: 0.0,
         };
-        self.push_message(frame, sequence, "self", align, chain, records)
+        self.push_message(
+            frame,
+            sequence,
+            ReferenceKind::Itself,
+            align,
+            chain,
+            records,
+        )
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -826,7 +876,7 @@ impl ChannelState {
         &mut self,
         frame: &LoadedFrame,
         sequence: u64,
-        kind: &str,
+        kind: ReferenceKind,
         reference_key: &str,
         outcome: AlignOutcome,
         chain: Option<Chain>,
@@ -842,7 +892,7 @@ impl ChannelState {
         &mut self,
         frame: &LoadedFrame,
         sequence: u64,
-        kind: &str,
+        kind: ReferenceKind,
         align: AlignResult,
         chain: Option<Chain>,
         records: &mut Vec<Record>,
@@ -852,7 +902,7 @@ impl ChannelState {
             channel: self.name.clone(),
             obs_time: iso8601_utc(frame.obs_time_ns),
             sequence,
-            reference_kind: kind.into(),
+            reference_kind: kind,
             chained_dx_px: None,
             chained_dy_px: None,
             chained_dx_arcsec: None,
@@ -1152,7 +1202,7 @@ mod tests {
         // One reference change, then the frame message.
         assert!(matches!(records[0], Record::Reference { .. }));
         let m = messages(&records)[0];
-        assert_eq!((m.reference_kind.as_str(), m.sequence), ("self", 0));
+        assert_eq!((m.reference_kind, m.sequence), (ReferenceKind::Itself, 0));
         assert_eq!(m.align.status, Status::Ok);
         assert_eq!(
             (m.align.scale, m.align.dx_px, m.align.dy_px),
@@ -1189,10 +1239,14 @@ mod tests {
             assert_eq!(m.align.frame, keys[i]);
             assert_chained_is_truth(m, &frames[i].1.truth);
             let expect_self = i % 4 == 0;
-            assert_eq!(m.reference_kind == "self", expect_self, "frame {i}");
+            assert_eq!(
+                m.reference_kind == ReferenceKind::Itself,
+                expect_self,
+                "frame {i}"
+            );
             if !expect_self {
                 assert_eq!(m.align.reference, keys[i / 4 * 4], "frame {i}");
-                assert_eq!(m.reference_kind, "keyframe");
+                assert_eq!(m.reference_kind, ReferenceKind::Keyframe);
             }
         }
         let ch = changes(&records);
@@ -1240,7 +1294,7 @@ mod tests {
             let selves: Vec<usize> = msgs
                 .iter()
                 .enumerate()
-                .filter(|(_, m)| m.reference_kind == "self")
+                .filter(|(_, m)| m.reference_kind == ReferenceKind::Itself)
                 .map(|(i, _)| i)
                 .collect();
             assert_eq!(selves, keyframes, "minimum {min_frames}");
@@ -1517,7 +1571,7 @@ mod tests {
             assert_eq!(m.align.reference, keys[1]);
         }
         // Three failures in a row (restart_after_failures = 3): frame 5 starts a new chain.
-        assert_eq!(msgs[5].reference_kind, "self");
+        assert_eq!(msgs[5].reference_kind, ReferenceKind::Itself);
         assert_eq!(msgs[5].chained_dx_px, Some(0.0));
         let last = changes(&records)
             .into_iter()
@@ -1550,7 +1604,7 @@ mod tests {
         let mut var = 0.0;
         for (i, m) in msgs.iter().enumerate().skip(1) {
             assert_eq!(m.align.reference, keys[i - 1]);
-            assert_eq!(m.reference_kind, "previous");
+            assert_eq!(m.reference_kind, ReferenceKind::Previous);
             assert_chained_is_truth(m, &frames[i].1.truth);
             let s = frames[i].1.truth.scale / frames[i - 1].1.truth.scale;
             var = SX * SX + s * s * var;
@@ -1574,8 +1628,8 @@ mod tests {
         let msgs = messages(&records);
         for (i, m) in msgs.iter().enumerate() {
             assert_eq!(
-                (m.reference_kind.as_str(), m.align.reference.as_str()),
-                ("fixed", "/d/ref.fits")
+                (m.reference_kind, m.align.reference.as_str()),
+                (ReferenceKind::Fixed, "/d/ref.fits")
             );
             let rel = frames[i].1.truth.after(&fixed.truth.inverse());
             assert_chained_is_truth(m, &rel);
@@ -1614,8 +1668,8 @@ mod tests {
         let msgs = messages(&records);
         for (m, i) in msgs.iter().zip(1..) {
             assert_eq!(
-                (m.reference_kind.as_str(), m.align.reference.as_str()),
-                ("channel", "/d/p.fits")
+                (m.reference_kind, m.align.reference.as_str()),
+                (ReferenceKind::Channel, "/d/p.fits")
             );
             // Partner chain then partner→frame = the frame's true pointing.
             assert_chained_is_truth(m, &frames[i].1.truth);

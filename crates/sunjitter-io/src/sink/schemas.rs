@@ -6,6 +6,7 @@
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::{json, Value};
 use sunjitter_core::chain::Chain;
+use sunjitter_core::record::ReferenceKind;
 
 /// Schema encoding of every channel.
 pub const SCHEMA_ENCODING: &str = "jsonschema";
@@ -53,8 +54,7 @@ pub struct ReferenceChange {
     pub obs_time: String,
     /// Why: e.g. `first frame`, `refresh after 100 frames`, `match degraded`.
     pub reason: String,
-    /// `self`, `previous`, `keyframe`, `fixed`, `channel`.
-    pub reference_kind: String,
+    pub reference_kind: ReferenceKind,
     /// `sequence` of the first frame aligned to this reference.
     pub sequence: u64,
     /// The reference it replaces (`FILE` or `FILE[N]`), `null` for the first.
@@ -524,7 +524,7 @@ mod tests {
             cube_frame: Some(3),
             obs_time: "2014-03-29T14:09:38Z".into(),
             reason: "first frame".into(),
-            reference_kind: "keyframe".into(),
+            reference_kind: ReferenceKind::Keyframe,
             sequence: 0,
             replaces: None,
             chain: Some(Chain::origin([64.0, 64.0], Some([0.6, 0.6]))),

@@ -314,7 +314,7 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
     let mut reference_kinds = BTreeMap::new();
     for f in &frames {
         *reference_kinds
-            .entry(f.record.reference_kind.clone())
+            .entry(f.record.reference_kind.to_string())
             .or_insert(0) += 1;
     }
     let t0 = frames.first().map_or(0, |f| f.log_time_ns);
@@ -656,9 +656,9 @@ pub(crate) mod testdata {
                 obs_time: sunjitter_core::time::format_iso_utc(ns),
                 sequence: seq,
                 reference_kind: if seq == 0 {
-                    "self".into()
+                    sunjitter_core::record::ReferenceKind::Itself
                 } else {
-                    "keyframe".into()
+                    sunjitter_core::record::ReferenceKind::Keyframe
                 },
                 chained_dx_px: v(dx),
                 chained_dy_px: v(dy),

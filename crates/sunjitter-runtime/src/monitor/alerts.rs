@@ -443,7 +443,7 @@ mod tests {
             channel: "A".into(),
             obs_time: String::new(),
             sequence: seq,
-            reference_kind: "previous".into(),
+            reference_kind: sunjitter_core::record::ReferenceKind::Previous,
             chained_dx_px: None,
             chained_dy_px: None,
             chained_dx_arcsec: None,

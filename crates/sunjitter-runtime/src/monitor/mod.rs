@@ -512,7 +512,7 @@ mod tests {
             channel: "SJI_1400".into(),
             obs_time: String::new(),
             sequence: 1,
-            reference_kind: "keyframe".into(),
+            reference_kind: sunjitter_core::record::ReferenceKind::Keyframe,
             chained_dx_px: None,
             chained_dy_px: None,
             chained_rotation_arcsec: None,

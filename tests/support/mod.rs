@@ -1,6 +1,11 @@
 //! Shared by the integration tests: the contract's field lists (contract.md), written once,
-//! and the reader of `inspect --csv` output.
+//! and the reader of `inspect --csv` output; the daemon harness ([`daemon`]), fault-injection
+//! fixtures ([`faults`]) and the monitoring tests' helpers ([`monitor`]).
 #![allow(dead_code)]
+
+pub mod daemon;
+pub mod faults;
+pub mod monitor;
 
 use std::collections::HashMap;
 use std::path::Path;

@@ -210,12 +210,7 @@ pub fn quick_config() -> Config {
     c
 }
 
-/// A daemon running in this process (the library's `run_daemon`).
-pub struct Daemon {
-    pub progress: watch::Receiver<Progress>,
-    stop: oneshot::Sender<()>,
-    handle: tokio::task::JoinHandle<sunjitter::Result<Progress>>,
-}
+pub use super::daemon::Daemon;
 
 pub fn start(
     dir: &Path,
@@ -224,70 +219,7 @@ pub fn start(
     aligner: Arc<dyn Aligner>,
     sink: Box<dyn RecordSink>,
 ) -> Daemon {
-    resume(dir, config, reader, aligner, sink, History::default())
-}
-
-/// A daemon continuing a log whose earlier runs left `history` ([`sunjitter::pipeline::read_history`]).
-pub fn resume(
-    dir: &Path,
-    config: Config,
-    reader: Arc<dyn sunjitter::ports::FrameReader>,
-    aligner: Arc<dyn Aligner>,
-    sink: Box<dyn RecordSink>,
-    history: History,
-) -> Daemon {
-    let (progress_tx, progress) = watch::channel(Progress::default());
-    let parts = RunParts {
-        config: Arc::new(config),
-        reader,
-        aligner,
-        sink,
-        history,
-        progress: progress_tx,
-        live: true,
-        products: None,
-    };
-    let (stop, stopped) = oneshot::channel::<()>();
-    let dir = dir.to_path_buf();
-    let handle = tokio::spawn(async move {
-        sunjitter::daemon::run_daemon(&dir, parts, async {
-            let _ = stopped.await;
-        })
-        .await
-    });
-    Daemon {
-        progress,
-        stop,
-        handle,
-    }
-}
-
-impl Daemon {
-    /// Wait (bounded) until the predicate holds on the progress counters.
-    pub async fn wait_for(&self, what: &str, f: impl Fn(&Progress) -> bool) -> Progress {
-        let mut rx = self.progress.clone();
-        let wait = async move { rx.wait_for(|p| f(p)).await.map(|p| p.clone()) };
-        match tokio::time::timeout(Duration::from_secs(120), wait).await {
-            Ok(Ok(p)) => p,
-            _ => panic!(
-                "timed out waiting for {what}: {:?}",
-                *self.progress.borrow()
-            ),
-        }
-    }
-
-    pub async fn watching(&self) {
-        self.wait_for("the watcher", |p| p.watching).await;
-    }
-
-    pub async fn shutdown(self) -> Progress {
-        let _ = self.stop.send(());
-        tokio::time::timeout(Duration::from_secs(120), self.handle)
-            .await
-            .expect("stops in time")
-            .expect("task")
-            .expect("clean run")
-    }
+    super::daemon::spawn(dir, config, reader, aligner, sink, History::default())
 }
 
 /// Publish a frame atomically: written under a hidden temporary name, then renamed in.
