@@ -21,7 +21,7 @@ use sunjitter::reference::PolicySpec;
 use sunjitter::sink::LogLevel;
 use sunjitter::FrameAlignment;
 use sunjitter_runtime::fake::{FakeFrame, FakeReader, TruthAligner};
-use tokio::sync::{oneshot, watch};
+use tokio::sync::watch;
 
 const S: i64 = 1_000_000_000;
 const SX: f64 = 0.05;

@@ -3,11 +3,9 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
 use sunjitter::config::{Config, Overrides};
-use sunjitter::pipeline::{open_output, EngineAligner, FitsReader, Progress, RunParts};
+use sunjitter::pipeline::{open_output, EngineAligner, FitsReader};
 use sunjitter_runtime::fake::split_cube;
-use tokio::sync::{oneshot, watch};
 
 mod support;
 

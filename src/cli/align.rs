@@ -1,6 +1,6 @@
 //! `sunjitter align REFERENCE FRAME [--json] [--aligned OUT.fits] [--quicklook OUT.png]`
 
-use crate::engine::{self, EngineConfig};
+use crate::engine;
 use crate::error::exit;
 use crate::fits::{self, FrameSpec};
 use crate::record::Status;

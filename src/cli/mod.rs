@@ -36,7 +36,10 @@ pub struct ConfigArg {
 impl ConfigArg {
     /// The configuration: the file (or the defaults) with `overrides`, checked. The one
     /// loader of every command; `align` and `simulate` use its `[engine]`.
-    pub fn load(&self, overrides: &crate::config::Overrides) -> Result<crate::config::Config> {
+    pub fn load(
+        &self,
+        overrides: &crate::config::Overrides,
+    ) -> crate::Result<crate::config::Config> {
         crate::config::Config::load(self.path.as_deref(), overrides)
     }
 }

@@ -12,17 +12,14 @@ use ndarray::Array2;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
 use sunjitter::config::Config;
 use sunjitter::engine::{AlignOutcome, Image};
-use sunjitter::pipeline::{Progress, RunParts};
 use sunjitter::ports::Aligner;
 use sunjitter::records::{Record, RecordSink};
 use sunjitter::reference::History;
 use sunjitter::sink::LogLevel;
 use sunjitter::{FrameAlignment, Similarity, Status};
 use sunjitter_runtime::fake::outcome;
-use tokio::sync::{oneshot, watch};
 
 pub const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
 pub const S: i64 = 1_000_000_000;
