@@ -15,9 +15,9 @@
 //! depends on the way in (AIA 171 128², between channels: from the exact answer the check
 //! saw 1″ of error in rotation, from the pair's start 200″, the pair's own).
 
-use super::{
-    fine_alignment, flow_reach_px, mask_roi, EngineConfig, FlowRegion, Workspace, FLOW_TAPER_PX,
-};
+use super::config::EngineConfig;
+use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, FLOW_TAPER_PX};
+use super::prepared::Workspace;
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
 use ndarray::{s, Array2, ArrayView2, Zip};

@@ -1,0 +1,580 @@
+//! The fine stage: flow passes on crops of the reference grid, each fitted with a similarity
+//! and composed into the estimate until the update is negligible.
+
+use super::config::EngineConfig;
+use super::prepared::Workspace;
+use super::{derotate, refine, sigma, SigmaMethod};
+use crate::fit::{fit_similarity, FitFailure, RansacParams, SimilarityFit};
+use crate::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+use crate::geometry::{compose_with_covariance, sigmas, Covariance4, Similarity};
+use crate::preprocess;
+use crate::resample::HighOrderSpline;
+use crate::sampling::grid_median_sample;
+use ndarray::{s, Array2, ArrayView2, Zip};
+use std::ops::Range;
+use std::time::Instant;
+
+/// What the fine stage measured.
+pub(super) struct FineResult {
+    pub(super) transform: Similarity,
+    pub(super) covariance: Covariance4,
+    pub(super) uabjm_covariance: Covariance4,
+    pub(super) fit: SimilarityFit,
+    pub(super) points: usize,
+    /// The frame resampled onto the reference grid through the final estimate, on `crop`
+    /// only (the mask's box plus every later filter's reach).
+    /// For a seed on binned copies, on the binned grid (and `crop` too).
+    warped: Option<Array2<f32>>,
+    crop: Crop,
+    pub(super) passes: usize,
+    pub(super) converged: bool,
+    /// The last pass's motion (px at the mask's radius) when the passes ran out before it
+    /// became negligible and it exceeded the answer's σ: the estimate was still moving.
+    pub(super) unsettled_px: Option<f64>,
+    /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
+    /// level.
+    pub(super) seed_level: Option<usize>,
+    /// What the refinement needs: the bounding box (x0, y0, x1, y1, inclusive, reference
+    /// grid) of the sampling mask, over which the sampling grid's cells lie, and the inliers.
+    pub(super) sample_box: Option<(usize, usize, usize, usize)>,
+    pub(super) inliers: Vec<crate::sampling::Correspondence>,
+}
+
+impl FineResult {
+    /// `warped` at reference-grid rows and columns (which must lie inside the crop).
+    pub(super) fn warped_at(
+        &self,
+        rows: Range<usize>,
+        cols: Range<usize>,
+    ) -> Option<ArrayView2<'_, f32>> {
+        let (y0, x0) = (self.crop.rows.start, self.crop.cols.start);
+        let inside = rows.start >= y0
+            && cols.start >= x0
+            && rows.end <= self.crop.rows.end
+            && cols.end <= self.crop.cols.end;
+        let warped = self.warped.as_ref().filter(|_| inside)?;
+        Some(warped.slice(s![
+            rows.start - y0..rows.end - y0,
+            cols.start - x0..cols.end - x0
+        ]))
+    }
+}
+
+/// Errors of the fine stage.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum FineError {
+    #[error("flow: {0}")]
+    Flow(String),
+    #[error("fit (pass {pass}): {source}")]
+    Fit {
+        pass: usize,
+        #[source]
+        source: FitFailure,
+    },
+}
+
+/// Where the fine stage measures: the mask, and optionally a circle (centre, radius px on the
+/// reference grid) its sampled points must also lie in.
+#[derive(Clone, Copy)]
+pub(super) struct FlowRegion<'a> {
+    pub(super) mask: &'a Array2<bool>,
+    pub(super) sample_within: Option<([f64; 2], f64)>,
+}
+
+/// How far a point's flow sees, px (a point that far inside the limb sees none of it): half the
+/// window, the polynomial expansion's reach (`poly_n` px each side, as in OpenCV) and two
+/// strides of the affine grid. A point's flow is interpolated from the nodes around it, one
+/// stride; and each iteration of the solver reads the previous flow across the window, so the
+/// dependence reaches further. On AIA 171 128² between channels, with the frame's limb made
+/// twice as bright (6 pairs), one stride leaves the scale 2.2e-4 short (1.65σ), two 4.2e-5,
+/// and the bias keeps falling with the margin (6e-6 at 10 px more).
+pub(super) fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
+    (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
+}
+
+#[allow(clippy::too_many_arguments)]
+pub(super) fn fine_alignment(
+    reference: ArrayView2<f32>,
+    frame: &Array2<f32>,
+    region: FlowRegion,
+    coarse: Similarity,
+    winsize: usize,
+    frame_smoothing_px: f64,
+    max_passes: usize,
+    carried: Option<&derotate::Carried>,
+    cfg: &EngineConfig,
+    workspace: &Workspace,
+) -> Result<FineResult, FineError> {
+    let (h, w) = reference.dim();
+    let mask = region.mask;
+    let center = Similarity::array_center(w, h);
+    // The refinement's model, so that the two answers share no interpolation bias the other
+    // lacks (with a cubic spline here, the flow's answer on tests/data/trace_fourier_shift is
+    // 9.6e-4 px off and the refinement's 7e-5 px: 7.5σ apart).
+    let spline = HighOrderSpline::new(frame.view(), refine::MODEL);
+    let roi = mask_roi(mask);
+    let levels = cfg
+        .pyramid_levels
+        .unwrap_or_else(|| auto_levels(roi.width.min(roi.height)));
+    let ransac = RansacParams {
+        threshold_px: cfg.ransac_threshold_px,
+        max_trials: cfg.ransac_max_trials,
+        seed: cfg.seed,
+        ..RansacParams::default()
+    };
+    let stride = (roi.width.min(roi.height) / cfg.sample.max(1) / 6).max(1);
+    let radius = mask_extent_px(mask, roi);
+    let crops = PassCrops {
+        roi,
+        winsize,
+        poly_n: cfg.poly_n,
+        quality_reach: gaussian_reach(winsize as f64 / 4.0),
+        smoothing_reach: gaussian_reach(frame_smoothing_px),
+        w,
+        h,
+    };
+
+    // The Sun's motion over the largest crop (the first pass's), read by every pass.
+    let shifts = carried.map(|c| {
+        let crop = crops.for_levels(levels);
+        let s = c.shifts(
+            crop.cols.start,
+            crop.rows.start,
+            crop.cols.len(),
+            crop.rows.len(),
+        );
+        (crop, s)
+    });
+    let mut estimate = coarse.recentered(center);
+    let mut solver: Option<Farneback> = workspace.take();
+    let mut pass = 0;
+    loop {
+        pass += 1;
+        let pass_started = Instant::now();
+        let first = pass == 1;
+        let pass_levels = if first { levels } else { 0 };
+        let crop = crops.for_levels(pass_levels);
+        let (x0, y0) = (crop.cols.start, crop.rows.start);
+        let (ch, cw) = (crop.rows.len(), crop.cols.len());
+        let warped = warp_pass(
+            &spline,
+            &estimate,
+            &crop,
+            shifts.as_ref(),
+            carried,
+            frame_smoothing_px,
+        );
+        let ref_crop = reference.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let mask_crop = mask.slice(s![crop.rows.clone(), crop.cols.clone()]);
+        let roi_crop = Roi {
+            x: roi.x - x0,
+            y: roi.y - y0,
+            ..roi
+        };
+        let params = FarnebackParams {
+            pyr_scale: 0.5,
+            levels: pass_levels,
+            winsize,
+            iterations: if first {
+                cfg.iterations
+            } else {
+                cfg.iterations.min(4)
+            },
+            poly_n: cfg.poly_n,
+            poly_sigma: cfg.poly_sigma,
+            gaussian_window: false,
+        };
+        let options = FlowOptions {
+            ..FlowOptions::affine_grid(winsize)
+        };
+        let mut s = configured_solver(solver.take(), &params, &options)?;
+        let warped_at = pass_started.elapsed();
+        let flow = s
+            .compute(ref_crop, warped.view(), Some(roi_crop), None)
+            .map_err(|e| FineError::Flow(e.to_string()))?;
+        solver = Some(s);
+        let flow_at = pass_started.elapsed();
+
+        let sample_mask = sample_mask(
+            &warped,
+            ref_crop,
+            mask_crop,
+            winsize,
+            region.sample_within,
+            (x0, y0),
+        );
+        let mut points = grid_median_sample(
+            flow.u.view(),
+            flow.v.view(),
+            sample_mask.view(),
+            stride,
+            cfg.sample,
+        );
+        for p in &mut points {
+            p.x += x0 as f64;
+            p.y += y0 as f64;
+        }
+        let fit = fit_similarity(&points, center, &ransac)
+            .map_err(|source| FineError::Fit { pass, source })?;
+        tracing::debug!(pass, ?warped_at, ?flow_at, fitted_at = ?pass_started.elapsed(), crop = ?(cw, ch), "fine pass");
+        let update = fit.transform;
+        let previous = estimate;
+        estimate = estimate.after(&update);
+        // Converged when the update is negligible, or lost in this pass's own noise.
+        let moved = max_motion_px(&update, radius);
+        let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
+        let converged = moved < cfg.convergence_px.max(0.1 * noise);
+        tracing::debug!(pass, moved, noise, estimate = ?estimate.params(), "fine pass estimate");
+        if converged || pass >= max_passes.max(1) {
+            if let Some(solver) = solver.take() {
+                workspace.give(solver);
+            }
+            let last = LastPass {
+                pass,
+                previous,
+                update,
+                estimate,
+                moved,
+                converged,
+                fit,
+                points,
+                warped,
+                crop,
+                sample_mask,
+            };
+            return Ok(last.result(center, winsize, cfg));
+        }
+    }
+}
+
+/// Rows and columns each pass works on: the mask's box plus what the flow's domain (at the
+/// pass's coarsest level), its border taper, the frame's smoothing and the quality filters
+/// after the last pass read around it. Inside the mask the results equal those of whole-frame
+/// arrays; outside nothing is computed (the disk covers under half of a full-disk frame).
+struct PassCrops {
+    roi: Roi,
+    winsize: usize,
+    poly_n: usize,
+    quality_reach: usize,
+    smoothing_reach: usize,
+    w: usize,
+    h: usize,
+}
+
+impl PassCrops {
+    fn for_levels(&self, levels: usize) -> Crop {
+        // 2^16 px exceeds any image: more levels only clamp the crop to the whole image.
+        let levels = levels.min(16);
+        let flow = (self.winsize / 2 + self.poly_n + 3 + FLOW_TAPER_PX + 2) << levels;
+        let blur = if levels > 0 {
+            (5usize << levels) / 4 + 2
+        } else {
+            0
+        };
+        let margin = (flow + blur).max(self.quality_reach) + self.smoothing_reach;
+        // Aligned so that every level's pixels and flow-grid nodes are those of the whole image.
+        let grid_stride = FlowOptions::affine_grid(self.winsize).grid_stride;
+        Crop::around(self.roi, margin, grid_stride << levels, self.w, self.h)
+    }
+}
+
+/// The frame resampled onto `crop` of the reference grid through `estimate` (and the Sun's
+/// motion when carried), smoothed to the reference's resolution.
+fn warp_pass(
+    spline: &HighOrderSpline,
+    estimate: &Similarity,
+    crop: &Crop,
+    shifts: Option<&(Crop, Array2<[f32; 2]>)>,
+    carried: Option<&derotate::Carried>,
+    frame_smoothing_px: f64,
+) -> Array2<f32> {
+    let (x0, y0) = (crop.cols.start, crop.rows.start);
+    let (ch, cw) = (crop.rows.len(), crop.cols.len());
+    let warped = match (shifts, carried) {
+        (Some((outer, s)), _) if outer.contains(crop) => {
+            let (ox, oy) = (x0 - outer.cols.start, y0 - outer.rows.start);
+            let window = s.slice(s![oy..oy + ch, ox..ox + cw]);
+            spline.warp_similarity_window_shifted(estimate, x0, y0, window)
+        }
+        (_, Some(c)) => {
+            spline.warp_similarity_window_shifted(estimate, x0, y0, c.shifts(x0, y0, cw, ch).view())
+        }
+        _ => spline.warp_similarity_window(estimate, x0, y0, cw, ch),
+    };
+    if frame_smoothing_px > 0.0 {
+        preprocess::gaussian_smooth(warped.view(), frame_smoothing_px)
+    } else {
+        warped
+    }
+}
+
+/// The flow solver for one pass: the one kept (its buffers reused between passes and frames),
+/// reconfigured if need be, or a new one.
+fn configured_solver(
+    kept: Option<Farneback>,
+    params: &FarnebackParams,
+    options: &FlowOptions,
+) -> Result<Farneback, FineError> {
+    match kept {
+        Some(mut s) => {
+            if s.params() != params || s.options() != options {
+                s.reconfigure(params.clone(), options.clone())
+                    .map_err(|e| FineError::Flow(e.to_string()))?;
+            }
+            Ok(s)
+        }
+        None => Farneback::new(params.clone())
+            .and_then(|f| f.with_options(options.clone()))
+            .map_err(|e| FineError::Flow(e.to_string())),
+    }
+}
+
+/// Where a pass samples its flow, on the crop at `origin` of the reference grid.
+fn sample_mask(
+    warped: &Array2<f32>,
+    ref_crop: ArrayView2<f32>,
+    mask_crop: ArrayView2<bool>,
+    winsize: usize,
+    sample_within: Option<([f64; 2], f64)>,
+    (x0, y0): (usize, usize),
+) -> Array2<bool> {
+    // Only where the whole window saw data: a window cut by the frame's edge (or a blank
+    // region) measures a biased motion. The crop's own edge is further than the window from
+    // the mask unless it is the image's edge, which erosion treats alike.
+    let mut valid = warped.mapv(f32::is_finite);
+    Zip::from(&mut valid)
+        .and(&ref_crop)
+        .for_each(|m, v| *m = *m && v.is_finite());
+    let mut sample_mask = erode(&valid, winsize / 2);
+    Zip::from(&mut sample_mask)
+        .and(&mask_crop)
+        .for_each(|a, b| *a = *a && *b);
+    if let Some(([cx, cy], r)) = sample_within {
+        let r2 = if r > 0.0 { r * r } else { -1.0 };
+        Zip::indexed(&mut sample_mask).for_each(|(y, x), m| {
+            let (dx, dy) = ((x + x0) as f64 - cx, (y + y0) as f64 - cy);
+            *m = *m && dx * dx + dy * dy <= r2;
+        });
+    }
+    sample_mask
+}
+
+/// The fine stage's last pass, from which its answer is made.
+struct LastPass {
+    pass: usize,
+    /// The estimate the pass started from, the update it measured and their composition.
+    previous: Similarity,
+    update: Similarity,
+    estimate: Similarity,
+    /// The update's largest motion within the mask, px.
+    moved: f64,
+    converged: bool,
+    fit: SimilarityFit,
+    points: Vec<crate::sampling::Correspondence>,
+    warped: Array2<f32>,
+    crop: Crop,
+    sample_mask: Array2<bool>,
+}
+
+impl LastPass {
+    fn result(self, center: [f64; 2], winsize: usize, cfg: &EngineConfig) -> FineResult {
+        let LastPass {
+            pass,
+            previous,
+            update,
+            estimate,
+            moved,
+            converged,
+            fit,
+            points,
+            warped,
+            crop,
+            sample_mask,
+        } = self;
+        let (x0, y0) = (crop.cols.start, crop.rows.start);
+        let inliers = fit.inlier_points(&points);
+        let uabjm = fit.covariance;
+        let mut calibrated = sigma::calibrated_covariance(cfg.sigma, &inliers, &fit, winsize);
+        if cfg.sigma == SigmaMethod::Calibrated {
+            sigma::add_floor(&mut calibrated, &inliers, center, cfg.systematic_floor_px);
+        }
+        let zero = [[0.0; 4]; 4];
+        let (_, mut cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
+        // Still moving when the passes ran out: the last step is a measure of how far
+        // from settled the answer is (on HMI 100² with a zero-filled sky it wanders by
+        // pixels).
+        let sigma_xy = sigmas(&cov)[2].hypot(sigmas(&cov)[3]);
+        let unsettled_px = (!converged && moved > sigma_xy).then_some(moved);
+        if !converged {
+            let step = update.params();
+            for (k, d) in [step[0] - 1.0, step[1], step[2], step[3]]
+                .iter()
+                .enumerate()
+            {
+                cov[k][k] += d * d;
+            }
+        }
+        let (_, ucov) = compose_with_covariance(&previous, &zero, &update, &uabjm);
+        let sample_box = crate::sampling::mask_bounding_box(sample_mask.view())
+            .map(|(a, b, c, d)| (a + x0, b + y0, c + x0, d + y0));
+        FineResult {
+            transform: estimate,
+            covariance: cov,
+            uabjm_covariance: ucov,
+            points: points.len(),
+            fit,
+            warped: Some(warped),
+            crop,
+            passes: pass,
+            converged,
+            unsettled_px,
+            seed_level: None,
+            sample_box,
+            inliers,
+        }
+    }
+}
+
+/// How many times `max_passes` the fine passes may run in all when the flow is still moving
+/// by more than its σ and the refinement did not take its answer.
+pub(super) const UNSETTLED_PASS_FACTOR: usize = 3;
+
+/// Outermost pixels of a level that OpenCV's border taper weighs down.
+pub(super) const FLOW_TAPER_PX: usize = 5;
+
+/// Rows and columns of the reference grid one pass works on.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct Crop {
+    pub(super) rows: Range<usize>,
+    pub(super) cols: Range<usize>,
+}
+
+impl Crop {
+    fn contains(&self, other: &Crop) -> bool {
+        self.rows.start <= other.rows.start
+            && self.cols.start <= other.cols.start
+            && self.rows.end >= other.rows.end
+            && self.cols.end >= other.cols.end
+    }
+
+    /// `roi` grown by `margin`, its start rounded down and its end up to multiples of `align`,
+    /// clamped to the `w × h` image.
+    fn around(roi: Roi, margin: usize, align: usize, w: usize, h: usize) -> Crop {
+        let span = |lo: usize, len: usize, n: usize| -> Range<usize> {
+            let a = lo.saturating_sub(margin) / align * align;
+            let b = (lo + len + margin).div_ceil(align) * align;
+            a..b.min(n)
+        };
+        Crop {
+            rows: span(roi.y, roi.height, h),
+            cols: span(roi.x, roi.width, w),
+        }
+    }
+}
+
+/// Reach of `preprocess::gaussian_smooth` at σ = `sigma_px` (its truncation radius) plus one
+/// pixel for a central difference; 0 when it does nothing.
+pub(crate) fn gaussian_reach(sigma_px: f64) -> usize {
+    if sigma_px > 0.0 && sigma_px.is_finite() {
+        (4.0 * sigma_px + 0.5) as usize + 1
+    } else {
+        0
+    }
+}
+
+/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
+pub(super) fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
+    use rayon::prelude::*;
+    let (h, w) = valid.dim();
+    // Integral image of invalid pixels, row-major with a zero first row and column.
+    let iw = w + 1;
+    let mut integral = vec![0u32; (h + 1) * iw];
+    for (y, row) in valid.rows().into_iter().enumerate() {
+        let (above, below) = integral.split_at_mut((y + 1) * iw);
+        let (prev, cur) = (&above[y * iw..], &mut below[..iw]);
+        let mut count = 0u32;
+        for (x, v) in row.iter().enumerate() {
+            count += u32::from(!*v);
+            cur[x + 1] = prev[x + 1] + count;
+        }
+    }
+    let mut out = Array2::from_elem((h, w), false);
+    out.axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut o)| {
+            if y < r || y + r >= h {
+                return;
+            }
+            let (top, bottom) = ((y - r) * iw, (y + r + 1) * iw);
+            for x in r..w.saturating_sub(r) {
+                let (x0, x1) = (x - r, x + r + 1);
+                o[x] = integral[bottom + x1] + integral[top + x0]
+                    == integral[top + x1] + integral[bottom + x0];
+            }
+        });
+    out
+}
+
+/// Largest displacement the transform causes within `radius` of its centre.
+pub(super) fn max_motion_px(t: &Similarity, radius: f64) -> f64 {
+    let (a, b) = t.ab();
+    let linear = ((a - 1.0).powi(2) + b * b).sqrt() * radius;
+    (t.dx * t.dx + t.dy * t.dy).sqrt() + linear
+}
+
+/// Largest distance of a mask pixel from the array centre (`roi`: the mask's bounding box).
+fn mask_extent_px(mask: &Array2<bool>, roi: Roi) -> f64 {
+    let (h, w) = mask.dim();
+    let c = Similarity::array_center(w, h);
+    let mut r2: f64 = 0.0;
+    let boxed = mask.slice(s![roi.y..roi.y + roi.height, roi.x..roi.x + roi.width]);
+    for ((y, x), &m) in boxed.indexed_iter() {
+        if m {
+            let (x, y) = ((x + roi.x) as f64, (y + roi.y) as f64);
+            r2 = r2.max((x - c[0]).powi(2) + (y - c[1]).powi(2));
+        }
+    }
+    r2.sqrt()
+}
+
+/// Rows and columns of `roi` grown by the reach of a Gaussian of `sigma_px` as
+/// `preprocess::gaussian_smooth` truncates it, plus one pixel for a central difference,
+/// clamped to the `w × h` image: inside `roi` such filters give the same values on this crop
+/// as on the whole image.
+pub(super) fn grown(roi: Roi, sigma_px: f64, w: usize, h: usize) -> (Range<usize>, Range<usize>) {
+    let reach = gaussian_reach(sigma_px);
+    (
+        roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h),
+        roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w),
+    )
+}
+
+pub(super) fn mask_roi(mask: &Array2<bool>) -> Roi {
+    let (h, w) = mask.dim();
+    match crate::sampling::mask_bounding_box(mask.view()) {
+        Some((x0, y0, x1, y1)) => Roi {
+            x: x0,
+            y: y0,
+            width: x1 - x0 + 1,
+            height: y1 - y0 + 1,
+        },
+        None => Roi {
+            x: 0,
+            y: 0,
+            width: w,
+            height: h,
+        },
+    }
+}
+
+/// Pyramid levels that keep the coarsest level at least 64 px across (at most 4).
+pub(super) fn auto_levels(extent_px: usize) -> usize {
+    let mut levels = 0;
+    let mut size = extent_px as f64;
+    while levels < 4 && size / 2.0 >= 64.0 {
+        size /= 2.0;
+        levels += 1;
+    }
+    levels
+}

@@ -1,0 +1,399 @@
+//! The reference's share of an alignment, prepared once for every frame aligned to it, and
+//! the working memory alignments share.
+
+use super::align::align_frame;
+use super::config::EngineConfig;
+use super::fine::{grown, mask_roi, Crop};
+use super::seed::Binned;
+use super::{check_usable, cleaned, geometry_check, quality, refine};
+use super::{AlignOutcome, Image, UsedGeometry};
+use crate::flow::{Farneback, Roi};
+use crate::meta::FrameMeta;
+use crate::preprocess;
+use ndarray::{s, Array2, ArrayView2, Zip};
+use std::time::Instant;
+
+/// Working memory kept from one alignment to the next: the flow solver, whose buffers
+/// (≈ 35 bytes per pixel of the crop) are the largest of an alignment. Faulting them in again
+/// for every frame costs more than the flow's arithmetic on the coarse levels, so a caller
+/// aligning many frames, against one reference or many, shares one `Workspace` between its
+/// prepared references ([`PreparedReference::sharing`]). It holds one solver; an alignment
+/// that finds it taken makes its own.
+#[derive(Default)]
+pub struct Workspace {
+    spare: std::sync::Mutex<Option<Farneback>>,
+}
+
+impl Workspace {
+    pub(super) fn take(&self) -> Option<Farneback> {
+        match self.spare.lock() {
+            Ok(mut g) => g.take(),
+            Err(poisoned) => poisoned.into_inner().take(),
+        }
+    }
+
+    pub(super) fn give(&self, solver: Farneback) {
+        match self.spare.lock() {
+            Ok(mut g) => *g = Some(solver),
+            Err(poisoned) => *poisoned.into_inner() = Some(solver),
+        }
+    }
+}
+
+impl std::fmt::Debug for Workspace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Workspace")
+    }
+}
+
+/// The reference's share of an alignment (hot-pixel cleaning, disk check, mask, window,
+/// resolution-matched copies and their high-pass), computed once and reused for every frame
+/// aligned to it: the daemon aligns many frames to one reference. `align` gives exactly what
+/// [`align_images`](super::align_images) gives.
+pub struct PreparedReference {
+    cfg: EngineConfig,
+    file: String,
+    work: Result<ReferenceWork, String>,
+    workspace: std::sync::Arc<Workspace>,
+}
+
+pub(super) struct ReferenceWork {
+    /// The header's metadata, and as checked against the image.
+    pub(super) meta: FrameMeta,
+    pub(super) reference_check: geometry_check::Checked,
+    pub(super) notes: Vec<String>,
+    pub(super) cleaned: Array2<f32>,
+    pub(super) mask: Array2<bool>,
+    /// Why the mask cannot be used (raised after the frame's own checks).
+    pub(super) mask_error: Option<String>,
+    pub(super) mask_box: Roi,
+    pub(super) winsize: usize,
+    /// Resolution-matched versions by smoothing σ (few: one per partner plate scale).
+    matched: std::sync::Mutex<Vec<std::sync::Arc<Matched>>>,
+}
+
+/// The reference smoothed to a frame's resolution, and its high-pass for the structure check.
+pub(super) struct Matched {
+    sigma_px: f64,
+    /// `None`: no smoothing (the cleaned reference itself).
+    data: Option<Array2<f32>>,
+    /// High-pass of `data` on `quality_crop`.
+    pub(super) high_pass: Array2<f32>,
+    pub(super) quality_crop: Crop,
+    /// The refinement's systematic floor on this reference (measured on first use).
+    pub(super) self_test: std::sync::OnceLock<Option<refine::SelfTest>>,
+    /// Binned copies for seed flows on large frames (made on first use).
+    pub(super) binned: std::sync::OnceLock<Binned>,
+    /// The reference as the refinement reads it (made on the first refinement).
+    pub(super) refine_reference: std::sync::OnceLock<refine::RefineReference>,
+    /// Radial power spectrum at the mask's centre, for the blur difference (first use).
+    pub(super) spectrum: std::sync::OnceLock<Option<crate::blur::RadialSpectrum>>,
+}
+
+/// At most this many resolution-matched versions are kept per reference.
+const MATCHED_CACHE: usize = 4;
+
+/// A frame's cleaned image and its own disk check, as preparing it as a reference makes them:
+/// a frame that becomes the next reference (`previous`) is not cleaned and checked twice.
+pub struct FrameWork {
+    pub(super) cleaned: Array2<f32>,
+    pub(super) check: geometry_check::Checked,
+    pub(super) notes: Vec<String>,
+    pub(super) hot_pixel_fraction: f32,
+}
+
+impl PreparedReference {
+    pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
+        PreparedReference::prepare(reference, cfg, None)
+    }
+
+    /// As [`PreparedReference::new`], reusing the work done on `reference` when it was
+    /// aligned as a frame ([`PreparedReference::align_keeping`] of this same image).
+    pub fn from_frame_work(
+        reference: &Image,
+        cfg: &EngineConfig,
+        work: FrameWork,
+    ) -> PreparedReference {
+        PreparedReference::prepare(reference, cfg, Some(work))
+    }
+
+    fn prepare(
+        reference: &Image,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> PreparedReference {
+        PreparedReference {
+            cfg: cfg.clone(),
+            file: crate::text::path(&reference.meta.file).into_owned(),
+            work: ReferenceWork::new(reference, cfg, kept),
+            workspace: Default::default(),
+        }
+    }
+
+    /// Align with `workspace`, shared with other references, instead of one of its own.
+    pub fn sharing(mut self, workspace: std::sync::Arc<Workspace>) -> PreparedReference {
+        self.workspace = workspace;
+        self
+    }
+
+    /// The configuration the reference was prepared with (and frames are aligned with).
+    pub fn config(&self) -> &EngineConfig {
+        &self.cfg
+    }
+
+    /// The reference's geometry as alignments to it use it; `None` when it cannot be used.
+    pub fn geometry(&self) -> Option<UsedGeometry> {
+        self.work.as_ref().ok().map(ReferenceWork::geometry)
+    }
+
+    /// Align `frame` to the prepared reference.
+    pub fn align(&self, frame: &Image) -> AlignOutcome {
+        self.align_with(frame, self.cfg.solar_rotation)
+    }
+
+    /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
+    pub fn align_with(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+    ) -> AlignOutcome {
+        self.align_inner(frame, profile, false).0
+    }
+
+    /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
+    /// as a reference would repeat (`None` when the alignment failed).
+    pub fn align_keeping(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        self.align_inner(frame, profile, true)
+    }
+
+    fn align_inner(
+        &self,
+        frame: &Image,
+        profile: crate::solar_rotation::Profile,
+        keep: bool,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        let started = Instant::now();
+        let cfg = EngineConfig {
+            solar_rotation: profile,
+            ..self.cfg.clone()
+        };
+        let result = match &self.work {
+            Ok(work) => align_frame(work, frame, &cfg, keep, &self.workspace),
+            Err(reason) => Err(reason.clone()),
+        };
+        let (result, kept) = match result {
+            Ok((outcome, kept)) => (Ok(outcome), kept),
+            Err(e) => (Err(e), None),
+        };
+        let mut outcome = result.unwrap_or_else(|reason| {
+            AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
+        });
+        outcome.reference_geometry = self.geometry();
+        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+        (outcome, kept)
+    }
+}
+
+impl ReferenceWork {
+    pub(super) fn geometry(&self) -> UsedGeometry {
+        let used = &self.reference_check.meta;
+        UsedGeometry {
+            plate_scale_arcsec: used.plate_scale_arcsec,
+            sun_center_px: used.sun_center_px,
+            from_disk: self.reference_check.corrected,
+        }
+    }
+
+    fn new(
+        reference: &Image,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> Result<ReferenceWork, String> {
+        let (h, w) = reference.data.dim();
+        check_usable("reference", &reference.data)?;
+        let (cleaned, reference_check, notes) = match kept {
+            Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
+                (k.cleaned, k.check, k.notes)
+            }
+            _ => {
+                let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
+                let mut notes = Vec::new();
+                let check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+                (cleaned, check, notes)
+            }
+        };
+        let (checked, disk_px) = (&reference_check.meta, reference_check.disk_px);
+
+        // Mask on the reference grid: the disk without its limb, or the whole valid field.
+        let mut mask = match disk_px {
+            Some((c, r)) => preprocess::disk_mask(w, h, c, r, cfg.mask_radius_fraction),
+            None => Array2::from_elem((h, w), true),
+        };
+        Zip::from(&mut mask)
+            .and(&cleaned)
+            .for_each(|m, v| *m = *m && v.is_finite());
+        let mask_pixels = mask.iter().filter(|m| **m).count();
+        let mask_error = (mask_pixels < 64).then(|| {
+            format!(
+                "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
+            )
+        });
+        // Filters and statistics below only matter inside the mask: run them on its bounding
+        // box plus the filter's reach (the disk covers under half of a full-disk frame).
+        let mask_box = mask_roi(&mask);
+
+        // Window sized for the plate scale, bounded by what the image's structure supports.
+        let plate = checked.plate_scale_arcsec[0].abs();
+        let structure = if mask_error.is_none() {
+            let (rows, cols) = grown(mask_box, STRUCTURE_TREND_SIGMA_PX, w, h);
+            structure_length_px(
+                cleaned.slice(s![rows.clone(), cols.clone()]),
+                mask.slice(s![rows, cols]),
+            )
+        } else {
+            None
+        };
+        let winsize = choose_window(cfg, plate, structure, disk_px.map(|d| d.1), w, h);
+        tracing::debug!(?structure, winsize, plate, "window chosen");
+        Ok(ReferenceWork {
+            meta: reference.meta.clone(),
+            reference_check,
+            notes,
+            cleaned,
+            mask,
+            mask_error,
+            mask_box,
+            winsize,
+            matched: std::sync::Mutex::new(Vec::new()),
+        })
+    }
+
+    /// The reference smoothed by `sigma_px` (cached).
+    pub(super) fn matched(&self, sigma_px: f64) -> std::sync::Arc<Matched> {
+        let sigma_px = if sigma_px > 0.0 { sigma_px } else { 0.0 };
+        let lock = || match self.matched.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some(m) = lock()
+            .iter()
+            .find(|m| m.sigma_px.to_bits() == sigma_px.to_bits())
+        {
+            return m.clone();
+        }
+        let data =
+            (sigma_px > 0.0).then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
+        let view = data.as_ref().map_or(self.cleaned.view(), |d| d.view());
+        // Structure only: the large-scale disk brightness correlates even for unrelated images.
+        let (h, w) = self.cleaned.dim();
+        let trend_px = self.trend_px();
+        let (rows, cols) = grown(self.mask_box, trend_px, w, h);
+        let high_pass = quality::high_pass(view.slice(s![rows.clone(), cols.clone()]), trend_px);
+        let made = std::sync::Arc::new(Matched {
+            sigma_px,
+            data,
+            high_pass,
+            quality_crop: Crop { rows, cols },
+            self_test: std::sync::OnceLock::new(),
+            binned: std::sync::OnceLock::new(),
+            refine_reference: std::sync::OnceLock::new(),
+            spectrum: std::sync::OnceLock::new(),
+        });
+        let mut cache = lock();
+        if cache.len() >= MATCHED_CACHE {
+            cache.remove(0);
+        }
+        cache.push(made.clone());
+        made
+    }
+
+    /// Scale of the trend removed before the structure check, px.
+    pub(super) fn trend_px(&self) -> f64 {
+        self.winsize as f64 / 4.0
+    }
+}
+
+impl Matched {
+    pub(super) fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
+        self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+}
+
+/// Gaussian σ of the trend removed in `structure_length_px`, px.
+const STRUCTURE_TREND_SIGMA_PX: f64 = 8.0;
+
+/// The averaging window in pixels (odd).
+fn choose_window(
+    cfg: &EngineConfig,
+    plate_arcsec: f64,
+    structure_px: Option<f64>,
+    disk_radius_px: Option<f64>,
+    width: usize,
+    height: usize,
+) -> usize {
+    let odd = |n: f64| -> usize {
+        let n = n.round().max(3.0) as usize;
+        if n.is_multiple_of(2) {
+            n + 1
+        } else {
+            n
+        }
+    };
+    if let Some(px) = cfg.window_px {
+        return odd(px as f64);
+    }
+    let from_arcsec = cfg
+        .window_arcsec
+        .filter(|_| plate_arcsec > 0.0 && plate_arcsec.is_finite())
+        .map(|a| a / plate_arcsec);
+    let nominal = from_arcsec
+        .or(structure_px.map(|l| l * cfg.window_structure_lengths))
+        .unwrap_or(cfg.min_window_px as f64);
+    let lo = cfg.min_window_px as f64;
+    let hi = match disk_radius_px {
+        Some(r) => r * cfg.mask_radius_fraction / 1.5,
+        None => width.min(height) as f64 / 4.0,
+    }
+    .max(lo);
+    odd(nominal.clamp(lo, hi))
+}
+
+/// Correlation length of the image's texture inside the mask, px:
+/// `ℓ = √(var(I) / var(∇I))`, exact for a Gaussian-correlated random field. The large-scale
+/// trend is removed first (a blur at 8 px would otherwise dominate var(I) on a full disk).
+fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f64> {
+    let (h, w) = img.dim();
+    if h < 8 || w < 8 {
+        return None;
+    }
+    let trend = preprocess::gaussian_smooth(img, STRUCTURE_TREND_SIGMA_PX);
+    let (mut n, mut s, mut s2, mut g2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for y in 1..h - 1 {
+        for x in 1..w - 1 {
+            if !mask[[y, x]] {
+                continue;
+            }
+            let hp = |yy: usize, xx: usize| (img[[yy, xx]] - trend[[yy, xx]]) as f64;
+            let v = hp(y, x);
+            let gx = (hp(y, x + 1) - hp(y, x - 1)) / 2.0;
+            let gy = (hp(y + 1, x) - hp(y - 1, x)) / 2.0;
+            if !(v.is_finite() && gx.is_finite() && gy.is_finite()) {
+                continue;
+            }
+            n += 1.0;
+            s += v;
+            s2 += v * v;
+            g2 += (gx * gx + gy * gy) / 2.0;
+        }
+    }
+    if n < 64.0 {
+        return None;
+    }
+    let var = s2 / n - (s / n).powi(2);
+    let grad = g2 / n;
+    (var > 0.0 && grad > 0.0).then(|| (var / grad).sqrt())
+}

@@ -1,0 +1,179 @@
+//! Seeds for the refinement: the flow stage on copies binned to a coarser pyramid level, its
+//! answer carried back to the full grid.
+
+use super::config::EngineConfig;
+use super::fine::{auto_levels, fine_alignment, grown, mask_roi, Crop, FineResult, FlowRegion};
+use super::prepared::Workspace;
+use super::{derotate, quality};
+use crate::flow::Roi;
+use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
+use crate::preprocess;
+use ndarray::{s, Array2, ArrayView2};
+
+/// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
+/// memory grow with the pixel count while the refinement only needs a start near its answer:
+/// on 4096² synthetic pairs a seed on 4× binned copies (750 px) gives the same refined answer
+/// to 2e-5 px as one at full resolution. Not less: on TRACE 1024² a seed on 2× binned copies
+/// (512 px) moves the refined dy by about 1e-4 px (2σ) — the refinement's reweighting settles
+/// on slightly different weights from a coarser start. And a seed that converged on its level,
+/// not one pass: on undersampled images the refinement's answer depends on its start (AIA 171
+/// 128²: 40″ rotation RMSE from a one-pass seed, 9″ from the converged flow).
+pub(super) const SEED_EXTENT_PX: usize = 700;
+
+/// How far a seed on `level` may be from the full-resolution flow, px: the RMS flow error of
+/// a level-1 finish on TRACE 1024² warps is 0.05–0.06 px (0 at full resolution).
+pub(super) fn seed_slack_px(level: usize) -> f64 {
+    0.05 * ((1usize << level.min(16)) - 1) as f64
+}
+
+/// The pyramid level a seed flow works on: where the mask spans at least
+/// `cfg.seed_extent_px` (64 at the least), within the pyramid the flow would build.
+pub(super) fn seed_level(roi: Roi, cfg: &EngineConfig) -> usize {
+    let extent = roi.width.min(roi.height);
+    let levels = cfg.pyramid_levels.unwrap_or_else(|| auto_levels(extent));
+    let mut level = 0;
+    while level < levels && (extent >> (level + 1)) >= cfg.seed_extent_px.max(64) {
+        level += 1;
+    }
+    level
+}
+
+/// The reference and its mask binned `2^level`× for seed flows.
+pub(super) struct Binned {
+    level: usize,
+    pub(super) reference: Array2<f32>,
+    pub(super) mask: Array2<bool>,
+    pub(super) mask_box: Roi,
+    /// High-pass of `reference` on `quality_crop`, as `Matched` has for the full grid.
+    pub(super) high_pass: Array2<f32>,
+    pub(super) quality_crop: Crop,
+}
+
+impl Binned {
+    pub(super) fn new(
+        reference: ArrayView2<f32>,
+        mask: &Array2<bool>,
+        level: usize,
+        trend_px: f64,
+    ) -> Binned {
+        let factor = 1usize << level;
+        let inside = preprocess::bin_mean(mask.mapv(|m| m as u8 as f32).view(), factor);
+        let reference = preprocess::bin_mean(reference, factor);
+        // A binned pixel is in the mask when all its pixels are.
+        let mask = inside.mapv(|v| v >= 1.0);
+        let mask_box = mask_roi(&mask);
+        let (h, w) = reference.dim();
+        let (rows, cols) = grown(mask_box, trend_px, w, h);
+        let high_pass =
+            quality::high_pass(reference.slice(s![rows.clone(), cols.clone()]), trend_px);
+        Binned {
+            level,
+            reference,
+            mask,
+            mask_box,
+            high_pass,
+            quality_crop: Crop { rows, cols },
+        }
+    }
+}
+
+/// The flow stage on `binned` copies, as a seed for the refinement: the result in full-grid
+/// terms (transform, covariances, inliers, sampling mask), without a warped frame.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn seed_alignment(
+    binned: &Binned,
+    grid: (usize, usize),
+    frame: &Array2<f32>,
+    coarse: Similarity,
+    winsize: usize,
+    frame_smoothing_px: f64,
+    carried: Option<&derotate::Carried>,
+    cfg: &EngineConfig,
+    workspace: &Workspace,
+) -> Result<FineResult, String> {
+    let factor = 1usize << binned.level;
+    let b = factor as f64;
+    // The reference's grid (the frame may be of another size).
+    let (h, w) = grid;
+    let (sh, sw) = binned.reference.dim();
+    // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
+    let to_full = |q: f64| b * (q + 0.5) - 0.5;
+    let small_center = Similarity::array_center(sw, sh);
+    let full_center = Similarity::array_center(w, h);
+    // A similarity about centre C with shift d is, on the binned grid, the same scale and
+    // rotation about the binned C with shift d/b.
+    let about = [to_full(small_center[0]), to_full(small_center[1])];
+    let c = coarse.recentered(about);
+    let coarse_small = Similarity {
+        dx: c.dx / b,
+        dy: c.dy / b,
+        center: small_center,
+        ..c
+    };
+    let small_frame = preprocess::bin_mean(frame.view(), factor);
+    // Converged when the update is a tenth of the seed's own slack (in binned pixels).
+    let seed_cfg = EngineConfig {
+        convergence_px: cfg
+            .convergence_px
+            .max(0.1 * seed_slack_px(binned.level) / b),
+        ..cfg.clone()
+    };
+    let mut fine = fine_alignment(
+        binned.reference.view(),
+        &small_frame,
+        // Seeds run only within one channel, where the limb is common structure.
+        FlowRegion {
+            mask: &binned.mask,
+            sample_within: None,
+        },
+        coarse_small,
+        winsize,
+        frame_smoothing_px / b,
+        seed_cfg.max_passes,
+        carried.map(|c| c.binned(factor)).as_ref(),
+        &seed_cfg,
+        workspace,
+    )
+    .map_err(|e| e.to_string())?;
+    let unbinned = |t: &Similarity, cov: &Covariance4| -> (Similarity, Covariance4) {
+        let t_about = Similarity {
+            dx: t.dx * b,
+            dy: t.dy * b,
+            center: [to_full(t.center[0]), to_full(t.center[1])],
+            ..*t
+        };
+        let d = [1.0, 1.0, b, b];
+        let cov_about: Covariance4 =
+            std::array::from_fn(|i| std::array::from_fn(|j| cov[i][j] * d[i] * d[j]));
+        let zero = [[0.0; 4]; 4];
+        compose_with_covariance(
+            &t_about,
+            &cov_about,
+            &Similarity::identity(full_center),
+            &zero,
+        )
+    };
+    let (transform, covariance) = unbinned(&fine.transform, &fine.covariance);
+    let (_, uabjm_covariance) = unbinned(&fine.transform, &fine.uabjm_covariance);
+    fine.transform = transform;
+    fine.covariance = covariance;
+    fine.uabjm_covariance = uabjm_covariance;
+    fine.fit.residual_rms_px *= b;
+    for p in &mut fine.inliers {
+        p.x = to_full(p.x);
+        p.y = to_full(p.y);
+        p.u *= b;
+        p.v *= b;
+    }
+    // Binned pixel q covers full pixels b·q … b·q + b − 1.
+    fine.sample_box = fine.sample_box.map(|(x0, y0, x1, y1)| {
+        (
+            x0 * factor,
+            y0 * factor,
+            (x1 * factor + factor - 1).min(w - 1),
+            (y1 * factor + factor - 1).min(h - 1),
+        )
+    });
+    fine.seed_level = Some(binned.level);
+    Ok(fine)
+}
