@@ -716,18 +716,23 @@ fn align_inner(
                 let blur = blur_of(fine);
                 tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
                 refine::apply(
-                    &mut fine.transform,
-                    &mut fine.covariance,
-                    ref_matched,
-                    prepared,
-                    frame_data.view(),
-                    mask,
-                    fine.sample_box,
-                    &fine.inliers,
-                    sig_frame,
-                    blur,
-                    fine.seed_level.map_or(0.0, seed_slack_px),
-                    carried,
+                    refine::FlowAnswer {
+                        transform: &mut fine.transform,
+                        covariance: &mut fine.covariance,
+                        sample_box: fine.sample_box,
+                        inliers: &fine.inliers,
+                        slack_px: fine.seed_level.map_or(0.0, seed_slack_px),
+                    },
+                    &refine::RefineInputs {
+                        reference: ref_matched,
+                        prepared,
+                        frame: frame_data.view(),
+                        mask,
+                        frame_smoothing_px: sig_frame,
+                        blur,
+                        carried,
+                        cfg,
+                    },
                     |settings| {
                         *matched.self_test.get_or_init(|| {
                             refine::self_test_floor(
@@ -739,7 +744,6 @@ fn align_inner(
                             )
                         })
                     },
-                    cfg,
                 )
             };
             let mut outcome = try_refine(&mut fine);
