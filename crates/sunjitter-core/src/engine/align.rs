@@ -407,18 +407,23 @@ impl<'a> Stages<'a> {
         let blur = self.blur_of(fine);
         tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
         refine::apply(
-            &mut fine.transform,
-            &mut fine.covariance,
-            self.reference(),
-            prepared,
-            self.pair.frame_data.view(),
-            &work.mask,
-            fine.sample_box,
-            &fine.inliers,
-            self.sig_frame,
-            blur,
-            fine.seed_level.map_or(0.0, seed_slack_px),
-            self.carried,
+            refine::FlowAnswer {
+                transform: &mut fine.transform,
+                covariance: &mut fine.covariance,
+                sample_box: fine.sample_box,
+                inliers: &fine.inliers,
+                slack_px: fine.seed_level.map_or(0.0, seed_slack_px),
+            },
+            &refine::RefineInputs {
+                reference: self.reference(),
+                prepared,
+                frame: self.pair.frame_data.view(),
+                mask: &work.mask,
+                frame_smoothing_px: self.sig_frame,
+                blur,
+                carried: self.carried,
+                cfg,
+            },
             |settings| {
                 *self.matched.self_test.get_or_init(|| {
                     refine::self_test_floor(
@@ -430,7 +435,6 @@ impl<'a> Stages<'a> {
                     )
                 })
             },
-            cfg,
         )
     }
 

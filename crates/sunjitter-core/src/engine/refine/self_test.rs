@@ -1,0 +1,286 @@
+//! The method's systematic error on a reference, measured on synthetic frames made from it.
+
+use super::pixels::{bounding_box, lattice_pixels, pixel_box, CellGrid};
+use super::reference::RefineReference;
+use super::window::{mapped_window, window_margin, FrameWindow, WindowTile};
+use super::{refine, RefineSettings, MAX_PIXELS, MODEL};
+use crate::geometry::Similarity;
+use crate::resample::{HighOrderSpline, SplineImage};
+use ndarray::{s, Array2, ArrayView2};
+use rayon::prelude::*;
+
+/// What the self-test measured on a reference.
+#[derive(Debug, Clone, Copy)]
+pub struct SelfTest {
+    /// The systematic floor per parameter (scale, rotation rad, dx, dy).
+    pub floor: [f64; 4],
+    /// RMS over the cases of the residuals' robust σ at the flattest pixels: the level the
+    /// model's misfit alone leaves there, without noise.
+    pub flat_sigma: Option<f64>,
+}
+
+/// One self-test case: the error it made, and the (cluster-robust) variance it reported.
+pub(super) struct SelfTestCase {
+    pub(super) bias: [f64; 4],
+    pub(super) variance: [f64; 4],
+    /// Robust σ of its residuals at the flattest pixels: the model's misfit alone.
+    pub(super) flat_sigma: Option<f64>,
+}
+
+/// The method's systematic floor for a reference: per parameter, the RMS of the self-test
+/// errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
+/// `mask`, beyond the σ those refinements reported themselves (quadratic excess). The error
+/// depends on the sub-pixel positions the pixels land on, so the cases spread the shift over
+/// the unit square and rotate and scale the lever arm by a fraction of a
+/// pixel (which varies the positions across the image); their RMS is the typical error of a
+/// frame, whatever its own transform. `None` when a case fails.
+pub fn self_test_floor(
+    reference: ArrayView2<f32>,
+    prepared: &RefineReference,
+    mask: &Array2<bool>,
+    sample: usize,
+    settings: &RefineSettings,
+) -> Option<SelfTest> {
+    let (h, w) = reference.dim();
+    let grid = CellGrid::new(mask.view(), sample)?;
+    let usable = |x: usize, y: usize| mask[[y, x]] && reference[[y, x]].is_finite();
+    let tiles = self_test_tiles(mask);
+    let (pixels, boxes) = if tiles.is_empty() {
+        let pixels = lattice_pixels((h, w), usable, &grid, MAX_PIXELS, |_| true);
+        let whole = pixel_box(&pixels)?;
+        (pixels, vec![whole])
+    } else {
+        // Every pixel of every tile, tile by tile (the order the sampling reads them in).
+        let pixels = tiles
+            .par_iter()
+            .flat_map_iter(|&(x0, y0, x1, y1)| {
+                let (usable, grid) = (&usable, &grid);
+                (y0..=y1).flat_map(move |y| {
+                    (x0..=x1).filter_map(move |x| {
+                        usable(x, y)
+                            .then(|| grid.cell_of(x, y).map(|c| (x, y, c)))
+                            .flatten()
+                    })
+                })
+            })
+            .collect();
+        (pixels, tiles)
+    };
+    if pixels.is_empty() {
+        return None;
+    }
+    let center = Similarity::array_center(w, h);
+    let lever = (pixels
+        .iter()
+        .map(|&(x, y, _)| (x as f64 - center[0]).powi(2) + (y as f64 - center[1]).powi(2))
+        .sum::<f64>()
+        / pixels.len() as f64)
+        .sqrt()
+        .max(1.0);
+    let settings = RefineSettings {
+        frame_smoothing_px: 0.0,
+        ..*settings
+    };
+    // More cases where they are cheap: the RMS of four is uncertain by about ±35 %, and on
+    // small undersampled images the error varies strongly with the sub-pixel position.
+    let cases = (SELF_TEST_PIXEL_BUDGET / pixels.len().max(1)).clamp(4, 16);
+    let cases = if boxes.len() > 1 { 4 } else { cases };
+    let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
+    let mut flat = Vec::with_capacity(cases);
+    for case in 0..cases {
+        let (dx, dy, turn_px, stretch_px) = self_test_case(case);
+        let t = Similarity {
+            scale: 1.0 + stretch_px / lever,
+            rotation_rad: turn_px / lever,
+            dx,
+            dy,
+            center,
+        };
+        let test = self_test_bias(
+            reference,
+            prepared,
+            &pixels,
+            &boxes,
+            &grid,
+            &t,
+            &settings,
+            FrameMaker::Model,
+        )?;
+        tracing::trace!(case, bias = ?test.bias, "self-test case");
+        for k in 0..4 {
+            sum[k] += test.bias[k] * test.bias[k];
+            seen[k] += test.variance[k];
+        }
+        flat.extend(test.flat_sigma);
+    }
+    // Only the error the residuals do not already show: without noise the cluster covariance
+    // is made of these same interpolation residuals, and counting both overstates the σ
+    // (TRACE 1024², no noise: 86–95 % of trials within 1σ).
+    Some(SelfTest {
+        floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()),
+        flat_sigma: (!flat.is_empty())
+            .then(|| (flat.iter().map(|s| s * s).sum::<f64>() / flat.len() as f64).sqrt()),
+    })
+}
+
+/// Tiles (inclusive boxes) of the self-test on a large mask: a 5 × 5 layout over the mask's
+/// bounding box, the tiles wholly inside the mask kept, [`SELF_TEST_TILE_PIXELS`] in all.
+/// Tiles keep the lever arm of the whole mask and every sub-pixel position while the
+/// synthetic frames are made only where the refinement reads them. Empty when the mask is
+/// small enough to be tested whole.
+pub(super) fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, usize)> {
+    const LAYOUT: usize = 5;
+    let Some(roi) = bounding_box(mask) else {
+        return Vec::new();
+    };
+    let (x0, y0, x1, y1) = roi;
+    let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
+    if bw * bh < SELF_TEST_TILED_ABOVE {
+        return Vec::new();
+    }
+    let side = ((SELF_TEST_TILE_PIXELS / (LAYOUT * LAYOUT - 4)) as f64).sqrt() as usize;
+    let side = side.min(bw / LAYOUT).min(bh / LAYOUT);
+    let tiles: Vec<_> = (0..LAYOUT * LAYOUT)
+        .map(|k| {
+            let centre = |i: usize, n: usize, at: usize| at + ((2 * i + 1) * n) / (2 * LAYOUT);
+            let (cx, cy) = (centre(k % LAYOUT, bw, x0), centre(k / LAYOUT, bh, y0));
+            (
+                cx - side / 2,
+                cy - side / 2,
+                cx - side / 2 + side - 1,
+                cy - side / 2 + side - 1,
+            )
+        })
+        .filter(|&(tx0, ty0, tx1, ty1)| mask.slice(s![ty0..=ty1, tx0..=tx1]).iter().all(|&m| m))
+        .collect();
+    // Too few tiles inside (a ring-shaped or ragged mask): test the whole mask.
+    if tiles.len() < LAYOUT * LAYOUT / 2 {
+        return Vec::new();
+    }
+    tiles
+}
+
+/// Mask bounding-box area above which the self-test runs on tiles, px.
+pub(super) const SELF_TEST_TILED_ABOVE: usize = 2000 * 2000;
+
+/// Pixels in all the self-test's tiles.
+pub(super) const SELF_TEST_TILE_PIXELS: usize = 1 << 18;
+
+/// Pixels (summed over the cases) the self-test may refine on a whole mask: 4 cases at 2²⁰
+/// pixels, up to 16 on smaller images (on tiles, always 4).
+pub(super) const SELF_TEST_PIXEL_BUDGET: usize = 4 << 20;
+
+/// The `k`-th self-test transform: (dx, dy, rotation and scale change as a motion of the
+/// lever arm), px. Shifts follow the R2 low-discrepancy sequence over the unit square; the
+/// turn and stretch are ±0.3–0.5 px with alternating signs.
+pub(super) fn self_test_case(k: usize) -> (f64, f64, f64, f64) {
+    // R2: fractional parts of k·(1/g, 1/g²), g the plastic number.
+    const G: f64 = 1.324_717_957_244_746;
+    let n = k as f64 + 1.0;
+    let (dx, dy) = ((0.5 + n / G).fract(), (0.5 + n / (G * G)).fract());
+    let sign = |b: bool| if b { 1.0 } else { -1.0 };
+    let turn = sign(k.is_multiple_of(2)) * (0.3 + 0.2 * ((k / 2) % 2) as f64);
+    let stretch = sign(k % 4 < 2) * (0.5 - 0.2 * ((k / 2) % 2) as f64);
+    (dx, dy, turn, stretch)
+}
+
+/// How a self-test makes its synthetic frame from the reference.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum FrameMaker {
+    /// The refinement's own interpolator: what is left is the method's error on frames it
+    /// can model exactly (double interpolation, f32, the weights).
+    Model,
+    /// A cubic spline, one order below the model: a real frame is a new sampling of the sky,
+    /// not the model's resampling of the reference, and the two differ in how they move
+    /// structure near the Nyquist frequency. Band-limited frames sit on the model's other
+    /// side, about a third as far (TRACE: a Fourier shift's error 2e-4 px, a cubic spline's
+    /// 7e-4), so the cubic frame's error bounds theirs; and frames that were made by cubic
+    /// resampling (scipy's default) are covered exactly.
+    CubicSpline,
+}
+
+/// The method's systematic error for this image and transform, measured: a frame made from
+/// the reference itself through `transform` (by `maker`) is refined from the exact answer,
+/// and what the refinement reports instead is its bias (interpolation of sharp or
+/// undersampled structure, mostly), with the variance it reported.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn self_test_bias(
+    reference: ArrayView2<f32>,
+    prepared: &RefineReference,
+    pixels: &[(usize, usize, usize)],
+    boxes: &[(usize, usize, usize, usize)],
+    grid: &CellGrid,
+    transform: &Similarity,
+    settings: &RefineSettings,
+    maker: FrameMaker,
+) -> Option<SelfTestCase> {
+    let tiles = boxes
+        .par_iter()
+        .map(|&bbox| synthetic_tile(reference, bbox, transform, settings, maker))
+        .collect::<Option<Vec<_>>>()?;
+    let window = FrameWindow {
+        tiles,
+        carried: None,
+    };
+    let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
+    let (a, b) = (transform.params(), test.transform.params());
+    let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
+    let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);
+    let flat_sigma = test.flat_residual_sigma;
+    (bias.iter().chain(&variance).all(|v| v.is_finite())).then_some(SelfTestCase {
+        bias,
+        variance,
+        flat_sigma,
+    })
+}
+
+/// The synthetic frame (the reference moved by `transform`, by `maker`) on the window that
+/// the reference pixels in `bbox` map into.
+pub(super) fn synthetic_tile(
+    reference: ArrayView2<f32>,
+    bbox: (usize, usize, usize, usize),
+    transform: &Similarity,
+    settings: &RefineSettings,
+    maker: FrameMaker,
+) -> Option<WindowTile> {
+    let (h, w) = reference.dim();
+    // The synthetic frame is only needed on the window the refinement reads; it is made
+    // there from the spline of the part of the reference that the window maps back to.
+    let sigma = settings.smoothing_px;
+    // The synthetic frame's own smoothing: a blur mismatch, for the blur check.
+    let frame_sigma = sigma.hypot(settings.frame_smoothing_px);
+    let (wx0, wy0, wx1, wy1) = mapped_window(bbox, transform, window_margin(frame_sigma), w, h)?;
+    let back = mapped_window(
+        (wx0, wy0, wx1, wy1),
+        &transform.inverse(),
+        // The model's support (3 px) and border transient (0.431^17 < 1e-6).
+        window_margin(0.0),
+        w,
+        h,
+    )?;
+    let (sx0, sy0, sx1, sy1) = back;
+    let source = reference.slice(s![sy0..=sy1, sx0..=sx1]);
+    let inverse = transform.inverse();
+    let to_source = Similarity {
+        dx: inverse.dx - sx0 as f64,
+        dy: inverse.dy - sy0 as f64,
+        ..inverse
+    };
+    let (ww, wh) = (wx1 - wx0 + 1, wy1 - wy0 + 1);
+    let synthetic = match maker {
+        FrameMaker::Model => {
+            HighOrderSpline::new(source, MODEL).warp_similarity_window(&to_source, wx0, wy0, ww, wh)
+        }
+        FrameMaker::CubicSpline => {
+            SplineImage::new(source).warp_similarity_window(&to_source, wx0, wy0, ww, wh)
+        }
+    };
+    Some(WindowTile {
+        spline: HighOrderSpline::new(
+            crate::preprocess::gaussian_smooth(synthetic.view(), frame_sigma).view(),
+            MODEL,
+        ),
+        origin: [wx0 as f64, wy0 as f64],
+        end: [wx1 as f64, wy1 as f64],
+    })
+}
