@@ -1,0 +1,164 @@
+//! The reading entry points and the limits on what a file may claim.
+
+use super::cube::FrameClock;
+use super::gzip::PlainFile;
+use super::layout::scan;
+use super::pixels::read_pixels;
+use super::spec::FrameSpec;
+use std::path::Path;
+use sunjitter_core::engine::Image;
+use sunjitter_core::header::{Header, ImageGeometry};
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_core::{Error, Result};
+
+/// Read one image (or one frame of a cube) as f32, with its metadata.
+pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
+    read_frame_with(spec, &ReadLimits::default())
+}
+
+/// [`read_frame`] with other limits on what the file may claim.
+pub fn read_frame_with(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
+    let plain = PlainFile::of(&spec.path, limits)?;
+    let mut image = plain.read(|path| {
+        read_plain_frame(
+            &FrameSpec {
+                path: path.to_path_buf(),
+                frame: spec.frame,
+            },
+            limits,
+        )
+    })?;
+    image.meta.file = spec.path.clone();
+    Ok(image)
+}
+
+fn read_plain_frame(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
+    let path = spec.path.as_path();
+    let layout = scan(path)?;
+    let hdu = layout.image_hdu(path)?;
+    let geometry = hdu.geometry();
+    limits.check(path, geometry)?;
+    let frame = resolve_frame(path, geometry, spec.frame)?;
+    let mut meta = layout.base_meta(path, hdu)?;
+    meta.frame = frame;
+    if let Some(i) = frame {
+        let clock = FrameClock::of(&layout, hdu, path);
+        clock.apply(&mut meta, &layout.merged_header(hdu), i, geometry.frames());
+    }
+    let data = read_pixels(path, hdu, frame.unwrap_or(0))?;
+    Ok(Image { data, meta })
+}
+
+/// Metadata of every image (every frame of a cube) in a file.
+pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
+    // No pixels are read: any size may be described.
+    read_meta_with(
+        path,
+        &ReadLimits {
+            max_frame_pixels: u64::MAX,
+        },
+    )
+}
+
+/// [`read_meta`] with other limits on what the file may claim.
+pub fn read_meta_with(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
+    let plain = PlainFile::of(path, limits)?;
+    let mut metas = plain.read(|plain| read_plain_meta(plain, limits))?;
+    metas.iter_mut().for_each(|m| m.file = path.to_path_buf());
+    Ok(metas)
+}
+
+fn read_plain_meta(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
+    let layout = scan(path)?;
+    let hdu = layout.image_hdu(path)?;
+    let geometry = hdu.geometry();
+    limits.check(path, geometry)?;
+    let base = layout.base_meta(path, hdu)?;
+    if !geometry.is_cube() {
+        return Ok(vec![base]);
+    }
+    let clock = FrameClock::of(&layout, hdu, path);
+    clock.warn_if_resampled(path, geometry.frames());
+    let header = layout.merged_header(hdu);
+    Ok((0..geometry.frames())
+        .map(|i| {
+            let mut m = base.clone();
+            m.frame = Some(i);
+            clock.apply(&mut m, &header, i, geometry.frames());
+            m
+        })
+        .collect())
+}
+
+/// The header of the HDU holding the image (with primary cards merged in when `INHERIT = T`),
+/// and that HDU's index. For tools that copy a file's header (e.g. splitting a cube).
+pub fn read_image_header(path: &Path) -> Result<(usize, Header)> {
+    PlainFile::of(path, &ReadLimits::default())?.read(read_plain_image_header)
+}
+
+fn read_plain_image_header(path: &Path) -> Result<(usize, Header)> {
+    let layout = scan(path)?;
+    let hdu = layout.image_hdu(path)?;
+    Ok((hdu.index, layout.merged_header(hdu)))
+}
+
+/// Which frame to read: none for a 2-D image, an index for a cube (a one-frame cube needs none).
+fn resolve_frame(path: &Path, g: &ImageGeometry, asked: Option<usize>) -> Result<Option<usize>> {
+    match (g.is_cube(), asked) {
+        (false, None) | (false, Some(0)) => Ok(None),
+        (false, Some(n)) => Err(Error::bad_input(
+            path,
+            format!("is a 2-D image; it has no frame {n}"),
+        )),
+        (true, None) if g.frames() == 1 => Ok(Some(0)),
+        (true, None) => Err(Error::bad_input(
+            path,
+            format!("is a cube of {} frames: name one as FILE[N]", g.frames()),
+        )),
+        (true, Some(n)) if n < g.frames() => Ok(Some(n)),
+        (true, Some(n)) => Err(Error::bad_input(
+            path,
+            format!(
+                "frame {n} does not exist (the cube has frames 0 to {})",
+                g.frames() - 1
+            ),
+        )),
+    }
+}
+
+/// What a file may claim before its pixels are read: a header is free to announce any size,
+/// and a sparse file occupies nothing on disk whatever length it reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReadLimits {
+    /// Pixels in one image (one frame of a cube).
+    pub max_frame_pixels: u64,
+}
+
+/// Admits any frame of today's solar imagers (4096² and their cubes) with margin: 8192².
+pub const DEFAULT_MAX_FRAME_PIXELS: u64 = 8192 * 8192;
+
+impl Default for ReadLimits {
+    fn default() -> Self {
+        ReadLimits {
+            max_frame_pixels: DEFAULT_MAX_FRAME_PIXELS,
+        }
+    }
+}
+
+impl ReadLimits {
+    pub(super) fn check(&self, path: &Path, g: &ImageGeometry) -> Result<()> {
+        let pixels = g.width() as u64 * g.height() as u64;
+        if pixels > self.max_frame_pixels {
+            return Err(Error::bad_input(
+                path,
+                format!(
+                    "the header announces {}×{} = {pixels} pixels per image, more than the limit of {} (`[daemon] max_frame_pixels`)",
+                    g.width(),
+                    g.height(),
+                    self.max_frame_pixels
+                ),
+            ));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,203 @@
+//! The production reader and aligner: FITS files, and the engine with a cache of prepared
+//! references.
+
+use crate::config::Config;
+use crate::ports::{Aligner, FrameReader};
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use sunjitter_core::engine::{
+    AlignOutcome, EngineConfig, FrameWork, Image, PreparedReference, Workspace,
+};
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_core::Result;
+use sunjitter_io::fits::FrameSpec;
+
+/// The FITS reader, with the configured limits on what a file may claim.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FitsReader {
+    pub limits: sunjitter_io::fits::ReadLimits,
+}
+
+impl FitsReader {
+    pub fn from_config(config: &Config) -> FitsReader {
+        FitsReader {
+            limits: sunjitter_io::fits::ReadLimits {
+                max_frame_pixels: config.daemon.max_frame_pixels,
+            },
+        }
+    }
+}
+
+impl FrameReader for FitsReader {
+    fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
+        sunjitter_io::fits::read_meta_with(path, &self.limits)
+    }
+    fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
+        sunjitter_io::fits::read_frame_with(spec, &self.limits)
+    }
+}
+
+/// The alignment engine. Keeps the last few prepared references (cleaned image, mask,
+/// window, …), so a reference used for many frames is prepared once.
+pub struct EngineAligner {
+    config: EngineConfig,
+    rotation: ChannelRotation,
+    prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
+    /// Each channel's last aligned frame, cleaned and disk-checked: under `previous` it is the
+    /// next reference.
+    last_frames: Mutex<Vec<(String, ReferenceKey, FrameWork)>>,
+    /// The flow solver's memory, shared by every reference prepared here.
+    workspace: Arc<Workspace>,
+}
+
+/// At most this many prepared references are kept (a 4096² one holds ≈ 150 MB): enough for
+/// a few channels processed at once.
+const PREPARED_REFERENCES: usize = 3;
+
+/// Identifies a reference image in memory: the same `Image` allocation with the same pixel
+/// buffer, file and a sample of its pixels (so a freed image whose addresses are reused by
+/// another is not mistaken for it).
+#[derive(Debug, Clone, PartialEq)]
+struct ReferenceKey {
+    image: usize,
+    pixels: usize,
+    shape: (usize, usize),
+    file: std::path::PathBuf,
+    sample: Vec<u32>,
+}
+
+impl ReferenceKey {
+    fn of(image: &Image) -> ReferenceKey {
+        let data = &image.data;
+        let n = data.len();
+        let step = (n / 61).max(1);
+        ReferenceKey {
+            image: image as *const Image as usize,
+            pixels: data.as_ptr() as usize,
+            shape: data.dim(),
+            file: image.meta.file.clone(),
+            sample: match data.as_slice_memory_order() {
+                Some(all) => all.iter().step_by(step).map(|v| v.to_bits()).collect(),
+                None => data.iter().step_by(step).map(|v| v.to_bits()).collect(),
+            },
+        }
+    }
+}
+
+impl EngineAligner {
+    pub fn new(config: EngineConfig) -> EngineAligner {
+        EngineAligner {
+            config,
+            rotation: Default::default(),
+            prepared: Mutex::new(Vec::new()),
+            last_frames: Mutex::new(Vec::new()),
+            workspace: Default::default(),
+        }
+    }
+
+    /// The whole configuration's engine, with each channel's own solar rotation profile.
+    pub fn from_config(config: &crate::config::Config) -> EngineAligner {
+        EngineAligner {
+            rotation: ChannelRotation {
+                by_channel: config.channel_rotation(),
+                names: config.channel_names.clone(),
+            },
+            ..EngineAligner::new(config.engine.clone())
+        }
+    }
+
+    pub fn config(&self) -> &EngineConfig {
+        &self.config
+    }
+
+    /// The prepared reference for `reference`, from the cache or made now.
+    fn prepared(&self, reference: &Image) -> Arc<PreparedReference> {
+        let key = ReferenceKey::of(reference);
+        let lock = || match self.prepared.lock() {
+            Ok(g) => g,
+            Err(poisoned) => poisoned.into_inner(),
+        };
+        if let Some((_, p)) = lock().iter().find(|(k, _)| *k == key) {
+            return p.clone();
+        }
+        let kept = {
+            let mut last = match self.last_frames.lock() {
+                Ok(g) => g,
+                Err(poisoned) => poisoned.into_inner(),
+            };
+            let at = last.iter().position(|(_, k, _)| *k == key);
+            at.map(|i| last.swap_remove(i).2)
+        };
+        // Prepared outside the lock: other channels keep aligning meanwhile.
+        let made = Arc::new(
+            match kept {
+                Some(work) => PreparedReference::from_frame_work(reference, &self.config, work),
+                None => PreparedReference::new(reference, &self.config),
+            }
+            .sharing(self.workspace.clone()),
+        );
+        let mut cache = lock();
+        if cache.len() >= PREPARED_REFERENCES {
+            cache.remove(0);
+        }
+        cache.push((key, made.clone()));
+        made
+    }
+}
+
+impl Default for EngineAligner {
+    fn default() -> Self {
+        EngineAligner::new(EngineConfig::default())
+    }
+}
+
+impl std::fmt::Debug for EngineAligner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EngineAligner")
+            .field("config", &self.config)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Aligner for EngineAligner {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        let channel = &frame.meta.channel;
+        let name = self.rotation.names.get(channel).unwrap_or(channel);
+        let profile = self.rotation.by_channel.get(name).copied();
+        let (outcome, kept) = self
+            .prepared(reference)
+            .align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
+        if let Some(work) = kept {
+            let mut last = match self.last_frames.lock() {
+                Ok(g) => g,
+                Err(poisoned) => poisoned.into_inner(),
+            };
+            last.retain(|(c, _, _)| c != channel);
+            last.push((channel.clone(), ReferenceKey::of(frame), work));
+        }
+        outcome
+    }
+
+    fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
+        sunjitter_core::engine::usable_as_reference(image)
+    }
+
+    fn plate_scale_used(&self, image: &Image) -> Option<[f64; 2]> {
+        self.prepared(image)
+            .geometry()
+            .map(|g| g.plate_scale_arcsec)
+            .or(Some(image.meta.plate_scale_arcsec))
+    }
+
+    fn geometry_used(&self, image: &Image) -> Option<sunjitter_core::engine::UsedGeometry> {
+        self.prepared(image).geometry()
+    }
+}
+
+/// Channels whose solar rotation profile is their own, by topic name, and the header
+/// channel → topic name map that finds them.
+#[derive(Debug, Default)]
+struct ChannelRotation {
+    by_channel: std::collections::BTreeMap<String, sunjitter_core::solar_rotation::Profile>,
+    names: std::collections::BTreeMap<String, String>,
+}
