@@ -168,11 +168,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
                     records.extend(product_note);
                 }
                 Err(panic) => {
-                    let what = panic
-                        .downcast_ref::<&str>()
-                        .map(|s| s.to_string())
-                        .or_else(|| panic.downcast_ref::<String>().cloned())
-                        .unwrap_or_else(|| "unknown".into());
+                    let what = sunjitter_core::text::panic_message(panic.as_ref());
                     tracing::error!(frame = %item.key, "internal error while aligning: {what}");
                     records.push(Record::log(
                         LogLevel::Error,

@@ -262,7 +262,10 @@ mod tests {
         let refs: Vec<&str> = f.iter().map(|m| m.align.reference.as_str()).collect();
         assert_eq!(refs, [&keys[&10], &keys[&20], &keys[&20], &keys[&30]]);
         for m in &f {
-            assert_eq!(m.reference_kind, "channel");
+            assert_eq!(
+                m.reference_kind,
+                sunjitter_core::record::ReferenceKind::Channel
+            );
             // Partner chain (dx = t_p) then partner → frame (dx = t_f − t_p): dx = t_f; dy = 1.
             let t = parse_iso8601_utc(&m.obs_time).unwrap() / S;
             assert!((m.chained_dx_px.unwrap() - t as f64).abs() < 1e-9);
