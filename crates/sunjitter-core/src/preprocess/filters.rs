@@ -1,0 +1,264 @@
+//! Smoothing and binning: NaN-aware Gaussians (full and trend), block means, bilinear reads.
+
+use ndarray::{Array2, ArrayView2, Axis, Zip};
+use rayon::prelude::*;
+
+/// Separable Gaussian smoothing with σ in pixels, NaN-aware (normalised convolution:
+/// non-finite pixels and the outside of the image carry no weight; they stay NaN).
+/// The kernel is truncated at `round(4σ)` like `scipy.ndimage.gaussian_filter`, whose
+/// numbers it reproduces away from NaNs and borders.
+pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
+    if sigma_px.is_nan() || sigma_px <= 0.0 || !sigma_px.is_finite() {
+        return img.to_owned();
+    }
+    let radius = (4.0 * sigma_px + 0.5) as usize;
+    let mut kernel: Vec<f32> = (0..=2 * radius)
+        .map(|i| {
+            let d = i as f64 - radius as f64;
+            (-0.5 * d * d / (sigma_px * sigma_px)).exp() as f32
+        })
+        .collect();
+    let total: f32 = kernel.iter().sum();
+    kernel.iter_mut().for_each(|k| *k /= total);
+    let (h, w) = img.dim();
+    let has_nan = !crate::stats::all_finite(img);
+    let values = Zip::from(&img).par_map_collect(|&v| if v.is_finite() { v } else { 0.0 });
+    let mut out = convolve_columns(&convolve_rows(&values, &kernel), &kernel);
+    if has_nan {
+        let weights = img.mapv(|v| if v.is_finite() { 1.0f32 } else { 0.0 });
+        let den = convolve_columns(&convolve_rows(&weights, &kernel), &kernel);
+        Zip::from(&mut out)
+            .and(&den)
+            .and(&img)
+            .for_each(|o, &d, &v| {
+                *o = if v.is_finite() && d > 0.0 {
+                    *o / d
+                } else {
+                    f32::NAN
+                };
+            });
+    } else {
+        // Without NaNs the weight plane is the outer product of the 1-D edge sums.
+        let edge_sum = |n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| {
+                    let lo = radius.saturating_sub(i);
+                    let hi = (radius + n - 1 - i).min(2 * radius);
+                    kernel[lo..=hi].iter().sum()
+                })
+                .collect()
+        };
+        let (wx, wy) = (edge_sum(w), edge_sum(h));
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| {
+                for (o, &kx) in row.iter_mut().zip(&wx) {
+                    *o /= kx * wy[y];
+                }
+            });
+    }
+    out
+}
+
+/// A wide Gaussian blur (the large-scale trend) at a fraction of [`gaussian_smooth`]'s cost:
+/// block means `f = ⌊σ/3⌋` px wide, the remaining blur on those, bilinear interpolation back.
+/// A block mean is a box of variance `(f² − 1)/12` px², so the small image is blurred by
+/// `√(σ² − (f² − 1)/12)/f` of its own pixels; what the interpolation misses is the
+/// trend's curvature over `f` px, `~(f/σ)²/8` of its amplitude at the scale σ. NaN stays NaN;
+/// below σ = 6 px this is `gaussian_smooth` itself.
+pub fn gaussian_trend(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
+    let f = if sigma_px.is_finite() {
+        (sigma_px / 3.0).floor() as usize
+    } else {
+        0
+    };
+    let (h, w) = img.dim();
+    if f < 2 || h < 4 * f || w < 4 * f {
+        return gaussian_smooth(img, sigma_px);
+    }
+    let blocks = bin_mean(img, f);
+    let (bh, bw) = blocks.dim();
+    let fb = f as f64;
+    let sigma_blocks = (sigma_px * sigma_px - (fb * fb - 1.0) / 12.0)
+        .max(0.0)
+        .sqrt()
+        / fb;
+    let small = gaussian_smooth(blocks.view(), sigma_blocks);
+    // Block `b` is centred on pixel `b·f + (f − 1)/2`.
+    let taps = |n: usize, nb: usize| -> Vec<(usize, usize, f32)> {
+        (0..n)
+            .map(|i| {
+                let t = ((i as f64 - (fb - 1.0) / 2.0) / fb).clamp(0.0, (nb - 1) as f64);
+                let i0 = (t.floor() as usize).min(nb - 1);
+                let i1 = (i0 + 1).min(nb - 1);
+                (i0, i1, (t - i0 as f64) as f32)
+            })
+            .collect()
+    };
+    let (xt, yt) = (taps(w, bw), taps(h, bh));
+    let mut out = Array2::<f32>::zeros((h, w));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut row)| {
+            let (y0, y1, wy) = yt[y];
+            let (r0, r1) = (small.row(y0), small.row(y1));
+            for (x, o) in row.iter_mut().enumerate() {
+                let v = img[[y, x]];
+                if !v.is_finite() {
+                    *o = f32::NAN;
+                    continue;
+                }
+                let (x0, x1, wx) = xt[x];
+                let lerp = |a: f32, b: f32| {
+                    // A NaN neighbour (a blank block) gives way to the other one.
+                    if !a.is_finite() {
+                        b
+                    } else if !b.is_finite() {
+                        a
+                    } else {
+                        a + wx * (b - a)
+                    }
+                };
+                let (top, bot) = (lerp(r0[x0], r0[x1]), lerp(r1[x0], r1[x1]));
+                *o = if !top.is_finite() {
+                    bot
+                } else if !bot.is_finite() {
+                    top
+                } else {
+                    top + wy * (bot - top)
+                };
+            }
+        });
+    out
+}
+
+/// Zero-padded 1-D convolution along each row (symmetric kernel).
+fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+    let (h, w) = a.dim();
+    let mut out = Array2::<f32>::zeros((h, w));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(a.axis_iter(Axis(0)))
+        .for_each_init(Vec::new, |buf, (mut o, row)| {
+            buf.clear();
+            buf.extend(row.iter().copied()); // contiguous copy: one row, cheap
+            match o.as_slice_mut() {
+                Some(o) => convolve_row(buf, kernel, o),
+                None => {
+                    let mut tmp = vec![0f32; w];
+                    convolve_row(buf, kernel, &mut tmp);
+                    o.iter_mut().zip(&tmp).for_each(|(d, s)| *d = *s);
+                }
+            }
+        });
+    out
+}
+
+/// `out[x] = Σ_t kernel[t]·row[x + t − r]` over the taps inside the row, summed in tap order.
+/// Interior pixels go tap-outer over contiguous slices (vectorised; same sums, same order).
+fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
+    let r = kernel.len() / 2;
+    let w = row.len();
+    let direct = |x: usize| -> f32 {
+        let lo = x.saturating_sub(r);
+        let hi = (x + r).min(w - 1);
+        row[lo..=hi]
+            .iter()
+            .zip(&kernel[lo + r - x..=hi + r - x])
+            .map(|(v, k)| v * k)
+            .sum()
+    };
+    if w <= 2 * r {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = direct(x);
+        }
+        return;
+    }
+    let n = w - 2 * r;
+    let inner = &mut out[r..r + n];
+    inner.iter_mut().for_each(|o| *o = 0.0);
+    for (t, &k) in kernel.iter().enumerate() {
+        for (o, &v) in inner.iter_mut().zip(&row[t..t + n]) {
+            *o += v * k;
+        }
+    }
+    for x in (0..r).chain(r + n..w) {
+        out[x] = direct(x);
+    }
+}
+
+/// Zero-padded 1-D convolution along each column, row-wise for cache locality.
+fn convolve_columns(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+    let r = kernel.len() / 2;
+    let (h, _) = a.dim();
+    let mut out = Array2::<f32>::zeros(a.dim());
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut o)| {
+            for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                let k = kernel[yy + r - y];
+                o.zip_mut_with(&a.row(yy), |ov, &v| *ov += k * v);
+            }
+        });
+    out
+}
+
+/// NaN-aware block mean by an integer factor.
+/// Means of `bin × bin` blocks (the last ones partial), ignoring NaN; NaN for an all-NaN block.
+pub fn bin_mean(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
+    if bin <= 1 {
+        return img.to_owned();
+    }
+    let (h, w) = img.dim();
+    let (bh, bw) = (h.div_ceil(bin), w.div_ceil(bin));
+    let mut out = Array2::<f32>::zeros((bh, bw));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(by, mut row)| {
+            let mut sum = vec![0f64; bw];
+            let mut n = vec![0u32; bw];
+            let mut add = |bx: usize, v: f32| {
+                if v.is_finite() {
+                    sum[bx] += v as f64;
+                    n[bx] += 1;
+                }
+            };
+            for y in by * bin..((by + 1) * bin).min(h) {
+                let row = img.row(y);
+                match row.as_slice() {
+                    // Runs of `bin` pixels: no division per pixel.
+                    Some(r) => r
+                        .chunks(bin)
+                        .enumerate()
+                        .for_each(|(bx, c)| c.iter().for_each(|&v| add(bx, v))),
+                    None => row.iter().enumerate().for_each(|(x, &v)| add(x / bin, v)),
+                }
+            }
+            for ((o, s), c) in row.iter_mut().zip(&sum).zip(&n) {
+                *o = if *c > 0 {
+                    (*s / *c as f64) as f32
+                } else {
+                    f32::NAN
+                };
+            }
+        });
+    out
+}
+
+#[inline]
+pub(super) fn bilinear(img: ArrayView2<f32>, x: f64, y: f64) -> Option<f64> {
+    let (h, w) = img.dim();
+    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f64 && y <= (h - 1) as f64) {
+        return None;
+    }
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (tx, ty) = (x - x0 as f64, y - y0 as f64);
+    let top = img[[y0, x0]] as f64 * (1.0 - tx) + img[[y0, x1]] as f64 * tx;
+    let bottom = img[[y1, x0]] as f64 * (1.0 - tx) + img[[y1, x1]] as f64 * tx;
+    Some(top * (1.0 - ty) + bottom * ty)
+}
