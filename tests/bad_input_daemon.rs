@@ -87,6 +87,66 @@ fn flat_cube(src: &Source, t: i64) -> Vec<u8> {
     bytes
 }
 
+/// Publishes one of each kind of bad input into `root` (a link points into `outside`), each
+/// atomically; `g` is a good frame's bytes. Whether file permissions stop this process's
+/// reads (they do not for root).
+fn publish_bad_inputs(root: &Path, outside: &Path, src: &Source, g: &[u8]) -> bool {
+    let t = |i: i64| T0 + 12 * S * i;
+    let publish = |name: &str, bytes: &[u8]| {
+        let tmp = root.join(format!(".{name}.tmp"));
+        std::fs::write(&tmp, bytes).unwrap();
+        std::fs::rename(&tmp, root.join(name)).unwrap();
+    };
+    publish("truncated.fits", &g[..g.len() / 2]);
+    publish("empty.fits", b"");
+    publish(
+        "not_fits.fits",
+        b"<!DOCTYPE html><html>404 Not Found</html>\n",
+    );
+    publish(
+        "nan.fits",
+        &with_pixels(src, "nan.fits", t(10), |_, _| f32::NAN).bytes,
+    );
+    publish(
+        "constant.fits",
+        &with_pixels(src, "constant.fits", t(11), |_, _| 1000.0).bytes,
+    );
+    publish(
+        "one_px.fits",
+        &crop(src, "one_px.fits", (64, 64), 1, t(12)).bytes,
+    );
+    publish(
+        "bomb.fits",
+        &header(&[
+            "SIMPLE  =                    T",
+            "BITPIX  =                  -32",
+            "NAXIS   =                    2",
+            "NAXIS1  =           2000000000",
+            "NAXIS2  =           2000000000",
+            "DATE-OBS= '2011-02-15T00:03:00'",
+        ]),
+    );
+    // A 3-D file where a 2-D frame is expected: the real header, two planes 1 pixel high.
+    publish("flat_cube.fits", &flat_cube(src, t(14)));
+    publish("ghost.fits", g);
+    std::fs::create_dir(root.join("subdir.fits")).unwrap();
+    let target = outside.join("elsewhere.fits");
+    std::fs::write(&target, g).unwrap();
+    std::os::unix::fs::symlink(&target, root.join("link.fits")).unwrap();
+    // Unreadable permissions. As root (CAP_DAC_OVERRIDE) mode 000 does not stop reads: then
+    // the file is a good frame and is measured, which the test checks instead.
+    let denied = with_pixels(src, "denied.fits", t(13), |y, x| src.pixels[[y, x]]);
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let path = root.join("denied.fits");
+        let tmp = root.join(".denied.fits.tmp");
+        std::fs::write(&tmp, &denied.bytes).unwrap();
+        std::fs::set_permissions(&tmp, std::fs::Permissions::from_mode(0o000)).unwrap();
+        std::fs::rename(&tmp, &path).unwrap();
+    }
+    std::fs::File::open(root.join("denied.fits")).is_err()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_bad_input_gets_one_log_entry_and_the_daemon_goes_on() {
     let src = source();
@@ -133,55 +193,7 @@ async fn every_bad_input_gets_one_log_entry_and_the_daemon_goes_on() {
     // The reference is established from good frames before anything bad arrives.
     daemon.wait_for("4 good frames", |p| p.frames >= 4).await;
 
-    let g = &good[0].bytes;
-    publish("truncated.fits", &g[..g.len() / 2]);
-    publish("empty.fits", b"");
-    publish(
-        "not_fits.fits",
-        b"<!DOCTYPE html><html>404 Not Found</html>\n",
-    );
-    publish(
-        "nan.fits",
-        &with_pixels(&src, "nan.fits", t(10), |_, _| f32::NAN).bytes,
-    );
-    publish(
-        "constant.fits",
-        &with_pixels(&src, "constant.fits", t(11), |_, _| 1000.0).bytes,
-    );
-    publish(
-        "one_px.fits",
-        &crop(&src, "one_px.fits", (64, 64), 1, t(12)).bytes,
-    );
-    publish(
-        "bomb.fits",
-        &header(&[
-            "SIMPLE  =                    T",
-            "BITPIX  =                  -32",
-            "NAXIS   =                    2",
-            "NAXIS1  =           2000000000",
-            "NAXIS2  =           2000000000",
-            "DATE-OBS= '2011-02-15T00:03:00'",
-        ]),
-    );
-    // A 3-D file where a 2-D frame is expected: the real header, two planes 1 pixel high.
-    publish("flat_cube.fits", &flat_cube(&src, t(14)));
-    publish("ghost.fits", g);
-    std::fs::create_dir(root.join("subdir.fits")).unwrap();
-    let target = outside.path().join("elsewhere.fits");
-    std::fs::write(&target, g).unwrap();
-    std::os::unix::fs::symlink(&target, root.join("link.fits")).unwrap();
-    // Unreadable permissions. As root (CAP_DAC_OVERRIDE) mode 000 does not stop reads: then
-    // the file is a good frame and is measured, which the test checks instead.
-    let denied = with_pixels(&src, "denied.fits", t(13), |y, x| src.pixels[[y, x]]);
-    {
-        use std::os::unix::fs::PermissionsExt;
-        let path = root.join("denied.fits");
-        let tmp = root.join(".denied.fits.tmp");
-        std::fs::write(&tmp, &denied.bytes).unwrap();
-        std::fs::set_permissions(&tmp, std::fs::Permissions::from_mode(0o000)).unwrap();
-        std::fs::rename(&tmp, &path).unwrap();
-    }
-    let permissions_enforced = std::fs::File::open(root.join("denied.fits")).is_err();
+    let permissions_enforced = publish_bad_inputs(&root, outside.path(), &src, &good[0].bytes);
 
     for f in &good[4..] {
         publish(&f.name, &f.bytes);

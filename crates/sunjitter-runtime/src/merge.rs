@@ -361,12 +361,11 @@ fn chain_value(v: &crate::shard::ChainValue, center: [f64; 2]) -> Chain {
     }
 }
 
-/// Join checked shards (sorted by index, see [`check_set`]) into one series.
-pub fn merge(shards: &[ShardLog]) -> Merged {
-    let Some(first) = shards.first() else {
-        return Merged::default();
-    };
-    let config = &first.config;
+/// The link state of every chain of a root channel, per (shard, channel): identity for a
+/// chain its shard owns (or a fixed reference), else a link through frames the run's
+/// resolved chains reach.
+fn link_states(shards: &[ShardLog]) -> BTreeMap<(usize, String), Vec<LinkState>> {
+    let config = &shards[0].config;
     // Chains of root channels per (shard, channel): their link states.
     let mut links: BTreeMap<(usize, String), Vec<LinkState>> = BTreeMap::new();
     for (i, s) in shards.iter().enumerate() {
@@ -447,6 +446,48 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
             break;
         }
     }
+    links
+}
+
+/// The shards' /reference messages in time order, renumbered by `offsets` (per shard and
+/// channel), without one that repeats the channel's current reference.
+fn references_renumbered(
+    shards: &[ShardLog],
+    offsets: &HashMap<(usize, String), i64>,
+) -> Vec<MergedMessage> {
+    let mut references: Vec<MergedMessage> = Vec::new();
+    for (i, s) in shards.iter().enumerate() {
+        for r in &s.contents.references {
+            let mut change = r.change.clone();
+            if let Some(offset) = offsets.get(&(i, change.channel.clone())) {
+                change.sequence = (change.sequence as i64 + offset).max(0) as u64;
+            }
+            references.push(MergedMessage {
+                log_time_ns: r.log_time_ns,
+                publish_time_ns: r.publish_time_ns,
+                item: Item::Reference(Box::new(change)),
+            });
+        }
+    }
+    references.sort_by_key(|r| r.log_time_ns);
+    let mut current: HashMap<String, (String, Option<usize>)> = HashMap::new();
+    references.retain(|r| {
+        let Item::Reference(c) = &r.item else {
+            return true;
+        };
+        let key = (c.file.clone(), c.cube_frame);
+        current.insert(c.channel.clone(), key.clone()) != Some(key)
+    });
+    references
+}
+
+/// Join checked shards (sorted by index, see [`check_set`]) into one series.
+pub fn merge(shards: &[ShardLog]) -> Merged {
+    let Some(first) = shards.first() else {
+        return Merged::default();
+    };
+    let config = &first.config;
+    let links = link_states(shards);
 
     // Frame times of the whole run, for followers' partner frames.
     let times: HashMap<&str, i64> = shards
@@ -513,30 +554,7 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
         *out.frames.entry(m.channel.clone()).or_default() += 1;
     }
 
-    // /reference: renumbered, and one that repeats the channel's current reference dropped.
-    let mut references: Vec<MergedMessage> = Vec::new();
-    for (i, s) in shards.iter().enumerate() {
-        for r in &s.contents.references {
-            let mut change = r.change.clone();
-            if let Some(offset) = offsets.get(&(i, change.channel.clone())) {
-                change.sequence = (change.sequence as i64 + offset).max(0) as u64;
-            }
-            references.push(MergedMessage {
-                log_time_ns: r.log_time_ns,
-                publish_time_ns: r.publish_time_ns,
-                item: Item::Reference(Box::new(change)),
-            });
-        }
-    }
-    references.sort_by_key(|r| r.log_time_ns);
-    let mut current: HashMap<String, (String, Option<usize>)> = HashMap::new();
-    references.retain(|r| {
-        let Item::Reference(c) = &r.item else {
-            return true;
-        };
-        let key = (c.file.clone(), c.cube_frame);
-        current.insert(c.channel.clone(), key.clone()) != Some(key)
-    });
+    let references = references_renumbered(shards, &offsets);
 
     let mut messages: Vec<MergedMessage> = frames_of
         .into_iter()

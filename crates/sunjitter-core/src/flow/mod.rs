@@ -475,48 +475,7 @@ impl Farneback {
         out: &mut Flow,
     ) -> Result<()> {
         let (h, w) = prev.dim();
-        if next.dim() != (h, w) {
-            return Err(Error::Usage(format!(
-                "flow: prev is {}×{} but next is {}×{} (width×height)",
-                w,
-                h,
-                next.dim().1,
-                next.dim().0
-            )));
-        }
-        if h == 0 || w == 0 {
-            return Err(Error::Usage("flow: empty image".into()));
-        }
-        if let Some(f) = init {
-            if f.u.dim() != (h, w) || f.v.dim() != (h, w) {
-                return Err(Error::Usage(
-                    "flow: initial flow has a different shape than the images".into(),
-                ));
-            }
-        }
-        let roi_rect = match roi {
-            None => Rect {
-                x0: 0,
-                y0: 0,
-                x1: w,
-                y1: h,
-            },
-            Some(r) => {
-                let x1 = r.x.saturating_add(r.width).min(w);
-                let y1 = r.y.saturating_add(r.height).min(h);
-                if r.x >= x1 || r.y >= y1 {
-                    return Err(Error::Usage(format!(
-                        "flow: ROI {r:?} does not intersect the {w}×{h} image"
-                    )));
-                }
-                Rect {
-                    x0: r.x,
-                    y0: r.y,
-                    x1,
-                    y1,
-                }
-            }
-        };
+        let roi_rect = checked_domain(prev.dim(), next.dim(), roi, init)?;
         for a in [&mut out.u, &mut out.v] {
             if a.dim() == (h, w) {
                 a.fill(f32::NAN);
@@ -931,6 +890,56 @@ pub fn farneback_with_init(
     init: &Flow,
 ) -> Result<Flow> {
     Farneback::new(params.clone())?.compute(prev, next, roi, Some(init))
+}
+
+/// The rectangle of a `prev` of shape `prev` (height, width) the flow is measured on: the
+/// whole image or `roi` clipped to it, once the shapes of `next` and `init` agree.
+fn checked_domain(
+    prev: (usize, usize),
+    next: (usize, usize),
+    roi: Option<Roi>,
+    init: Option<&Flow>,
+) -> Result<Rect> {
+    let (h, w) = prev;
+    if next != (h, w) {
+        return Err(Error::Usage(format!(
+            "flow: prev is {}×{} but next is {}×{} (width×height)",
+            w, h, next.1, next.0
+        )));
+    }
+    if h == 0 || w == 0 {
+        return Err(Error::Usage("flow: empty image".into()));
+    }
+    if let Some(f) = init {
+        if f.u.dim() != (h, w) || f.v.dim() != (h, w) {
+            return Err(Error::Usage(
+                "flow: initial flow has a different shape than the images".into(),
+            ));
+        }
+    }
+    Ok(match roi {
+        None => Rect {
+            x0: 0,
+            y0: 0,
+            x1: w,
+            y1: h,
+        },
+        Some(r) => {
+            let x1 = r.x.saturating_add(r.width).min(w);
+            let y1 = r.y.saturating_add(r.height).min(h);
+            if r.x >= x1 || r.y >= y1 {
+                return Err(Error::Usage(format!(
+                    "flow: ROI {r:?} does not intersect the {w}×{h} image"
+                )));
+            }
+            Rect {
+                x0: r.x,
+                y0: r.y,
+                x1,
+                y1,
+            }
+        }
+    })
 }
 
 #[cfg(test)]
