@@ -44,26 +44,13 @@ fn synth_pair(dir: &Path, size: usize) -> (PathBuf, PathBuf) {
 fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k: u64) {
     let frame = read_frame(&FrameSpec::file(path)).expect("read frame");
     let outcome = reference.align(&frame);
-    let record = FrameAlignment {
-        obs_time: frame.meta.obs_time_iso().unwrap_or_default(),
-        channel: frame.meta.channel.clone(),
-        align: outcome.result,
-        sequence: k,
-        reference_kind: sunjitter::record::ReferenceKind::Fixed,
-        chained_dx_px: None,
-        chained_dy_px: None,
-        chained_dx_arcsec: None,
-        chained_dy_arcsec: None,
-        chained_rotation_arcsec: None,
-        chained_scale: None,
-        sigma_chained_dx_px: None,
-        sigma_chained_dy_px: None,
-        sigma_chained_dx_arcsec: None,
-        sigma_chained_dy_arcsec: None,
-        sigma_chained_rotation_arcsec: None,
-        sigma_chained_scale: None,
-        pixel_checksum: None,
-    };
+    let record = FrameAlignment::unchained(
+        outcome.result,
+        frame.meta.channel.clone(),
+        frame.meta.obs_time_iso().unwrap_or_default(),
+        k,
+        sunjitter::record::ReferenceKind::Fixed,
+    );
     let t = frame.meta.obs_time_ns.unwrap_or(0).max(0) as u64 + k;
     sink.write_frame(&record, t, t).expect("MCAP write");
     sink.flush().expect("MCAP flush");

@@ -102,26 +102,13 @@ fn main() -> anyhow::Result<()> {
         let t1 = Instant::now();
         let outcome = prepared.align(&frame);
         let t2 = Instant::now();
-        let record = FrameAlignment {
-            obs_time: frame.meta.obs_time_iso().unwrap_or_default(),
-            channel: frame.meta.channel.clone(),
-            align: outcome.result,
-            sequence: k as u64,
-            reference_kind: sunjitter::record::ReferenceKind::Fixed,
-            chained_dx_px: None,
-            chained_dy_px: None,
-            chained_dx_arcsec: None,
-            chained_dy_arcsec: None,
-            chained_rotation_arcsec: None,
-            chained_scale: None,
-            sigma_chained_dx_px: None,
-            sigma_chained_dy_px: None,
-            sigma_chained_dx_arcsec: None,
-            sigma_chained_dy_arcsec: None,
-            sigma_chained_rotation_arcsec: None,
-            sigma_chained_scale: None,
-            pixel_checksum: None,
-        };
+        let record = FrameAlignment::unchained(
+            outcome.result,
+            frame.meta.channel.clone(),
+            frame.meta.obs_time_iso().unwrap_or_default(),
+            k as u64,
+            sunjitter::record::ReferenceKind::Fixed,
+        );
         let now_ns = SystemTime::now().duration_since(UNIX_EPOCH)?.as_nanos() as u64;
         let log_ns = frame.meta.obs_time_ns.map_or(now_ns, |t| t.max(0) as u64);
         sink.write_frame(&record, log_ns, now_ns)?;

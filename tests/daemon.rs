@@ -33,18 +33,12 @@ fn cov() -> [[f64; 4]; 4] {
     c
 }
 
-/// Settings that keep the tests quick (defaults are for real instruments).
+/// The shared quick settings, with keyframes every 4 frames and broken files reported after
+/// standing unchanged 0.5 s (a garbage file that starts like a FITS header reads as one still
+/// being written).
 fn quick_config() -> Config {
-    let mut c = Config::default();
-    c.daemon.reorder_window_s = 0.3;
-    c.daemon.settle_s = 0.2;
-    c.daemon.retry_initial_s = 0.05;
-    c.daemon.retry_max_s = 0.2;
-    c.daemon.retry_attempts = 3;
-    // A garbage file that starts like a FITS header reads as one still being written: it is
-    // reported after standing unchanged this long.
+    let mut c = support::faults::quick_config();
     c.daemon.incomplete_wait_s = 0.5;
-    c.daemon.flush_interval_s = 0.1;
     c.reference.keyframe_every_frames = 4;
     c
 }

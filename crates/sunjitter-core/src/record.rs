@@ -141,6 +141,38 @@ pub struct FrameAlignment {
     pub pixel_checksum: Option<String>,
 }
 
+impl FrameAlignment {
+    /// A message for `align` with no chained values (a chain fills them in) and no checksum.
+    pub fn unchained(
+        align: AlignResult,
+        channel: String,
+        obs_time: String,
+        sequence: u64,
+        reference_kind: ReferenceKind,
+    ) -> Self {
+        Self {
+            align,
+            channel,
+            obs_time,
+            sequence,
+            reference_kind,
+            chained_dx_px: None,
+            chained_dy_px: None,
+            chained_dx_arcsec: None,
+            chained_dy_arcsec: None,
+            chained_rotation_arcsec: None,
+            chained_scale: None,
+            sigma_chained_dx_px: None,
+            sigma_chained_dy_px: None,
+            sigma_chained_dx_arcsec: None,
+            sigma_chained_dy_arcsec: None,
+            sigma_chained_rotation_arcsec: None,
+            sigma_chained_scale: None,
+            pixel_checksum: None,
+        }
+    }
+}
+
 /// `fnv1a64:<16 hex digits>`: 64-bit FNV-1a over the width and height (u64, little-endian)
 /// then every pixel's f32 bit pattern (little-endian), row by row.
 pub fn pixel_checksum(pixels: ndarray::ArrayView2<f32>) -> String {

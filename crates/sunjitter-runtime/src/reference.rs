@@ -897,26 +897,13 @@ impl ChannelState {
         chain: Option<Chain>,
         records: &mut Vec<Record>,
     ) -> Emitted {
-        let mut message = FrameAlignment {
+        let mut message = FrameAlignment::unchained(
             align,
-            channel: self.name.clone(),
-            obs_time: iso8601_utc(frame.obs_time_ns),
+            self.name.clone(),
+            iso8601_utc(frame.obs_time_ns),
             sequence,
-            reference_kind: kind,
-            chained_dx_px: None,
-            chained_dy_px: None,
-            chained_dx_arcsec: None,
-            chained_dy_arcsec: None,
-            chained_rotation_arcsec: None,
-            chained_scale: None,
-            sigma_chained_dx_px: None,
-            sigma_chained_dy_px: None,
-            sigma_chained_dx_arcsec: None,
-            sigma_chained_dy_arcsec: None,
-            sigma_chained_rotation_arcsec: None,
-            sigma_chained_scale: None,
-            pixel_checksum: None,
-        };
+            kind,
+        );
         set_chain(&mut message, chain.as_ref());
         records.push(Record::Frame {
             message: Box::new(message.clone()),

@@ -410,8 +410,8 @@ mod tests {
     fn record(seq: u64, status: Status, dx: f64, dy: f64, sigma: f64) -> FrameAlignment {
         let failed = status == Status::Failed;
         let num = |v: f64| (!failed).then_some(v);
-        FrameAlignment {
-            align: AlignResult {
+        FrameAlignment::unchained(
+            AlignResult {
                 reference: "ref.fits".into(),
                 frame: format!("f{seq:03}.fits"),
                 scale: num(1.0),
@@ -440,24 +440,11 @@ mod tests {
                 message: String::new(),
                 elapsed_ms: 1.0,
             },
-            channel: "A".into(),
-            obs_time: String::new(),
-            sequence: seq,
-            reference_kind: sunjitter_core::record::ReferenceKind::Previous,
-            chained_dx_px: None,
-            chained_dy_px: None,
-            chained_dx_arcsec: None,
-            chained_dy_arcsec: None,
-            chained_rotation_arcsec: None,
-            chained_scale: None,
-            sigma_chained_dx_px: None,
-            sigma_chained_dy_px: None,
-            sigma_chained_dx_arcsec: None,
-            sigma_chained_dy_arcsec: None,
-            sigma_chained_rotation_arcsec: None,
-            sigma_chained_scale: None,
-            pixel_checksum: None,
-        }
+            "A".into(),
+            String::new(),
+            seq,
+            sunjitter_core::record::ReferenceKind::Previous,
+        )
     }
 
     fn engine(t: Thresholds) -> AlertEngine {

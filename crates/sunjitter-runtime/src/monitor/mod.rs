@@ -507,26 +507,13 @@ mod tests {
             (align.dx_px, align.sigma_dx_px) = (Some(0.07701), Some(0.09573));
             (align.dy_px, align.sigma_dy_px) = (Some(-0.0537), Some(0.0957));
         }
-        FrameAlignment {
+        FrameAlignment::unchained(
             align,
-            channel: "SJI_1400".into(),
-            obs_time: String::new(),
-            sequence: 1,
-            reference_kind: sunjitter_core::record::ReferenceKind::Keyframe,
-            chained_dx_px: None,
-            chained_dy_px: None,
-            chained_rotation_arcsec: None,
-            chained_scale: None,
-            sigma_chained_dx_px: None,
-            sigma_chained_dy_px: None,
-            sigma_chained_rotation_arcsec: None,
-            sigma_chained_scale: None,
-            chained_dx_arcsec: None,
-            chained_dy_arcsec: None,
-            sigma_chained_dx_arcsec: None,
-            sigma_chained_dy_arcsec: None,
-            pixel_checksum: None,
-        }
+            "SJI_1400".into(),
+            String::new(),
+            1,
+            sunjitter_core::record::ReferenceKind::Keyframe,
+        )
     }
 
     #[test]
