@@ -1,16 +1,15 @@
 //! The process allocator: mimalloc, keeping freed frame-sized pages for reuse.
 
 // Frames are tens of MB and every alignment allocates a few dozen such arrays. glibc maps and
-// unmaps each one, and on a virtual machine faulting fresh pages in cost as much CPU as the
-// numerics (1.4 s of system time per GB at 4096²). mimalloc keeps them for reuse.
+// unmaps each one, and on a virtual machine faulting fresh pages in can cost as much CPU as
+// the numerics (docs/validation.md#freed-memory-kept). mimalloc keeps them for reuse.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// Tell the allocator to keep freed pages for reuse instead of returning them to the system
 /// 10 ms after they are freed (mimalloc's default): every frame allocates and frees the same
-/// few frame-sized arrays, and faulting them in again costs about 0.13 s per 4096² frame
-/// (examples/bench_e2e.rs: 0.61–0.66 s median per frame with the pages kept, 0.75–0.80 s
-/// with `MIMALLOC_PURGE_DELAY=10`; peak RSS 0.93–0.97 GiB against 0.70 GiB). Idempotent;
+/// few frame-sized arrays, and faulting them in again would cost time on every frame; keeping
+/// them costs some peak memory (docs/validation.md#freed-memory-kept). Idempotent;
 /// the binary calls it first thing, and so do the benchmarks. A `MIMALLOC_PURGE_DELAY` set in
 /// the environment is left to govern.
 pub fn keep_freed_memory() {

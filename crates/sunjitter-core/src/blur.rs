@@ -5,13 +5,12 @@
 //! spectrum times `exp(−4π²·v·k²)`, whatever the scene, and the spectrum does not depend on
 //! where the scene sits: so `ln(P_frame/P_reference)` is a straight line in `(2πk)²` whose
 //! slope is `−v`, and its intercept takes a change of gain. The intensity refinement's model
-//! (`reference ≈ α·frame∘T + β`) cannot absorb a blur difference: a 0.8 px Gaussian on a
-//! 512² TRACE crop moves its answer by 2–4σ (−0.0039 px); matched, that error is 140× smaller.
+//! (`reference ≈ α·frame∘T + β`) cannot absorb a blur difference: unmatched, one moves its
+//! answer by several σ (docs/validation.md#blur-matching-and-its-band).
 //!
 //! Only frequencies up to [`MAX_FREQUENCY`] count, where the refinement's 0.7 px smoothing
 //! leaves the structure it fits: near Nyquist, a spline-resampled frame loses power that no
-//! Gaussian explains (degree-5 frames read 0.03–0.06 px² over the whole band, 0 ± 0.003 below
-//! 0.25 cycles/px), and matching it biases the answer.
+//! Gaussian explains, and matching it biases the answer.
 
 use ndarray::{s, ArrayView2};
 
@@ -20,8 +19,8 @@ pub const MAX_FREQUENCY: f64 = 0.25;
 
 /// Largest square analysed, px (a power of two).
 const MAX_SIDE: usize = 512;
-/// Smallest: below it there are too few frequency bins for a slope (64² squares of the
-/// 128² AIA image, 10 bins, scattered by ±0.05 px² between noise-free Monte Carlo frames).
+/// Smallest: below it there are too few frequency bins for a slope
+/// (docs/validation.md#smallest-square-analysed).
 const MIN_SIDE: usize = 128;
 /// A bin counts only where its power is this many times the noise's in both images.
 const SIGNAL_TO_NOISE_POWER: f64 = 10.0;

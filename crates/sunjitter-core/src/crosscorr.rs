@@ -109,9 +109,8 @@ pub fn cc_translation(
 /// A least-squares 2-D quadratic `a + bx + cy + dx² + exy + fy²` is fitted to the nine
 /// values and its vertex returned. The cross term matters: solar images give elongated,
 /// tilted correlation peaks, and separate 1-D parabolas along x and y then miss the vertex
-/// (on the full TRACE image, 15 Fourier-shifted copies: RMSE 0.079 / 0.052 px with 1-D
-/// parabolas, 0.027 / 0.015 px with the 2-D fit). Falls back to
-/// 1-D parabolas when the fitted surface is not a proper maximum.
+/// (docs/validation.md#cross-correlation-peak-2-d-quadratic). Falls back to 1-D parabolas
+/// when the fitted surface is not a proper maximum.
 fn quadratic_peak(n: &[[f64; 3]; 3]) -> (f64, f64) {
     let sum_row = |j: usize| n[j].iter().sum::<f64>();
     let sum_col = |i: usize| n.iter().map(|r| r[i]).sum::<f64>();

@@ -448,9 +448,8 @@ fn params_of(t: &Similarity) -> [f64; 4] {
 /// Points are grouped into square blocks of `block_px` (anchored at the smallest x, y); each
 /// block is left out in turn and the fit redone. Correlation across block borders is ignored,
 /// so blocks must be well above the residuals' correlation length — about twice the Farneback
-/// box window (Gaussian-correlated errors with ℓ = 40 px, equivalent box width √(2π)ℓ ≈
-/// 100 px: 1σ coverage 58 % with 120 px blocks, 62–65 % with 200 px) — and there
-/// should still be ≳ 20 blocks.
+/// box window (docs/validation.md#jackknife-blocks-of-two-windows) — and there should still be
+/// ≳ 20 blocks.
 /// Unequal block sizes use the delete-m_k jackknife of Busing, Meijer & van der Leeden (1999):
 /// pseudo-values `θ̃_k = h_k θ̂ − (h_k − 1) θ̂₋ₖ` with `h_k = n/m_k`,
 /// `Cov = (1/g) Σ (θ̃_k − θ̃)(θ̃_k − θ̃)ᵀ/(h_k − 1)`, `θ̃ = gθ̂ − Σ(1 − m_k/n) θ̂₋ₖ`;

@@ -283,9 +283,9 @@ impl<'a> Stages<'a> {
         let matched = work.matched(sig_ref);
         let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
         // Between channels the limb is no common structure: each channel brightens towards it
-        // by its own amount and shows it at its own height (EIT 171 and 195, one telescope, fit
-        // disks 2.3 % apart). Windows that reach it read that as a scale change (EIT 195 against
-        // 171: 0.9927 ± 0.0020, 3.7σ from 1; with the windows clear of it 0.9975 ± 0.0038).
+        // by its own amount and shows it at its own height, even on one telescope. Windows
+        // that reach it read that as a scale change
+        // (docs/validation.md#between-channels-windows-clear-of-the-limb).
         let limb_clear = match work.reference_check.disk_px {
             Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
                 Some((centre, radius - flow_reach_px(work.winsize, cfg.poly_n)))
@@ -452,11 +452,10 @@ impl<'a> Stages<'a> {
             }
             // A flow still moving by more than its σ when its passes ran out is mostly
             // converging slowly: weak or noisy structure lowers its gain, and each pass
-            // recovers only part of what is left. More passes, then the refinement again
-            // (tests/data/lasco_c3_noisy_drift: `ok` after 12 passes, within 1.7σ; stopped
-            // after 4 passes it would be `degraded`, its rotation 7.3σ off).
+            // recovers only part of what is left. More passes, then the refinement again.
             // Only here: on real frames that the refinement accepts after the first passes,
-            // more passes can wander off (IRIS 1400 frames 22–24 under a brightening).
+            // more passes can wander off where the structure changes
+            // (docs/validation.md#extra-passes-for-an-unsettled-flow).
             if fine.unsettled_px.is_some() {
                 let mut more = self.flow_from(
                     fine.transform,
@@ -478,8 +477,8 @@ impl<'a> Stages<'a> {
             }
             Err(rejected) => {
                 // Two measurements of one motion that disagree beyond their σ: the flow's
-                // answer stays, and its σ grow to cover the refinement's (on LASCO C3 pairs
-                // under noise the flow can be 8σ off and the rejected refinement right).
+                // answer stays, and its σ grow to cover the refinement's (either may be the
+                // wrong one; docs/validation.md#a-disagreement-keeps-the-flows-answer).
                 let disagrees = rejected.disagreeing.is_some();
                 if let Some(refined) = rejected.disagreeing {
                     let (a, b) = (fine.transform.params(), refined.params());

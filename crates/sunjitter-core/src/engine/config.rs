@@ -58,8 +58,8 @@ pub struct EngineConfig {
     /// Final direct intensity refinement (Gauss–Newton on the RANSAC-inlier cells).
     pub refine: RefineMode,
     /// Gaussian σ applied to both images before the refinement, px: it takes the
-    /// interpolation error of sharp structure out of the match (on the TRACE Monte Carlo,
-    /// docs/validation.md: 0.7 px is best under noise and 5× better than none without noise).
+    /// interpolation error of sharp structure out of the match
+    /// (docs/validation.md#refinement-smoothing).
     pub refine_smoothing_px: f64,
     /// Further Gaussian σ of the reference whose gradient weighs the refinement's residuals, px.
     pub refine_gradient_smoothing_px: f64,

@@ -85,9 +85,8 @@ pub(super) struct FlowRegion<'a> {
 /// window, the polynomial expansion's reach (`poly_n` px each side, as in OpenCV) and two
 /// strides of the affine grid. A point's flow is interpolated from the nodes around it, one
 /// stride; and each iteration of the solver reads the previous flow across the window, so the
-/// dependence reaches further. On AIA 171 128² between channels, with the frame's limb made
-/// twice as bright (6 pairs), one stride leaves the scale 2.2e-4 short (1.65σ), two 4.2e-5,
-/// and the bias keeps falling with the margin (6e-6 at 10 px more).
+/// dependence reaches further: with a margin of one stride, another channel's brighter limb
+/// still pulls the scale (docs/validation.md#flow-reach-two-grid-strides).
 pub(super) fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
     (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
 }
@@ -109,8 +108,8 @@ pub(super) fn fine_alignment(
     let mask = region.mask;
     let center = Similarity::array_center(w, h);
     // The refinement's model, so that the two answers share no interpolation bias the other
-    // lacks (with a cubic spline here, the flow's answer on tests/data/trace_fourier_shift is
-    // 9.6e-4 px off and the refinement's 7e-5 px: 7.5σ apart).
+    // lacks (with a lower-order spline here, the two disagree beyond their σ on band-limited
+    // frames; docs/validation.md#passes-resample-with-the-refinements-model).
     let spline = HighOrderSpline::new(frame.view(), refine::MODEL);
     let roi = mask_roi(mask);
     let levels = cfg
@@ -401,8 +400,8 @@ impl LastPass {
         let zero = [[0.0; 4]; 4];
         let (_, mut cov) = compose_with_covariance(&previous, &zero, &update, &calibrated);
         // Still moving when the passes ran out: the last step is a measure of how far
-        // from settled the answer is (on HMI 100² with a zero-filled sky it wanders by
-        // pixels).
+        // from settled the answer is (with little structure it can wander by pixels;
+        // docs/validation.md#an-unsettled-flow-reports-its-last-step).
         let sigma_xy = sigmas(&cov)[2].hypot(sigmas(&cov)[3]);
         let unsettled_px = (!converged && moved > sigma_xy).then_some(moved);
         if !converged {

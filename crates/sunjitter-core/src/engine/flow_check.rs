@@ -3,17 +3,16 @@
 //!
 //! A real frame is a new sampling of the sky, not the flow's quintic resampling of the
 //! reference, and on undersampled images the two move structure differently. The flow's σ
-//! (the scatter of its vectors) cannot see that. Between channels, on EIT 171 128² moved by
-//! known similarities, the flow's translation is up to 4.7σ off (frames made by scipy's cubic
-//! spline), and up to 3.7σ on band-limited shifts of it. So, as the refinement does, every such
-//! frame is checked. A frame is made from the reference through the measured transform, with
-//! its shift reduced to the fractional part, by a cubic spline (one order below the flow's
-//! model; band-limited frames lie on the model's other side, nearer). The flow then measures
-//! it, and the part of its error that its own σ do not cover is this frame's interpolation
-//! term. It starts as far from the copy's answer as the pair's flow started from its own:
-//! on undersampled images the flow settles within a band around the answer, and where in it
-//! depends on the way in (AIA 171 128², between channels: from the exact answer the check
-//! saw 1″ of error in rotation, from the pair's start 200″, the pair's own).
+//! (the scatter of its vectors) cannot see that: between channels, on known-truth pairs, the
+//! flow's translation can be several σ off (docs/validation.md#flow-interpolation-check). So,
+//! as the refinement does, every such frame is checked. A frame is made from the reference
+//! through the measured transform, with its shift reduced to the fractional part, by a cubic
+//! spline (one order below the flow's model; band-limited frames lie on the model's other
+//! side, nearer). The flow then measures it, and the part of its error that its own σ do not
+//! cover is this frame's interpolation term. It starts as far from the copy's answer as the
+//! pair's flow started from its own: on undersampled images the flow settles within a band
+//! around the answer, and where in it depends on the way in (from the exact answer the check
+//! would see far less error than the pair's own).
 
 use super::config::EngineConfig;
 use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, FLOW_TAPER_PX};

@@ -87,10 +87,9 @@ pub fn normalised_cross_correlation(
 
 /// Spearman rank correlation of `a` and `b` over pixels inside `mask` where both are finite
 /// (at most `MAX_RANK_PAIRS` of them, evenly strided). Unlike the Pearson correlation it is
-/// not dominated by a few bright pixels: on low-count IRIS 1400 frames where one exposure holds
-/// a brightening (frames 4 and 5 of the bundled cube) the high-pass Pearson correlation is
-/// −0.03 while the rank correlation is 0.53, as for the neighbouring pairs (0.53, 0.53; scipy
-/// `spearmanr`); unrelated and flipped images still give about 0.
+/// not dominated by a few bright pixels, such as a brightening in one exposure of a low-count
+/// pair (docs/validation.md#rank-correlation-for-the-structure-check); unrelated and flipped
+/// images still give about 0.
 pub fn rank_correlation(
     a: ArrayView2<f32>,
     b: ArrayView2<f32>,

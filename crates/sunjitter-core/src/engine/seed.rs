@@ -11,17 +11,16 @@ use crate::preprocess;
 use ndarray::{s, Array2, ArrayView2};
 
 /// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
-/// memory grow with the pixel count while the refinement only needs a start near its answer:
-/// on 4096² synthetic pairs a seed on 4× binned copies (750 px) gives the same refined answer
-/// to 2e-5 px as one at full resolution. Not less: on TRACE 1024² a seed on 2× binned copies
-/// (512 px) moves the refined dy by about 1e-4 px (2σ) — the refinement's reweighting settles
-/// on slightly different weights from a coarser start. And a seed that converged on its level,
-/// not one pass: on undersampled images the refinement's answer depends on its start (AIA 171
-/// 128²: 40″ rotation RMSE from a one-pass seed, 9″ from the converged flow).
+/// memory grow with the pixel count while the refinement only needs a start near its answer,
+/// and a seed this size gives the same refined answer as one at full resolution. Not less: the
+/// refinement's reweighting settles on slightly different weights from a coarser start. And a
+/// seed that converged on its level, not one pass: on undersampled images the refinement's
+/// answer depends on its start (docs/validation.md#seed-flow-on-binned-copies-converged).
 pub(super) const SEED_EXTENT_PX: usize = 700;
 
-/// How far a seed on `level` may be from the full-resolution flow, px: the RMS flow error of
-/// a level-1 finish on TRACE 1024² warps is 0.05–0.06 px (0 at full resolution).
+/// How far a seed on `level` may be from the full-resolution flow, px: a level-1 finish's RMS
+/// flow error, growing with each further level, and none at full resolution
+/// (docs/validation.md#flow-finished-at-full-resolution).
 pub(super) fn seed_slack_px(level: usize) -> f64 {
     0.05 * ((1usize << level.min(16)) - 1) as f64
 }

@@ -126,12 +126,9 @@ pub(super) fn verdict(
 /// A flow that needs more than `max_passes`, or is still moving when its passes run out,
 /// has a low gain. With weak common structure, or a flow field most of which fits no one
 /// similarity, it may also settle on a wrong match far outside its σ, or stop short of the
-/// right one (tests/data/lasco_c3_noisy_false_match: a −3.6° rotation, 26σ off;
-/// tests/data/hmi_zero_sky_false_match: near no motion, 27σ off in dx). Without the
-/// refinement's confirmation there is no reliable answer. Nor when the flow settles but
-/// the refinement from its answer runs off: then both checks of that answer fail (HMI 100²
-/// with a zero sky has pairs whose flow settles within 4 passes near no motion, 26–27σ
-/// from the truth, and the refinement from there leaves the frame or goes singular).
+/// right one. Without the refinement's confirmation there is no reliable answer. Nor when the
+/// flow settles but the refinement from its answer runs off: then both checks of that answer
+/// fail (docs/validation.md#an-unconfirmed-answer-is-no-answer).
 fn unconfirmed(e: &Evidence, inlier_fraction: f64, cfg: &EngineConfig) -> Option<String> {
     if e.refinement.accepted {
         return None;

@@ -5,10 +5,10 @@
 //! structure-tensor-weighted mean of the true displacement over the window, i.e. the
 //! displacement at the window's *texture centroid*, not at `x`. Wherever texture is unevenly
 //! spread (active regions, the limb, image or NaN edges) the centroid is pulled towards the
-//! texture, and a rotation or scale change is under-measured (OpenCV on TRACE with a 127 px box
-//! window: gain ≈ 0.966). Fitting `d(x') = a + B (x' − x)` in the window instead makes the
-//! estimate `a` exact for any affine field whatever the texture layout, and windows may then be
-//! simply truncated at the domain's edges (no replicated border rows).
+//! texture, and a rotation or scale change is under-measured
+//! (docs/validation.md#affine-window-model). Fitting `d(x') = a + B (x' − x)` in the window
+//! instead makes the estimate `a` exact for any affine field whatever the texture layout, and
+//! windows may then be simply truncated at the domain's edges (no replicated border rows).
 //!
 //! The window sums are separable moments `Σ M·ξ^i·η^j` (i + j ≤ 2), kept as running sums down
 //! the rows and prefix sums along a grid row, so the cost per pixel does not depend on the

@@ -24,20 +24,17 @@
 //!   whole-image flow only through the truncated outer margin (measured in the tests).
 //!
 //! Two ways to run it:
-//! - [`FlowOptions::default()`]: OpenCV's algorithm. Checked against OpenCV 5.0.0 on a real
-//!   TRACE crop: RMS difference 5e-5 px (box and Gaussian windows, `tests/flow_oracle.rs`).
-//!   Its constant-displacement window is *biased*: the flow at `x` is the displacement at the
-//!   window's texture centroid, so rotation and scale come out 3–4 % short with a 101–127 px
-//!   window on solar images (the "gain" of the paper's method).
+//! - [`FlowOptions::default()`]: OpenCV's algorithm, checked against OpenCV itself
+//!   (`tests/flow_oracle.rs`; docs/validation.md#agreement-with-opencv). Its
+//!   constant-displacement window is *biased*: the flow at `x` is the displacement at the
+//!   window's texture centroid, so rotation and scale come out a few percent short on solar
+//!   images (the "gain" of the paper's method).
 //! - [`FlowOptions::affine_grid`]: the window fits an affine motion (unbiased for any affine
 //!   field whatever the texture layout), solved on a grid of stride `winsize/8` and
-//!   interpolated, with 3 coarse / 2 finest iterations. On four spline warps of the TRACE
-//!   1024² image (`SUNJITTER_FLOW_EVAL=DIR cargo bench --bench flow`, warps from
-//!   `tools/make_flow_fixtures.py --eval DIR`), winsize 101/127: rotation gains 0.9997–1.0002
-//!   and scale gains 0.9984–0.9998 (OpenCV's algorithm: 0.966–0.986 and 0.962–0.984), RMS flow
-//!   error 0.004–0.010 px (OpenCV's: 0.06–0.30 px), translation at the centre within 0.0007 px,
-//!   at a third of the cost or less. This is the one the engine should use; a second pass
-//!   (resample, measure the residual) removes the remaining ≤ 0.16 % gain.
+//!   interpolated, with 3 coarse / 2 finest iterations: gains within a fraction of a percent
+//!   of 1 and a far smaller flow error, at less cost (docs/validation.md#affine-window-model).
+//!   This is the one the engine should use; a second pass (resample, measure the residual)
+//!   removes the remaining gain.
 //!
 //! Hot loops are compiled twice (baseline and AVX2+FMA, chosen at run time; see `simd`),
 //! work is split into row strips for rayon, and a [`Farneback`] keeps its buffers between
@@ -120,8 +117,8 @@ pub struct FlowOptions {
     pub coarse_iterations: Option<usize>,
     /// Pyramid level the flow is finished on (0 = full resolution); its result is upsampled
     /// bilinearly to full resolution. Levels below it are never built (a level-1 finish costs
-    /// about 60 %), but accuracy suffers: on TRACE 1024² warps the RMS flow error is 0.05–0.06
-    /// px against 0.009 px at level 0, and the mean translation error up to 0.016 px. Keep 0 for
+    /// about 60 %), but accuracy suffers: the flow is measured at a coarser sampling and
+    /// interpolated (docs/validation.md#flow-finished-at-full-resolution). Keep 0 for
     /// measurements. "Finest" in the other options means this level.
     pub finest_level: usize,
 }
@@ -142,9 +139,8 @@ impl FlowOptions {
     /// The unbiased fast setting: affine window model, solved on a grid of stride
     /// `winsize/8` (the flow is smooth on the window's scale: strides from winsize/17 to
     /// winsize/4 give the same accuracy), 3 iterations on coarse levels and 2 on the finest.
-    /// On TRACE 1024² (winsize 127, rotation 0.3°, scale 0.998,
-    /// shift (4.3, −3.7) px): rotation/scale gains 0.9997/0.9991 and RMS flow error 0.006 px,
-    /// against 0.966/0.968 and 0.15 px for OpenCV's algorithm with 10 iterations everywhere.
+    /// Its rotation and scale gains are within a fraction of a percent of 1, where OpenCV's
+    /// algorithm falls a few percent short (docs/validation.md#affine-window-model).
     pub fn affine_grid(winsize: usize) -> Self {
         FlowOptions {
             model: WindowModel::Affine,

@@ -34,14 +34,15 @@ pub struct DiskFit {
 
 /// Smallest disk worth reporting, px: below this a "limb" is a blob.
 const MIN_DISK_RADIUS_PX: f64 = 8.0;
-/// Fraction of limb sectors that must agree on the circle for it to count as a disk
-/// (HMI 1.0, AIA 171 0.85, EIT 0.57–0.63 with active regions on the limb; a
-/// circle forced through the on-disk TRACE field 0.22).
+/// Fraction of limb sectors that must agree on the circle for it to count as a disk: below
+/// what whole disks reach with active regions on the limb, above what a circle forced through
+/// a field inside the disk reaches (docs/validation.md#disk-limb-coverage-and-largest-gap).
 const MIN_LIMB_COVERAGE: f64 = 0.4;
 /// Iterations need at least this fraction of sectors with a limb point.
 const MIN_LIMB_POINTS: f64 = 0.5;
-/// Largest run of disagreeing sectors tolerated (active regions on the limb), radians
-/// (EIT ≤ 57°, the forced TRACE circle 124°).
+/// Largest run of disagreeing sectors tolerated (active regions on the limb), radians: more
+/// than active regions leave on a whole disk, less than a circle forced through a field inside
+/// the disk leaves (docs/validation.md#disk-limb-coverage-and-largest-gap).
 const MAX_LIMB_GAP_RAD: f64 = std::f64::consts::FRAC_PI_2;
 /// Step along limb rays, px (finest; coarser when a window would need more samples).
 const RAY_STEP_PX: f64 = 0.25;
@@ -62,9 +63,9 @@ const COARSE_SIZE_PX: usize = 512;
 /// than 90°, and a minimum radius of 8 px. Non-finite pixels read as the darkest sky.
 ///
 /// Images of 2048 px and more are measured on a copy binned to at least 1024 px (2× at 2048²,
-/// 4× at 4096²): centre within a few hundredths of a pixel, radius about 1.6e-4 small (the
-/// binned limb is blurred), where a 4096² frame's disk costs 146 ms at full resolution (it is
-/// checked on every frame).
+/// 4× at 4096²): centre within a few hundredths of a pixel, radius slightly small (the binned
+/// limb is blurred), at a fraction of the full-resolution cost; every frame's disk is checked
+/// (docs/validation.md#disk-measured-on-a-binned-copy).
 pub fn detect_disk(img: ArrayView2<f32>) -> Option<DiskFit> {
     let bin = disk_detection_bin(img.dim());
     if bin == 1 {
@@ -251,8 +252,8 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
         .collect();
     // The most significant drop of the profile, away from the centre: a median over an
     // annulus of radius k is uncertain by ∝ 1/√k, so the drop is weighed by √k (with noise,
-    // the plain steepest drop of an EIT 128² profile can fall on a 12 px feature, not the
-    // 48 px limb).
+    // the plain steepest drop of a small disk's profile can fall on a feature inside it, not
+    // on the limb; docs/validation.md#limb-search-the-most-significant-drop).
     let mut kd = None;
     let mut best = 0.0;
     for k in 3..nr.saturating_sub(1) {

@@ -103,12 +103,10 @@ pub fn remove_hot_pixels_with(
 /// neighbours by more than this many times the brightest of them does. A real feature,
 /// however compact, spills into a neighbour (the optics' PSF, the pixel's own footprint): a
 /// point source with a PSF of FWHM 1 px, centred on a pixel, rises 7.4× as high as its
-/// brightest neighbour, and less at any other phase. On the 128² AIA 171 image, rebinned
-/// 32×, 33 bright cores of real structure stand at most 3.2× their brightest neighbour by
-/// this measure. A rule that cleans such cores does so by sub-pixel phase, so differently in
-/// two images of the same Sun: between channels the flow is then 188″ and 0.013 px off
-/// (RMSE, 8 pairs), against 2.5″ and 0.0006 px with this rule. The largest spikes on the raw
-/// TRACE, EIT and IRIS frames stand 10–305× above their neighbours.
+/// brightest neighbour, and less at any other phase. The bright cores of real structure on
+/// undersampled disks stand well below this factor, and a rule that cleaned them would do so
+/// by sub-pixel phase, so differently in two images of the same Sun; detector spikes stand
+/// far above it (docs/validation.md#hot-pixels-stand-alone).
 pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;
 
 /// Whether the pixel at `at` stands alone: its rise above the floor of its 8 neighbours is

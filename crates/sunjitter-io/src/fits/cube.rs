@@ -160,9 +160,9 @@ fn pointing_columns(x: Vec<f64>, y: Vec<f64>, rows: usize) -> [Vec<f64>; 2] {
 /// A telescope pointed `d = at − nominal` further sees every sky point, the disk centre
 /// included, `−M⁻¹·d` pixels from where the header puts it (`M`: the header's
 /// arcsec-per-pixel matrix, world axis i × pixel axis j). This is the linear part of
-/// moving `CRVAL` by `d`; for IRIS fields (≲ 30″ moves, ~10′ from disk centre) the projection
-/// adds < 0.001 px (tools/iris_pointing_truth.py). `None` when the header gives no nominal
-/// pointing, no usable WCS, or the values are not finite.
+/// moving `CRVAL` by `d`; for small re-pointings of a field near disk centre the projection
+/// adds a negligible part (docs/validation.md#cube-pointing-linear-part-only). `None` when the
+/// header gives no nominal pointing, no usable WCS, or the values are not finite.
 fn pointing_shift_px(header: &Header, at: [f64; 2]) -> Option<[f64; 2]> {
     let wcs = meta::CelestialWcs::from_header(header).ok()?;
     let nominal = match (header.f64("XCEN"), header.f64("YCEN")) {

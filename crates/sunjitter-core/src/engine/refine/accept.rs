@@ -25,9 +25,10 @@ pub(super) fn accept(e: &Evidence) -> Result<(), Rejected> {
     let worst = (0..4)
         .map(|k| (a[k] - b[k]).abs() / sa[k].hypot(sb[k]).max(f64::MIN_POSITIVE))
         .fold(0.0, f64::max);
-    // A refinement that ran off (IRIS 1400 frames 50→52: scale 0.48 and a 17° turn from a flow
-    // at 1.006 ± 0.003) reports σ so large that it "agrees" with anything. Gauss–Newton on
-    // intensities is a sub-pixel method: σ beyond a pixel say it is outside its basin.
+    // A refinement that ran off (a brightening between the frames can send it to a wildly
+    // wrong scale and turn) reports σ so large that it "agrees" with anything. Gauss–Newton on
+    // intensities is a sub-pixel method: σ beyond a pixel say it is outside its basin
+    // (docs/validation.md#a-refinement-that-ran-off-is-not-taken).
     let widest = sb[2].max(sb[3]);
     if widest.is_nan() || widest > MAX_REFINED_SIGMA_PX {
         return Err(Rejected::ran_off(format!(

@@ -242,9 +242,9 @@ fn run(setup: &Setup, pair: &RefineInputs, flow: &FlowAnswer) -> Result<Refined,
 struct Sigma {
     covariance: Covariance4,
     /// With the floor but not the interpolation check. The check bounds how far the model may
-    /// be from frames made otherwise; taken as agreement, it would let a cubic model's
-    /// refinement 9e-3 px off replace a flow 2e-3 px off (HMI continuum, 8-bit,
-    /// Fourier-shifted).
+    /// be from frames made otherwise; taken as agreement, it would let a refinement further
+    /// off replace a closer flow
+    /// (docs/validation.md#agreement-weighed-without-the-interpolation-check).
     agreement: Covariance4,
     note: String,
 }
@@ -300,8 +300,8 @@ fn calibrated_sigma(
         }
     }
     // Both measure the interpolation error beyond the σ: the floor as a typical frame's,
-    // this frame's transform as it is. Summed, they count it twice (EIT 171 128²: 97 % of
-    // trials within 1σ in scale); the larger stands.
+    // this frame's transform as it is. Summed, they count it twice and overstate the σ; the
+    // larger stands (docs/validation.md#floor-or-check-the-larger).
     match floor {
         Some(f) => {
             for (k, b) in f.iter().enumerate() {

@@ -1,8 +1,8 @@
 //! How a blur difference between the images is matched before the refinement.
 
 /// Smallest blur difference matched, as a fraction of the refinement's smoothing variance:
-/// below it, what a difference does is within the noise-free σ (on a 512² TRACE crop the
-/// answer moves by about 5e-3 px per px² of difference).
+/// below it, what a difference does is within the noise-free σ
+/// (docs/validation.md#smallest-blur-difference-matched).
 pub(super) const MIN_MATCHED_BLUR_FRACTION: f64 = 0.02;
 
 /// Standard errors a blur difference must exceed to be matched. Not 3: the Hann window
@@ -68,8 +68,8 @@ pub(super) struct BlurMatch {
 /// are correlated through the window.
 pub(super) const BLUR_SIGMA_UNDERSTATEMENT: f64 = 2.0;
 
-/// And the spectra carry errors proportional to it: a 0.8 px Gaussian on the TRACE crop reads
-/// 0.629 px² for 0.640, and one on a copy with its noise blurred too reads 2–3 % over.
+/// And the spectra carry errors proportional to it: a known Gaussian blur reads a few percent
+/// off (docs/validation.md#systematic-error-of-a-matched-blur).
 pub(super) const BLUR_SYSTEMATIC_FRACTION: f64 = 0.03;
 
 #[cfg(test)]

@@ -10,10 +10,10 @@ use crate::geometry::{Covariance4, Similarity};
 use ndarray::ArrayView2;
 
 /// Side of the region the interpolation check refines, px: its synthetic frame is dense, so
-/// on large images it runs on the central part only (4096²: 0.07 s, where the whole field
-/// would take about 1 s, against 0.57 s for the rest of a frame's alignment). Less of the
-/// field means less averaging of the error over sub-pixel positions when the frame is rotated
-/// or scaled: a larger term, not a smaller one.
+/// on large images it runs on the central part only; the whole field would cost more than the
+/// rest of a frame's alignment (docs/validation.md#interpolation-check-on-the-central-part).
+/// Less of the field means less averaging of the error over sub-pixel positions when the frame
+/// is rotated or scaled: a larger term, not a smaller one.
 pub(super) const CHECK_MAX_SIDE: usize = 1024;
 
 /// The error this frame's own transform may bring from the refinement's interpolator, per
@@ -21,12 +21,11 @@ pub(super) const CHECK_MAX_SIDE: usize = 1024;
 /// reference through `transform` with a cubic spline (see [`FrameMaker::CubicSpline`]) is
 /// refined from the exact answer on the same pixels. The error depends on the sub-pixel
 /// positions the pixels land on. When they are nearly the same across the field (a shift with
-/// little rotation or scale change: pointing jitter), it does not average out. On
-/// tests/data/trace_fourier_shift the quintic model's answer is 7e-5 px off; this check says
-/// 4.2e-4 (a cubic-spline frame's error, which bounds it); a cubic model's σ without such a
-/// term is 20× short of its 5.4e-4 px error. The shift is reduced to its fractional part (same
-/// sub-pixel positions), so that the synthetic frame stays inside the reference. `None` when
-/// the check cannot run.
+/// little rotation or scale change: pointing jitter), it does not average out, and σ without
+/// such a term fall far short of the error on band-limited frames; the cubic-spline frame's
+/// error bounds it (docs/validation.md#check-frames-made-by-a-cubic-spline). The shift is
+/// reduced to its fractional part (same sub-pixel positions), so that the synthetic frame
+/// stays inside the reference. `None` when the check cannot run.
 pub(super) fn interpolation_check(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,

@@ -23,11 +23,11 @@ pub(super) struct ClusterFit<'a> {
 /// `s_b = Σ_{i∈b} w_i r_i J_i` is the block's score, `A = Σ ψ′_i J_i F_iᵀ` the M-estimator's
 /// slope and `A_b` the block's share of it. On solar images a few blocks (active regions)
 /// hold most of the structure; the plain sandwich `A⁻¹ Σ s_b s_bᵀ A⁻ᵀ` then understates the
-/// variance (on the noisy TRACE Monte Carlo by 1.3–1.4× in σ), because each dominant block
-/// pulls the fit towards itself and its residuals look smaller than its errors. The slope
-/// must follow ψ′ = (1 − u²)(1 − 5u²), not the weight w = (1 − u²)²: the weights follow the
-/// residuals, and for Gaussian residuals E[w]/E[ψ′] = 1.21, the σ deficit the noisy Monte
-/// Carlo shows with `w` (RMS of error/σ 1.20–1.25). `None` with fewer than 8 blocks.
+/// variance, because each dominant block pulls the fit towards itself and its residuals look
+/// smaller than its errors. The slope must follow ψ′ = (1 − u²)(1 − 5u²), not the weight
+/// w = (1 − u²)²: the weights follow the residuals, and for Gaussian residuals
+/// E[w]/E[ψ′] = 1.21, a σ deficit of as much with `w`
+/// (docs/validation.md#cluster-covariance-in-jackknife-form). `None` with fewer than 8 blocks.
 pub(super) fn cluster_covariance(
     blocks: &BTreeMap<usize, BlockSums>,
 ) -> Option<(Matrix6<f64>, usize)> {

@@ -121,9 +121,8 @@ pub struct Refined {
 
 /// The refinement's model of the frame between its samples: a quintic B-spline. A real frame
 /// is a new sampling of the sky, band-limited by the optics, and a spline moves structure near
-/// the Nyquist frequency differently from it: for a Fourier (band-limited) shift of TRACE
-/// 1024², the cubic spline's answer is 3–6e-4 px off, the quintic's about 4× less
-/// (`tools/other_instruments/fourier_shifts.py`). It costs 36 taps per sample against 16.
+/// the Nyquist frequency differently from it; a quintic spline errs several times less than a
+/// cubic one (docs/validation.md#quintic-model). It costs 36 taps per sample against 16.
 pub const MODEL: HighOrder = HighOrder::Quintic;
 
 /// The refinement's settings under `cfg`, for a frame smoothed by `frame_smoothing_px` to

@@ -115,7 +115,7 @@ pub fn self_test_floor(
     }
     // Only the error the residuals do not already show: without noise the cluster covariance
     // is made of these same interpolation residuals, and counting both overstates the σ
-    // (TRACE 1024², no noise: 86–95 % of trials within 1σ).
+    // (docs/validation.md#self-test-floor).
     Some(SelfTest {
         floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()),
         flat_sigma: (!flat.is_empty())
@@ -193,9 +193,9 @@ pub(super) enum FrameMaker {
     /// A cubic spline, one order below the model: a real frame is a new sampling of the sky,
     /// not the model's resampling of the reference, and the two differ in how they move
     /// structure near the Nyquist frequency. Band-limited frames sit on the model's other
-    /// side, about a third as far (TRACE: a Fourier shift's error 2e-4 px, a cubic spline's
-    /// 7e-4), so the cubic frame's error bounds theirs; and frames that were made by cubic
-    /// resampling (scipy's default) are covered exactly.
+    /// side, nearer, so the cubic frame's error bounds theirs; and frames that were made by
+    /// cubic resampling (scipy's default) are covered exactly
+    /// (docs/validation.md#check-frames-made-by-a-cubic-spline).
     CubicSpline,
 }
 

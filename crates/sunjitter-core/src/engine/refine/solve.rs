@@ -10,10 +10,9 @@ use nalgebra::{Matrix6, Vector6};
 use rayon::prelude::*;
 
 /// Iterations that may recompute the Tukey weights; later ones keep them. Reweighting to
-/// convergence matters (AIA 171 128²: 16″ rotation RMSE after three, 8″ after ten; on TRACE
-/// the reweighted estimate still moves by half of its previous step each time), but on real
-/// pairs with evolving structure it never settles (IRIS 1400, four minutes apart: the estimate
-/// wanders by its σ for as long as the weights change); with them fixed Gauss–Newton converges.
+/// convergence matters, but on real pairs with evolving structure it never settles (the
+/// estimate wanders by its σ for as long as the weights change); with them fixed Gauss–Newton
+/// converges (docs/validation.md#reweighting-then-frozen-weights).
 pub(super) const REWEIGHTED_ITERATIONS: usize = 10;
 
 /// Least `Σψ′/Σw` the covariance uses (0.83 for Gaussian residuals; lower with heavy tails):
@@ -30,12 +29,11 @@ pub(super) const TUKEY_C: f64 = 4.685;
 /// gradient (smoothed by `gradient_smoothing_px`: it only weighs the residuals, and a noisy
 /// weight costs precision) and, for the gain, the mean of the reference's four neighbours.
 /// Neither involves the pixel's own noise, nor the frame's: weighing the gain equation with the
-/// noisy warped value itself biases the gain low (errors in variables, −2e-3 at 3× TRACE's
-/// background noise), and through the gain's coupling with the geometry, the scale. Its slope,
-/// which both the Newton step and the covariance need, is `A = Σ w·J_ref·J_frameᵀ` with the
-/// warped frame's own gradient: with noisy images
-/// `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance (by 2× at 3×
-/// TRACE's background noise), which would halve the σ and slow convergence.
+/// noisy warped value itself biases the gain low (errors in variables), and through the gain's
+/// coupling with the geometry, the scale. Its slope, which both the Newton step and the
+/// covariance need, is `A = Σ w·J_ref·J_frameᵀ` with the warped frame's own gradient: with
+/// noisy images `Σ J_ref J_refᵀ` overstates the slope by the gradient noise's variance, which
+/// would shrink the σ and slow convergence (docs/validation.md#gain-instrument-and-slope).
 pub fn refine(
     reference: &RefineReference,
     frame: &FrameWindow,
@@ -201,8 +199,9 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
     let pixels = &problem.pixels;
     let sampled = &state.sampled;
     // The pixels were chosen to map inside the frame from the start: most of them
-    // leaving it means the iterations ran away from the start (HMI 100² with a zero sky:
-    // from a flow 4.5 px off, the gain turns negative and the estimate leaves the frame).
+    // leaving it means the iterations ran away from the start (from a flow far off on a
+    // featureless disk the gain can turn negative and the estimate leave the frame;
+    // docs/validation.md#run-away-most-pixels-leave-the-frame).
     let inside = sampled
         .par_iter()
         .filter(|s| s.iter().all(|v| v.is_finite()))
@@ -281,9 +280,10 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
 }
 
 /// Iteratively reweighted for the first iterations, then with the weights frozen: on real
-/// pairs (IRIS 1400 frames four minutes apart) reweighting every step keeps the estimate
-/// wandering by about its σ, while with fixed weights Gauss–Newton converges. Pixels that map
-/// outside the frame weigh nothing either way.
+/// pairs with evolving structure reweighting every step keeps the estimate wandering by about
+/// its σ, while with fixed weights Gauss–Newton converges
+/// (docs/validation.md#reweighting-then-frozen-weights). Pixels that map outside the frame
+/// weigh nothing either way.
 fn reweigh(state: &mut SolverState, residuals: &[f64]) -> Result<(), RefineFailure> {
     let iterations = state.iterations;
     let sampled = &state.sampled;
@@ -374,8 +374,8 @@ fn finish(
     // The estimate's sensitivity to the data is that of the M-estimator `Σ ψ(r)·J = 0`
     // (the weights were set by these residuals): the slope weighs by ψ′, not by w.
     // Huber's scalar form, `w · Σψ′/Σw`, because per pixel ψ′ turns negative beyond
-    // 0.45 c and makes the slope of small images nearly singular (EIT 128²: a few
-    // trials' σ 30× too large).
+    // 0.45 c and makes the slope of small images nearly singular, their σ far too large
+    // (docs/validation.md#slope-in-hubers-scalar-form).
     let psi_ratio = (sum_psi / sum_w).clamp(MIN_PSI_RATIO, 1.0);
     let fits = ClusterFit {
         jac,
