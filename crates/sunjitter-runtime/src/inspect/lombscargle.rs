@@ -27,7 +27,7 @@ impl FrequencyGrid {
             return None;
         }
         let span = t.last()? - t.first()?;
-        let mut gaps: Vec<f64> = t
+        let gaps: Vec<f64> = t
             .windows(2)
             .map(|w| w[1] - w[0])
             .filter(|d| *d > 0.0)
@@ -35,7 +35,7 @@ impl FrequencyGrid {
         if span.is_nan() || span <= 0.0 || gaps.is_empty() {
             return None;
         }
-        let nyquist = 0.5 / super::stats::median(&mut gaps)?;
+        let nyquist = 0.5 / super::stats::median(&gaps)?;
         let min_hz = 1.0 / span;
         if nyquist <= min_hz {
             return None;

@@ -319,7 +319,7 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
     }
     let t0 = frames.first().map_or(0, |f| f.log_time_ns);
     let t1 = frames.last().map_or(0, |f| f.log_time_ns);
-    let mut gaps: Vec<f64> = frames
+    let gaps: Vec<f64> = frames
         .windows(2)
         .map(|w| (w[1].log_time_ns - w[0].log_time_ns) as f64 * 1e-9)
         .collect();
@@ -416,7 +416,7 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
         start: sunjitter_core::time::format_iso_utc(t0),
         end: sunjitter_core::time::format_iso_utc(t1),
         span_s: (t1 - t0) as f64 * 1e-9,
-        median_cadence_s: stats::median(&mut gaps),
+        median_cadence_s: stats::median(&gaps),
         raw,
         chained,
         series,

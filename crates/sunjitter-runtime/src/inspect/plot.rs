@@ -665,8 +665,8 @@ where
 /// flatten the rest), padded by 8 %.
 fn y_range<'a>(samples: impl Iterator<Item = &'a Sample>) -> (f64, f64) {
     let s: Vec<&Sample> = samples.collect();
-    let mut sig: Vec<f64> = s.iter().map(|x| x.sigma).filter(|v| *v > 0.0).collect();
-    let cap = 3.0 * super::stats::median(&mut sig).unwrap_or(0.0);
+    let sig: Vec<f64> = s.iter().map(|x| x.sigma).filter(|v| *v > 0.0).collect();
+    let cap = 3.0 * super::stats::median(&sig).unwrap_or(0.0);
     let lo = s
         .iter()
         .map(|x| x.v - x.sigma.min(cap))

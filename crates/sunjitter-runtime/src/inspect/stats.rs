@@ -2,19 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Median (average of the middle two for an even count); reorders `v`. `None` when empty.
-pub fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    })
-}
+pub use sunjitter_core::stats::median;
 
 /// Summary of one parameter's values; every number is `null` when there are none.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -34,8 +22,8 @@ pub struct Stats {
 impl Stats {
     pub fn of(values: &[f64], sigmas: &[f64]) -> Stats {
         let n = values.len();
-        let mut positive: Vec<f64> = sigmas.iter().copied().filter(|s| *s > 0.0).collect();
-        let median_sigma = median(&mut positive);
+        let positive: Vec<f64> = sigmas.iter().copied().filter(|s| *s > 0.0).collect();
+        let median_sigma = median(&positive);
         if n == 0 {
             return Stats {
                 median_sigma,
@@ -255,12 +243,12 @@ pub fn outliers(t: &[f64], y: &[f64], sigma: &[f64], threshold: f64) -> Vec<Devi
 /// One pass of [`outliers`] (indices into the given arrays).
 fn one_pass(t: &[f64], y: &[f64], sigma: &[f64], threshold: f64) -> Vec<Deviation> {
     let n = y.len();
-    let mut gaps: Vec<f64> = t
+    let gaps: Vec<f64> = t
         .windows(2)
         .map(|w| (w[1] - w[0]).abs())
         .filter(|d| *d > 0.0)
         .collect();
-    let unit = median(&mut gaps).unwrap_or(1.0);
+    let unit = median(&gaps).unwrap_or(1.0);
     let mut segments = Vec::new();
     let mut start = 0;
     for i in 1..=n {
@@ -353,9 +341,9 @@ mod tests {
 
     #[test]
     fn medians() {
-        assert_eq!(median(&mut [3.0, 1.0, 2.0]), Some(2.0));
-        assert_eq!(median(&mut [4.0, 1.0, 2.0, 3.0]), Some(2.5));
-        assert_eq!(median(&mut []), None);
+        assert_eq!(median(&[3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), Some(2.5));
+        assert_eq!(median(&[]), None);
     }
 
     #[test]
