@@ -9,7 +9,7 @@
 //!   ([`engine`]). [`synth`] and [`simulate`] make ground truth.
 //! - `sunjitter-io`: FITS in ([`fits`]), MCAP out and back ([`sink`], [`records`]), corrected
 //!   frames ([`aligned`]), output paths ([`outputs`]).
-//! - `sunjitter-runtime`: files found ([`ingest`]) → reference policy ([`reference`]) →
+//! - `sunjitter-runtime`: files found ([`ingest`]) → reference policy ([`reference`](mod@reference)) →
 //!   pipeline ([`pipeline`]) → daemon and replay ([`daemon`], [`shard`], [`merge`]) →
 //!   [`monitor`], [`products`] → [`inspect`].
 //!

@@ -1,6 +1,6 @@
 //! sunjitter's runtime: what turns files into logged measurements and logs into answers.
 //!
-//! Files found ([`ingest`]) → reference policy and restart ([`reference`]) → the pipeline:
+//! Files found ([`ingest`]) → reference policy and restart ([`reference`](mod@reference)) → the pipeline:
 //! frames read and measured through [`ports`], scheduler,
 //! jobs on the engine, one writer ([`pipeline`]) → the daemon ([`daemon`]) and sharded
 //! replays ([`shard`], [`merge`]) → health, alerts and the live view ([`monitor`]) →

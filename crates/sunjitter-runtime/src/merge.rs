@@ -11,7 +11,7 @@
 //! the root of their partners. Sequence numbers are renumbered per channel in time order,
 //! and a `/reference` message repeating the channel's current reference is dropped.
 //!
-//! Reading and checking the shards ([`read_shard`], [`check_set`]) and writing ([`write`])
+//! Reading and checking the shards ([`read_shard`], [`check_set`]) and writing ([`write`](fn@write))
 //! do the I/O; [`merge`] is pure.
 
 use crate::config::Config;

@@ -180,7 +180,7 @@ pub struct HighOrderSpline {
 }
 
 impl HighOrderSpline {
-    /// Prefilter `src` (NaN-safe, as [`SplineImage::new`]).
+    /// Prefilter `src` (NaN-safe, as [`SplineImage::new`](super::SplineImage::new)).
     pub fn new(src: ArrayView2<f32>, order: HighOrder) -> Self {
         let bad = non_finite_mask(&src);
         let mut coeffs = Zip::from(&src).par_map_collect(|&v| v);
@@ -307,7 +307,7 @@ impl HighOrderSpline {
     }
 
     /// Value and gradient `[v, ∂v/∂x, ∂v/∂y]` at `(x, y)`, as
-    /// [`SplineImage::sample_with_gradient`]: one pass over the support.
+    /// [`SplineImage::sample_with_gradient`](super::SplineImage::sample_with_gradient): one pass over the support.
     #[inline(always)]
     pub fn sample_with_gradient(&self, x: f64, y: f64) -> [f64; 3] {
         let Some(((ix, tx), (iy, ty))) = self.locate(x, y) else {
@@ -322,7 +322,7 @@ impl HighOrderSpline {
     }
 
     /// The `out_width × out_height` window at column `x0`, row `y0` of the image warped by
-    /// `t` (`out[p] = image(T(p))`, NaN outside), as [`SplineImage::warp_similarity_window`].
+    /// `t` (`out[p] = image(T(p))`, NaN outside), as [`SplineImage::warp_similarity_window`](super::SplineImage::warp_similarity_window).
     pub fn warp_similarity_window(
         &self,
         t: &Similarity,

@@ -7,7 +7,7 @@
 //! it to the SDK's server, which keeps its own bounded queue per client and drops the oldest
 //! messages of a slow client. The server advertises no capability: clients can subscribe,
 //! nothing else (no publishing, services or parameters). Clients reach it through the
-//! [`gate`](super::gate), which admits them by origin and number.
+//! [`super::gate`], which admits them by origin and number.
 //!
 //! Each channel keeps its latest message, and a client subscribing to a channel gets it at once
 //! (then every later one). Messages go only to the subscribers known when they are logged, under

@@ -309,8 +309,8 @@ pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
     line
 }
 
-/// The monitors of one `watch` run: build with [`Monitor::start`], hand
-/// [`Monitor::sink`] to the pipeline, call [`Monitor::stop`] after it ended.
+/// The monitors of one `watch` run: build with [`Monitor::start`], hand the
+/// [`MonitoredSink`] it returns to the pipeline, call [`Monitor::stop`] after it ended.
 pub struct Monitor {
     health: SharedHealth,
     live: Option<live::LiveServer>,

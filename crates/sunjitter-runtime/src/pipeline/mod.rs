@@ -13,8 +13,8 @@
 //! frame's time). So `replay` of a set of frames writes what the daemon wrote for them,
 //! apart from `publish_time` and the engine's own `elapsed_ms`.
 //!
-//! Submodules follow the diagram: [`frames`] enter, [`scheduler`] orders them, [`job`] runs
-//! one, [`writer`] logs, [`run`] drives the lot; [`replay`] and the daemon are front ends.
+//! Submodules follow the diagram: `frames` enter, `scheduler` orders them, `job` runs
+//! one, `writer` logs, `run` drives the lot; `replay` and the daemon are front ends.
 
 mod aligner;
 mod frames;

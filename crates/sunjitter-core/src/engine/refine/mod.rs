@@ -112,7 +112,7 @@ pub struct Refined {
     /// Robust (MAD) σ of the intensity residuals.
     pub residual_sigma: f64,
     /// Robust σ of the residuals at the flattest quarter of the pixels, where the model's
-    /// misfit is least (see [`covariance::noise_covariance`]).
+    /// misfit is least (see `covariance::noise_covariance`).
     pub flat_residual_sigma: Option<f64>,
     /// The covariance that residual noise of unit σ gives through the M-estimator's exact
     /// slope, when [`RefineSettings::noise_covariance`] asks for it.
