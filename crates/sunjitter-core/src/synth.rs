@@ -568,8 +568,8 @@ impl SunModel {
     /// Cubic B-spline surface through the periodic texture samples.
     fn texture_at(&self, p: [f64; 2]) -> f64 {
         let (fx, fy) = (p[0].floor(), p[1].floor());
-        let wx = bspline_weights(p[0] - fx);
-        let wy = bspline_weights(p[1] - fy);
+        let wx = crate::resample::bspline3_weights(p[0] - fx);
+        let wy = crate::resample::bspline3_weights(p[1] - fy);
         let n = self.tex_n as i64;
         let ix = (fx as i64 - 1).rem_euclid(n) as usize;
         let iy = (fy as i64 - 1).rem_euclid(n) as usize;
@@ -585,19 +585,6 @@ impl SunModel {
         }
         acc
     }
-}
-
-/// Cubic B-spline weights for the samples at offsets −1, 0, 1, 2 from `floor(u)`, `f = u − floor(u)`.
-fn bspline_weights(f: f64) -> [f64; 4] {
-    let f2 = f * f;
-    let f3 = f2 * f;
-    let g = 1.0 - f;
-    [
-        g * g * g / 6.0,
-        (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
-        (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0,
-        f3 / 6.0,
-    ]
 }
 
 /// Periodic octave noise on an `m × m` grid (`m ≥ size`, a multiple of the largest lattice),
@@ -619,7 +606,7 @@ fn texture(size: usize, rng: &mut Rng) -> (Vec<f32>, usize) {
             .map(|x| {
                 let u = x as f64 / l as f64;
                 let i0 = u.floor();
-                let w = bspline_weights(u - i0);
+                let w = crate::resample::bspline3_weights(u - i0);
                 (i0 as usize, w.map(|v| v as f32))
             })
             .collect();

@@ -79,8 +79,10 @@ fn locate(v: f64, n: usize) -> Option<(usize, f64)> {
     Some((i, v - i as f64))
 }
 
+/// Cubic B-spline weights of the samples at offsets −1, 0, 1, 2 from `floor(x)`, for the
+/// fraction `t`.
 #[inline(always)]
-fn bspline3_weights(t: f64) -> [f64; 4] {
+pub(crate) fn bspline3_weights(t: f64) -> [f64; 4] {
     let t2 = t * t;
     let t3 = t2 * t;
     let u = 1.0 - t;
