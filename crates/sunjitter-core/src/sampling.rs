@@ -49,16 +49,19 @@ pub struct CellSample {
 
 /// Inclusive bounding box `(x0, y0, x1, y1)` of the true pixels of a mask.
 pub fn mask_bounding_box(mask: ArrayView2<bool>) -> Option<(usize, usize, usize, usize)> {
-    let mut bbox: Option<(usize, usize, usize, usize)> = None;
-    for ((y, x), &m) in mask.indexed_iter() {
-        if m {
-            bbox = Some(match bbox {
-                None => (x, y, x, y),
-                Some((x0, y0, x1, y1)) => (x0.min(x), y0.min(y), x1.max(x), y1.max(y)),
-            });
-        }
-    }
-    bbox
+    use rayon::prelude::*;
+    // Row by row, each row's first and last set pixel: a frame-sized mask is tens of MB.
+    mask.axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .filter_map(|(y, row)| {
+            let first = row.iter().position(|&m| m)?;
+            let last = row.iter().rposition(|&m| m)?;
+            Some((first, y, last, y))
+        })
+        .reduce_with(|(ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1)| {
+            (ax0.min(bx0), ay0.min(by0), ax1.max(bx1), ay1.max(by1))
+        })
 }
 
 /// Per-cell representatives, cells in row-major order. Returns an empty vector when the

@@ -127,7 +127,8 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
 }
 
 fn cleaned(data: &Array2<f32>, hot_pixel_fraction: f32) -> Array2<f32> {
-    let mut out = data.clone();
+    // Copied in parallel: a frame is tens of MB, faulted in page by page.
+    let mut out = ndarray::Zip::from(data).par_map_collect(|&v| v);
     if hot_pixel_fraction > 0.0 {
         preprocess::remove_hot_pixels(&mut out, hot_pixel_fraction);
     }

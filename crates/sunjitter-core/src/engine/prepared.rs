@@ -11,6 +11,7 @@ use crate::flow::{Farneback, Roi};
 use crate::meta::FrameMeta;
 use crate::preprocess;
 use ndarray::{s, Array2, ArrayView2, Zip};
+use rayon::prelude::*;
 use std::time::Instant;
 
 /// Working memory kept from one alignment to the next: the flow solver, whose buffers
@@ -371,25 +372,33 @@ fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f
         return None;
     }
     let trend = preprocess::gaussian_smooth(img, STRUCTURE_TREND_SIGMA_PX);
-    let (mut n, mut s, mut s2, mut g2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            if !mask[[y, x]] {
-                continue;
+    let hp = |yy: usize, xx: usize| (img[[yy, xx]] - trend[[yy, xx]]) as f64;
+    // Row sums in parallel, added in row order: the same figure whatever the thread count.
+    let rows: Vec<[f64; 4]> = (1..h - 1)
+        .into_par_iter()
+        .map(|y| {
+            let mut sums = [0.0f64; 4];
+            for x in 1..w - 1 {
+                if !mask[[y, x]] {
+                    continue;
+                }
+                let v = hp(y, x);
+                let gx = (hp(y, x + 1) - hp(y, x - 1)) / 2.0;
+                let gy = (hp(y + 1, x) - hp(y - 1, x)) / 2.0;
+                if !(v.is_finite() && gx.is_finite() && gy.is_finite()) {
+                    continue;
+                }
+                sums[0] += 1.0;
+                sums[1] += v;
+                sums[2] += v * v;
+                sums[3] += (gx * gx + gy * gy) / 2.0;
             }
-            let hp = |yy: usize, xx: usize| (img[[yy, xx]] - trend[[yy, xx]]) as f64;
-            let v = hp(y, x);
-            let gx = (hp(y, x + 1) - hp(y, x - 1)) / 2.0;
-            let gy = (hp(y + 1, x) - hp(y - 1, x)) / 2.0;
-            if !(v.is_finite() && gx.is_finite() && gy.is_finite()) {
-                continue;
-            }
-            n += 1.0;
-            s += v;
-            s2 += v * v;
-            g2 += (gx * gx + gy * gy) / 2.0;
-        }
-    }
+            sums
+        })
+        .collect();
+    let [n, s, s2, g2] = rows.iter().fold([0.0f64; 4], |a, r| {
+        [a[0] + r[0], a[1] + r[1], a[2] + r[2], a[3] + r[3]]
+    });
     if n < 64.0 {
         return None;
     }

@@ -149,9 +149,9 @@ fn ranks(values: Vec<f32>) -> Vec<f64> {
 /// `img` minus its Gaussian blur at `sigma_px`: the structure without the large-scale trend.
 pub fn high_pass(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     let trend = crate::preprocess::gaussian_trend(img, sigma_px);
-    let mut out = img.to_owned();
-    out.zip_mut_with(&trend, |v, t| *v -= t);
-    out
+    ndarray::Zip::from(img)
+        .and(&trend)
+        .par_map_collect(|&v, &t| v - t)
 }
 
 /// Most values one histogram of [`bhattacharyya`] takes (evenly strided beyond that).

@@ -8,7 +8,8 @@ use super::{derotate, quality};
 use crate::flow::Roi;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
 use crate::preprocess;
-use ndarray::{s, Array2, ArrayView2};
+use ndarray::{s, Array2, ArrayView2, Axis};
+use rayon::prelude::*;
 
 /// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
 /// memory grow with the pixel count while the refinement only needs a start near its answer,
@@ -56,10 +57,8 @@ impl Binned {
         trend_px: f64,
     ) -> Binned {
         let factor = 1usize << level;
-        let inside = preprocess::bin_mean(mask.mapv(|m| m as u8 as f32).view(), factor);
         let reference = preprocess::bin_mean(reference, factor);
-        // A binned pixel is in the mask when all its pixels are.
-        let mask = inside.mapv(|v| v >= 1.0);
+        let mask = all_binned(mask, factor);
         let mask_box = mask_roi(&mask);
         let (h, w) = reference.dim();
         let (rows, cols) = grown(mask_box, trend_px, w, h);
@@ -74,6 +73,27 @@ impl Binned {
             quality_crop: Crop { rows, cols },
         }
     }
+}
+
+/// `mask` binned `factor`×, the last blocks partial: a binned pixel is in the mask when all
+/// its pixels are.
+fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
+    let (h, w) = mask.dim();
+    let (bh, bw) = (h.div_ceil(factor), w.div_ceil(factor));
+    let mut out = Array2::from_elem((bh, bw), true);
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(by, mut row)| {
+            for y in by * factor..((by + 1) * factor).min(h) {
+                for (x, &m) in mask.row(y).iter().enumerate() {
+                    if !m {
+                        row[x / factor] = false;
+                    }
+                }
+            }
+        });
+    out
 }
 
 /// The flow stage on `binned` copies, as a seed for the refinement: the result in full-grid
@@ -175,4 +195,23 @@ pub(super) fn seed_alignment(
     });
     fine.seed_level = Some(binned.level);
     Ok(fine)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_binned_pixel_is_in_the_mask_when_all_its_pixels_are() {
+        // 10 × 7 with factor 4: partial blocks at the right and bottom edges.
+        let mask = Array2::from_shape_fn((7, 10), |(y, x)| !(y == 1 && x == 2) && x != 9);
+        let binned = all_binned(&mask, 4);
+        // Blocks: rows 0–3 | 4–6, columns 0–3 | 4–7 | 8–9.
+        let want = ndarray::arr2(&[[false, true, false], [true, true, false]]);
+        assert_eq!(binned, want);
+        // A whole mask stays whole, the partial blocks included.
+        assert!(all_binned(&Array2::from_elem((7, 10), true), 4)
+            .iter()
+            .all(|&m| m));
+    }
 }

@@ -220,7 +220,7 @@ fn median_of(vals: &mut [f32]) -> f32 {
 /// to sorting their finite neighbours.
 pub(super) fn median3x3(img: &ArrayView2<f32>) -> Array2<f32> {
     let (h, w) = img.dim();
-    let mut out = Array2::<f32>::zeros((h, w));
+    let mut out = super::filters::zeroed(h, w);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()

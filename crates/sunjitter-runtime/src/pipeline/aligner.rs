@@ -46,6 +46,10 @@ pub struct EngineAligner {
     /// Each channel's last aligned frame, cleaned and disk-checked: under `previous` it is the
     /// next reference.
     last_frames: Mutex<Vec<(String, ReferenceKey, FrameWork)>>,
+    /// The reference each frame channel's latest alignment used. A prepared reference that no
+    /// channel uses any more is dropped at once: under `previous` every frame makes a new one,
+    /// and the stale ones would hold hundreds of MB at 4096².
+    in_use: Mutex<Vec<(String, ReferenceKey)>>,
     /// The flow solver's memory, shared by every reference prepared here.
     workspace: Arc<Workspace>,
 }
@@ -91,6 +95,7 @@ impl EngineAligner {
             rotation: Default::default(),
             prepared: Mutex::new(Vec::new()),
             last_frames: Mutex::new(Vec::new()),
+            in_use: Mutex::new(Vec::new()),
             workspace: Default::default(),
         }
     }
@@ -145,6 +150,23 @@ impl EngineAligner {
     }
 }
 
+impl EngineAligner {
+    /// Record that `channel` now aligns to `key`; drop the prepared reference it used before
+    /// when no other channel uses it (an alignment still running on it keeps its own `Arc`).
+    fn used_by(&self, channel: &str, key: ReferenceKey) {
+        let mut in_use = self.in_use.lock().unwrap_or_else(|p| p.into_inner());
+        let before = in_use
+            .iter()
+            .position(|(c, _)| c == channel)
+            .map(|i| in_use.swap_remove(i).1);
+        in_use.push((channel.to_string(), key));
+        if let Some(old) = before.filter(|old| in_use.iter().all(|(_, k)| k != old)) {
+            let mut cache = self.prepared.lock().unwrap_or_else(|p| p.into_inner());
+            cache.retain(|(k, _)| *k != old);
+        }
+    }
+}
+
 impl Default for EngineAligner {
     fn default() -> Self {
         EngineAligner::new(EngineConfig::default())
@@ -164,9 +186,10 @@ impl Aligner for EngineAligner {
         let channel = &frame.meta.channel;
         let name = self.rotation.names.get(channel).unwrap_or(channel);
         let profile = self.rotation.by_channel.get(name).copied();
-        let (outcome, kept) = self
-            .prepared(reference)
-            .align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
+        let prepared = self.prepared(reference);
+        self.used_by(channel, ReferenceKey::of(reference));
+        let (outcome, kept) =
+            prepared.align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
         if let Some(work) = kept {
             let mut last = match self.last_frames.lock() {
                 Ok(g) => g,
@@ -200,4 +223,50 @@ impl Aligner for EngineAligner {
 struct ChannelRotation {
     by_channel: std::collections::BTreeMap<String, sunjitter_core::solar_rotation::Profile>,
     names: std::collections::BTreeMap<String, String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_prepared_reference_no_channel_aligns_to_is_dropped() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../data/real/aia_171_20110215T000000_128.fits");
+        let spec = FrameSpec { path, frame: None };
+        let real = FitsReader::default()
+            .read_frame(&spec)
+            .expect("bundled AIA image");
+        let image = |offset: f32, channel: &str| Image {
+            data: real.data.mapv(|v| v + offset),
+            meta: FrameMeta {
+                channel: channel.into(),
+                ..real.meta.clone()
+            },
+        };
+        let (a, b, c, other) = (
+            image(0.0, "A"),
+            image(1.0, "A"),
+            image(2.0, "A"),
+            image(0.0, "B"),
+        );
+        let aligner = EngineAligner::default();
+        let cached = |img: &Image| {
+            let key = ReferenceKey::of(img);
+            aligner
+                .prepared
+                .lock()
+                .unwrap()
+                .iter()
+                .any(|(k, _)| *k == key)
+        };
+        aligner.align(&a, &b);
+        aligner.align(&a, &other);
+        // Channel A moves on to `b`; channel B still aligns to `a`.
+        aligner.align(&b, &c);
+        assert!(cached(&a) && cached(&b));
+        // Now no channel aligns to `a`.
+        aligner.align(&b, &other);
+        assert!(!cached(&a) && cached(&b));
+    }
 }

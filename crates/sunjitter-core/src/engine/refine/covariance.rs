@@ -6,6 +6,7 @@ use super::reference::Pixel;
 use super::solve::{robust_sigma, sum_in_chunks, tukey_psi_slope};
 use nalgebra::{Matrix6, Vector6};
 use ndarray::Array2;
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// What the cluster-robust covariance needs of a converged fit: per pixel the instruments
@@ -146,15 +147,18 @@ pub(super) fn noise_covariance(
 ) -> Option<(Option<Matrix6<f64>>, f64)> {
     let (jac, residuals, weights) = (fit.jac, fit.residuals, fit.weights);
     let counts = |k: usize| weights[k] > 0.0 && residuals[k].is_finite();
-    let used: Vec<usize> = (0..pixels.len()).filter(|&k| counts(k)).collect();
+    let used: Vec<usize> = (0..pixels.len())
+        .into_par_iter()
+        .filter(|&k| counts(k))
+        .collect();
     if used.len() < 64 {
         return None;
     }
     let gradient = |k: usize| pixels[k].gx.hypot(pixels[k].gy);
-    let mut gradients: Vec<f64> = used.iter().map(|&k| gradient(k)).collect();
+    let mut gradients: Vec<f64> = used.par_iter().map(|&k| gradient(k)).collect();
     let (_, &mut flattest, _) = gradients.select_nth_unstable_by(used.len() / 4, f64::total_cmp);
     let flat: Vec<f64> = used
-        .iter()
+        .par_iter()
         .filter(|&&k| gradient(k) <= flattest)
         .map(|&k| residuals[k])
         .collect();
@@ -163,6 +167,7 @@ pub(super) fn noise_covariance(
         return Some((None, flat_sigma));
     }
     let u: Vec<Vector6<f64>> = (0..pixels.len())
+        .into_par_iter()
         .map(|k| match counts(k) {
             true => Vector6::from(jac[k]) * tukey_psi_slope(residuals[k], tukey_c),
             false => Vector6::zeros(),
@@ -179,44 +184,31 @@ pub(super) fn noise_covariance(
         },
         |a, b| a + b,
     );
-    // The pixels lie on a lattice of every `step`-th row and column.
-    let step = pixels
-        .windows(2)
-        .filter(|p| p[0].y == p[1].y && p[1].x > p[0].x)
-        .map(|p| p[1].x - p[0].x)
-        .min()
-        .unwrap_or(1);
-    let (gw, gh) = (
-        pixels.iter().map(|p| p.x).max()? / step + 1,
-        pixels.iter().map(|p| p.y).max()? / step + 1,
-    );
-    let mut index = Array2::<u32>::from_elem((gh, gw), u32::MAX);
-    for (k, p) in pixels.iter().enumerate() {
-        index[[p.y / step, p.x / step]] = k as u32;
-    }
+    let lattice = Lattice::of(pixels)?;
     let s = smoothing_px.max(0.1);
-    let reach = (3.0 * std::f64::consts::SQRT_2 * s / step as f64).ceil() as isize;
-    let side = (2 * reach + 1) as usize;
+    let reach = (3.0 * std::f64::consts::SQRT_2 * s / lattice.step as f64).ceil() as usize;
+    let side = 2 * reach + 1;
     let correlation: Vec<f64> = (0..side * side)
         .map(|t| {
-            let (dx, dy) = ((t % side) as isize - reach, (t / side) as isize - reach);
-            let d2 = ((dx * dx + dy * dy) as usize * step * step) as f64;
+            let (dx, dy) = (t % side, t / side);
+            let (dx, dy) = (dx.abs_diff(reach), dy.abs_diff(reach));
+            let d2 = ((dx * dx + dy * dy) * lattice.step * lattice.step) as f64;
             (-d2 / (4.0 * s * s)).exp()
         })
         .collect();
+    let (gh, gw) = lattice.index.dim();
     let near_product = |i: usize| {
-        let (cx, cy) = ((pixels[i].x / step) as isize, (pixels[i].y / step) as isize);
+        let (cx, cy) = lattice.cell(&pixels[i]);
         let mut near = Vector6::<f64>::zeros();
-        for dy in -reach..=reach {
-            for dx in -reach..=reach {
-                let (x, y) = (cx + dx, cy + dy);
-                if x < 0 || y < 0 || x >= gw as isize || y >= gh as isize {
-                    continue;
-                }
-                let j = index[[y as usize, x as usize]];
+        // The neighbourhood clipped to the lattice, visited row by row as the table is laid.
+        let (x0, x1) = (cx.saturating_sub(reach), (cx + reach).min(gw - 1));
+        for y in cy.saturating_sub(reach)..=(cy + reach).min(gh - 1) {
+            let row = lattice.index.row(y);
+            let weights = &correlation[(y + reach - cy) * side..][..side];
+            for x in x0..=x1 {
+                let j = row[x];
                 if j != u32::MAX {
-                    let t = (dy + reach) as usize * side + (dx + reach) as usize;
-                    near += u[j as usize] * correlation[t];
+                    near += u[j as usize] * weights[x + reach - cx];
                 }
             }
         }
@@ -236,6 +228,56 @@ pub(super) fn noise_covariance(
         .try_inverse()
         .map(|inverse| inverse * meat * inverse.transpose());
     Some((covariance, flat_sigma))
+}
+
+/// Where each pixel sits on the lattice of every `step`-th row and column that the pixels
+/// were taken on, over their bounding box only.
+struct Lattice {
+    step: usize,
+    origin: (usize, usize),
+    /// Pixel index at each lattice node, `u32::MAX` where there is none.
+    index: Array2<u32>,
+}
+
+impl Lattice {
+    fn of(pixels: &[Pixel]) -> Option<Lattice> {
+        let step = pixels
+            .windows(2)
+            .filter(|p| p[0].y == p[1].y && p[1].x > p[0].x)
+            .map(|p| p[1].x - p[0].x)
+            .min()
+            .unwrap_or(1);
+        let (x0, x1) = (
+            pixels.iter().map(|p| p.x).min()?,
+            pixels.iter().map(|p| p.x).max()?,
+        );
+        let (y0, y1) = (
+            pixels.iter().map(|p| p.y).min()?,
+            pixels.iter().map(|p| p.y).max()?,
+        );
+        let origin = (x0 / step, y0 / step);
+        let mut lattice = Lattice {
+            step,
+            origin,
+            index: Array2::from_elem(
+                (y1 / step - origin.1 + 1, x1 / step - origin.0 + 1),
+                u32::MAX,
+            ),
+        };
+        for (k, p) in pixels.iter().enumerate() {
+            let (x, y) = lattice.cell(p);
+            lattice.index[[y, x]] = k as u32;
+        }
+        Some(lattice)
+    }
+
+    /// The pixel's node (column, row).
+    fn cell(&self, p: &Pixel) -> (usize, usize) {
+        (
+            p.x / self.step - self.origin.0,
+            p.y / self.step - self.origin.1,
+        )
+    }
 }
 
 /// Geometric mean of the ratios of the four geometric variances, `b` over `a`.

@@ -93,7 +93,17 @@ impl FrameWindow {
             return 0;
         }
         let depth = |k: usize| self.tiles[k].depth(p[0], p[1]);
-        (1..self.tiles.len()).fold(0, |best, k| if depth(k) > depth(best) { k } else { best })
+        let first = (0, depth(0));
+        (1..self.tiles.len())
+            .fold(first, |best, k| {
+                let d = depth(k);
+                if d > best.1 {
+                    (k, d)
+                } else {
+                    best
+                }
+            })
+            .0
     }
 
     /// Value and reference-grid gradient of the frame at the image of each pixel through `t`
