@@ -443,7 +443,10 @@ impl<'a> Stages<'a> {
     fn refine(&self, fine: &mut FineResult) -> Result<Refinement, String> {
         let cfg = self.pair.cfg;
         let prepared = self.matched.refine_reference.get_or_init(|| {
-            refine::RefineReference::new(self.reference(), &refine::settings(cfg, 0.0))
+            // Every pixel the refinement, its self-test and its checks fit lies in the mask.
+            let m = self.pair.work.mask_box;
+            let bbox = (m.x, m.y, m.x + m.width - 1, m.y + m.height - 1);
+            refine::RefineReference::within(self.reference(), &refine::settings(cfg, 0.0), bbox)
         });
         let mut outcome = self.try_refine(prepared, fine);
         if outcome.is_err() {

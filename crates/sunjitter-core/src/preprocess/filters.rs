@@ -8,6 +8,18 @@ use rayon::prelude::*;
 /// The kernel is truncated at `round(4σ)` like `scipy.ndimage.gaussian_filter`, whose
 /// numbers it reproduces away from NaNs and borders.
 pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
+    gaussian_smooth_as(img, sigma_px, !crate::stats::all_finite(img))
+}
+
+/// [`gaussian_smooth`], normalised by the convolved weights (`has_nan`) or by the kernel's
+/// sums: a window of an image with a NaN anywhere takes the former, and then has the same
+/// values as the whole image's at least the kernel's reach (`round(4σ)` px) inside its edges
+/// that are not the image's.
+pub(crate) fn gaussian_smooth_as(
+    img: ArrayView2<f32>,
+    sigma_px: f64,
+    has_nan: bool,
+) -> Array2<f32> {
     if sigma_px.is_nan() || sigma_px <= 0.0 || !sigma_px.is_finite() {
         return img.to_owned();
     }
@@ -21,16 +33,16 @@ pub fn gaussian_smooth(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     let total: f32 = kernel.iter().sum();
     kernel.iter_mut().for_each(|k| *k /= total);
     let (h, w) = img.dim();
-    let has_nan = !crate::stats::all_finite(img);
     let values = Zip::from(&img).par_map_collect(|&v| if v.is_finite() { v } else { 0.0 });
     let mut out = convolve_columns(&convolve_rows(&values, &kernel), &kernel);
     if has_nan {
-        let weights = img.mapv(|v| if v.is_finite() { 1.0f32 } else { 0.0 });
+        let weights =
+            Zip::from(&img).par_map_collect(|&v| if v.is_finite() { 1.0f32 } else { 0.0 });
         let den = convolve_columns(&convolve_rows(&weights, &kernel), &kernel);
         Zip::from(&mut out)
             .and(&den)
             .and(&img)
-            .for_each(|o, &d, &v| {
+            .par_for_each(|o, &d, &v| {
                 *o = if v.is_finite() && d > 0.0 {
                     *o / d
                 } else {
@@ -203,8 +215,8 @@ fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
 /// Zero-padded 1-D convolution along each column, row-wise for cache locality.
 fn convolve_columns(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
     let r = kernel.len() / 2;
-    let (h, _) = a.dim();
-    let mut out = Array2::<f32>::zeros(a.dim());
+    let (h, w) = a.dim();
+    let mut out = zeroed(h, w);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()

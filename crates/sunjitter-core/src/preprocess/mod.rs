@@ -7,6 +7,7 @@ mod filters;
 mod hot_pixels;
 
 pub use disk::{detect_disk, DiskFit, LimbFeature};
+pub(crate) use filters::gaussian_smooth_as;
 pub use filters::{bin_mean, gaussian_smooth, gaussian_trend};
 pub use hot_pixels::{
     remove_hot_pixels, remove_hot_pixels_with, remove_spikes_from_scene, HOT_PIXEL_LONE_FACTOR,
