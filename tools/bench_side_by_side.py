@@ -47,6 +47,7 @@ CASES = ["flow_opencv_semantics", "flow_engine", "align", "align_per_frame", "al
 def cross_channel(next_path, out_dir):
     """NEXT as another channel shows it: blurred, intensities bent, another wavelength."""
     out = pathlib.Path(out_dir) / (pathlib.Path(next_path).stem + "_cross.fits")
+    out.parent.mkdir(parents=True, exist_ok=True)
     if not out.exists():
         with fits.open(next_path) as hdul:
             img = hdul[0].data.astype(float)
