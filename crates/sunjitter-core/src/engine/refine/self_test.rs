@@ -160,8 +160,11 @@ pub(super) fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, 
     tiles
 }
 
-/// Mask bounding-box area above which the self-test runs on tiles, px.
-pub(super) const SELF_TEST_TILED_ABOVE: usize = 2000 * 2000;
+/// Mask bounding-box area above which the self-test runs on tiles, px: twice the
+/// refinement's pixel budget, where the whole-mask test would refine a lattice of at most
+/// half the mask's pixels anyway. Tiles give the same Monte Carlo figures there at a quarter
+/// of the cost (docs/validation.md#self-test-on-tiles).
+pub(super) const SELF_TEST_TILED_ABOVE: usize = 2 * MAX_PIXELS;
 
 /// Pixels in all the self-test's tiles.
 pub(super) const SELF_TEST_TILE_PIXELS: usize = 1 << 18;
