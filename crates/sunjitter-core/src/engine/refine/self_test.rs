@@ -135,7 +135,7 @@ pub(super) fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, 
     };
     let (x0, y0, x1, y1) = roi;
     let (bw, bh) = (x1 - x0 + 1, y1 - y0 + 1);
-    if bw * bh < SELF_TEST_TILED_ABOVE {
+    if bw * bh <= SELF_TEST_TILED_ABOVE {
         return Vec::new();
     }
     let side = ((SELF_TEST_TILE_PIXELS / (LAYOUT * LAYOUT - 4)) as f64).sqrt() as usize;
@@ -160,11 +160,11 @@ pub(super) fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, 
     tiles
 }
 
-/// Mask bounding-box area above which the self-test runs on tiles, px: twice the
-/// refinement's pixel budget, where the whole-mask test would refine a lattice of at most
-/// half the mask's pixels anyway. Tiles give the same Monte Carlo figures there at a quarter
-/// of the cost (docs/validation.md#self-test-on-tiles).
-pub(super) const SELF_TEST_TILED_ABOVE: usize = 2 * MAX_PIXELS;
+/// Mask bounding-box area above which the self-test runs on tiles, px: the refinement's pixel
+/// budget, above which the whole-mask test would refine a thinned lattice anyway. Tiles give
+/// the same Monte Carlo figures there at a fraction of the cost
+/// (docs/validation.md#self-test-on-tiles).
+pub(super) const SELF_TEST_TILED_ABOVE: usize = MAX_PIXELS;
 
 /// Pixels in all the self-test's tiles.
 pub(super) const SELF_TEST_TILE_PIXELS: usize = 1 << 18;
