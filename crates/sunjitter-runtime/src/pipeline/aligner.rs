@@ -37,8 +37,8 @@ impl FrameReader for FitsReader {
     }
 }
 
-/// The alignment engine. Keeps the last few prepared references (cleaned image, mask,
-/// window, …), so a reference used for many frames is prepared once.
+/// The alignment engine. Keeps the prepared references (cleaned image, mask, window, …) that
+/// its channels align to, so a reference used for many frames is prepared once.
 pub struct EngineAligner {
     config: EngineConfig,
     rotation: ChannelRotation,
