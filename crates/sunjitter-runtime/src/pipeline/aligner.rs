@@ -117,7 +117,11 @@ impl EngineAligner {
 
     /// The prepared reference for `reference`, from the cache or made now.
     fn prepared(&self, reference: &Image) -> Arc<PreparedReference> {
-        let key = ReferenceKey::of(reference);
+        self.prepared_as(reference, ReferenceKey::of(reference))
+    }
+
+    /// [`Self::prepared`] with the reference's key already taken.
+    fn prepared_as(&self, reference: &Image, key: ReferenceKey) -> Arc<PreparedReference> {
         let lock = || match self.prepared.lock() {
             Ok(g) => g,
             Err(poisoned) => poisoned.into_inner(),
@@ -186,8 +190,9 @@ impl Aligner for EngineAligner {
         let channel = &frame.meta.channel;
         let name = self.rotation.names.get(channel).unwrap_or(channel);
         let profile = self.rotation.by_channel.get(name).copied();
-        let prepared = self.prepared(reference);
-        self.used_by(channel, ReferenceKey::of(reference));
+        let key = ReferenceKey::of(reference);
+        let prepared = self.prepared_as(reference, key.clone());
+        self.used_by(channel, key);
         let (outcome, kept) =
             prepared.align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
         if let Some(work) = kept {

@@ -1,6 +1,7 @@
 //! The reference as the refinement reads it.
 
 use super::RefineSettings;
+use crate::engine::gaussian_reach;
 use crate::preprocess::gaussian_smooth_as;
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
@@ -34,12 +35,11 @@ impl RefineReference {
         (x0, y0, x1, y1): (usize, usize, usize, usize),
     ) -> RefineReference {
         let (h, w) = reference.dim();
-        let reach = |sigma: f64| (4.0 * sigma.max(0.0) + 0.5) as usize;
         // Around each pixel: its gain instrument's points, or its gradient on the weighting
         // copy and that copy's kernel; all on exact values, a kernel's reach from the edges.
-        let around =
-            gain_reach(settings.smoothing_px).max(1 + reach(settings.gradient_smoothing_px));
-        let margin = around + reach(settings.smoothing_px) + 1;
+        let around = gain_reach(settings.smoothing_px)
+            .max(1 + gaussian_reach(settings.gradient_smoothing_px));
+        let margin = around + gaussian_reach(settings.smoothing_px);
         let rows = y0.saturating_sub(margin)..(y1 + margin + 1).min(h);
         let cols = x0.saturating_sub(margin)..(x1 + margin + 1).min(w);
         let origin = (cols.start, rows.start);
