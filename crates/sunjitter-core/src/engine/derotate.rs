@@ -229,14 +229,25 @@ impl Carried {
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
-                let y = (y + y0) as f64;
                 for (x, v) in row.iter_mut().enumerate() {
-                    let x = (x + x0) as f64;
-                    let (sx, sy) = self.at(x, y);
-                    *v = [(sx - x) as f32, (sy - y) as f32];
+                    *v = self.shift_at(x + x0, y + y0);
                 }
             });
         out
+    }
+
+    /// `S(p) − p` along row `y` from column `x0`, one value per element of `out`.
+    pub fn shifts_row(&self, x0: usize, y: usize, out: &mut [[f32; 2]]) {
+        for (x, v) in out.iter_mut().enumerate() {
+            *v = self.shift_at(x + x0, y);
+        }
+    }
+
+    #[inline]
+    fn shift_at(&self, x: usize, y: usize) -> [f32; 2] {
+        let (x, y) = (x as f64, y as f64);
+        let (sx, sy) = self.at(x, y);
+        [(sx - x) as f32, (sy - y) as f32]
     }
 
     /// `T∘S` as a coordinate map.

@@ -227,8 +227,6 @@ pub struct Farneback {
     prev_grid_ys: Vec<usize>,
     poly: poly::PolyKernel,
     gauss: Option<Vec<f32>>,
-    norm0: Vec<f32>,
-    norm1: Vec<f32>,
     img0: Vec<f32>,
     img1: Vec<f32>,
     rows_buf: Vec<f32>,
@@ -332,8 +330,6 @@ impl Farneback {
             prev_grid_ys: Vec::new(),
             poly,
             gauss,
-            norm0: Vec::new(),
-            norm1: Vec::new(),
             img0: Vec::new(),
             img1: Vec::new(),
             rows_buf: Vec::new(),
@@ -488,8 +484,12 @@ impl Farneback {
             return Ok(());
         };
         let (offset, gain) = (mean as f32, (1.0 / sd) as f32);
-        normalise(prev, offset, gain, &mut self.norm0);
-        normalise(next, offset, gain, &mut self.norm1);
+        let norm0 = pyramid::Normalised {
+            img: prev,
+            offset,
+            gain,
+        };
+        let norm1 = pyramid::Normalised { img: next, ..norm0 };
 
         let m = self.params.winsize / 2;
         let use_grid = self.options.uses_grid();
@@ -502,9 +502,7 @@ impl Farneback {
             let dom = g.dom;
             let (dh, dw) = (dom.height(), dom.width());
             pyramid::build_level(
-                &self.norm0,
-                h,
-                w,
+                norm0,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -512,9 +510,7 @@ impl Farneback {
                 &mut self.rows_buf,
             );
             pyramid::build_level(
-                &self.norm1,
-                h,
-                w,
+                norm1,
                 g.scale,
                 (g.h, g.w),
                 dom,
@@ -790,20 +786,6 @@ impl Farneback {
                 },
             );
     }
-}
-
-/// `(v − offset)·gain` of every pixel, row-major (NaN stays NaN): pyramid input in units
-/// where f32 keeps full precision whatever the data's offset and scale.
-fn normalise(img: ArrayView2<f32>, offset: f32, gain: f32, out: &mut Vec<f32>) {
-    use rayon::prelude::*;
-    let (h, w) = img.dim();
-    out.clear();
-    out.resize(h * w, 0.0);
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (o, &v) in row.iter_mut().zip(img.row(y).iter()) {
-            *o = (v - offset) * gain;
-        }
-    });
 }
 
 /// Bilinear upsampling of the coarser level's flow into this level's domain (OpenCV's

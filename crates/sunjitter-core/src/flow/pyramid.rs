@@ -7,6 +7,7 @@
 //! missing when any pixel it was made from is missing.
 
 use super::Rect;
+use ndarray::{s, ArrayView2};
 use rayon::prelude::*;
 
 /// OpenCV's `cvRound` (round half to even).
@@ -96,9 +97,18 @@ pub(crate) fn resize_taps(
         .collect()
 }
 
+/// A full-resolution image as the pyramid reads it, `(v − offset)·gain`: normalised as each
+/// pixel is read, so that no normalised copy of the image is kept.
+#[derive(Clone, Copy)]
+pub(crate) struct Normalised<'a> {
+    pub(crate) img: ArrayView2<'a, f32>,
+    pub(crate) offset: f32,
+    pub(crate) gain: f32,
+}
+
 /// What one blurred source row needs.
-struct RowJob<'a> {
-    img: &'a [f32],
+struct RowJob<'a, 'i> {
+    img: Normalised<'i>,
     src_h: usize,
     src_w: usize,
     kernel: &'a [f32],
@@ -107,7 +117,7 @@ struct RowJob<'a> {
 }
 
 super::simd::multiversion!(fn blur_row_mv(
-    job: &RowJob,
+    job: &RowJob<'_, '_>,
     sy: usize,
     vrow: &mut [f32],
     dst: &mut [f32],
@@ -116,16 +126,26 @@ super::simd::multiversion!(fn blur_row_mv(
 /// Vertical blur of source row `sy` over `vrow`'s columns, then the horizontal blur at the
 /// needed columns into `dst`.
 #[inline(always)]
-fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
+fn blur_row(job: &RowJob<'_, '_>, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
     let (kernel, vlo) = (job.kernel, job.vlo);
     let r = kernel.len() / 2;
     let vw = vrow.len();
     vrow.iter_mut().for_each(|v| *v = 0.0);
+    let Normalised { img, offset, gain } = job.img;
     for (t, &kw) in kernel.iter().enumerate() {
         let yy = reflect101(sy as isize + t as isize - r as isize, job.src_h);
-        let row = &job.img[yy * job.src_w + vlo..][..vw];
-        for (acc, &v) in vrow.iter_mut().zip(row) {
-            *acc += kw * v;
+        let row = img.slice(s![yy, vlo..vlo + vw]);
+        match row.as_slice() {
+            Some(row) => {
+                for (acc, &v) in vrow.iter_mut().zip(row) {
+                    *acc += kw * ((v - offset) * gain);
+                }
+            }
+            None => {
+                for (acc, &v) in vrow.iter_mut().zip(row.iter()) {
+                    *acc += kw * ((v - offset) * gain);
+                }
+            }
         }
     }
     let cols = job.need_cols;
@@ -170,14 +190,11 @@ fn blur_row(job: &RowJob, sy: usize, vrow: &mut [f32], dst: &mut [f32]) {
     }
 }
 
-/// Fill `out` (domain-sized, row-major) with level pixels of `img` (`src_h × src_w`, already
-/// normalised).
+/// Fill `out` (domain-sized, row-major) with level pixels of `img`.
 /// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn build_level(
-    img: &[f32],
-    src_h: usize,
-    src_w: usize,
+    img: Normalised,
     scale: f64,
     level_size: (usize, usize),
     dom: Rect,
@@ -187,6 +204,7 @@ pub(crate) fn build_level(
     let kernel = level_kernel(scale);
     let r = kernel.len() / 2;
     let (lh, lw) = level_size;
+    let (src_h, src_w) = img.img.dim();
 
     // Which source rows/columns the resize reads for this domain.
     let ytaps: Vec<Tap> = (dom.y0..dom.y1)

@@ -354,24 +354,43 @@ impl HighOrderSpline {
         shift: ArrayView2<[f32; 2]>,
     ) -> Array2<f32> {
         let (height, width) = shift.dim();
+        self.warp_similarity_window_shifted_by(t, (x0, y0), (width, height), |y, row| {
+            for (r, s) in row.iter_mut().zip(shift.row(y)) {
+                *r = *s;
+            }
+        })
+    }
+
+    /// As [`Self::warp_similarity_window_shifted`], the shifts of each of the window's rows
+    /// (`y` from 0) written by `shift_row` as they are needed, so that none is stored whole.
+    pub fn warp_similarity_window_shifted_by(
+        &self,
+        t: &Similarity,
+        (x0, y0): (usize, usize),
+        (width, height): (usize, usize),
+        shift_row: impl Fn(usize, &mut [[f32; 2]]) + Sync,
+    ) -> Array2<f32> {
         let map = RowMap::new(t, x0);
         let mut out = Array2::<f32>::zeros((height, width));
         out.axis_iter_mut(Axis(0))
             .into_par_iter()
-            .zip(shift.axis_iter(Axis(0)))
             .enumerate()
-            .for_each(|(y, (mut line, shifts))| {
-                let y = (y + y0) as f64;
-                match (line.as_slice_mut(), shifts.as_slice()) {
-                    (Some(r), Some(d)) => high_order_shifted_row(self, &map, y, d, r),
-                    _ => {
-                        for (x, (v, d)) in line.iter_mut().zip(shifts.iter()).enumerate() {
-                            let (sx, sy) = map.shifted(x, y, d);
-                            *v = self.sample_at(sx, sy);
+            .for_each_init(
+                || vec![[0f32; 2]; width],
+                |shifts, (y, mut line)| {
+                    shift_row(y, shifts);
+                    let y = (y + y0) as f64;
+                    match line.as_slice_mut() {
+                        Some(r) => high_order_shifted_row(self, &map, y, shifts, r),
+                        None => {
+                            for (x, (v, d)) in line.iter_mut().zip(shifts.iter()).enumerate() {
+                                let (sx, sy) = map.shifted(x, y, d);
+                                *v = self.sample_at(sx, sy);
+                            }
                         }
                     }
-                }
-            });
+                },
+            );
         out
     }
 }
