@@ -128,18 +128,33 @@ const MAX_RANK_PAIRS: usize = 1 << 18;
 
 /// 0-based ranks, ties given their mean rank.
 fn ranks(values: Vec<f32>) -> Vec<f64> {
-    let mut order: Vec<usize> = (0..values.len()).collect();
-    order.par_sort_by(|&i, &j| values[i].total_cmp(&values[j]));
+    // Sorted as integers: each value's bits in f32 total order above its index.
+    let key = |v: f32| {
+        let b = v.to_bits();
+        if b >> 31 == 1 {
+            !b
+        } else {
+            b | 1 << 31
+        }
+    };
+    let mut order: Vec<u64> = values
+        .par_iter()
+        .enumerate()
+        .map(|(i, &v)| (u64::from(key(v)) << 32) | i as u64)
+        .collect();
+    order.par_sort_unstable();
+    let index = |k: u64| (k & u64::from(u32::MAX)) as usize;
     let mut out = vec![0.0; values.len()];
     let mut start = 0;
     while start < order.len() {
+        let first = values[index(order[start])];
         let mut end = start + 1;
-        while end < order.len() && values[order[end]] == values[order[start]] {
+        while end < order.len() && values[index(order[end])] == first {
             end += 1;
         }
         let rank = (start + end - 1) as f64 / 2.0;
-        for &i in &order[start..end] {
-            out[i] = rank;
+        for &k in &order[start..end] {
+            out[index(k)] = rank;
         }
         start = end;
     }
@@ -195,6 +210,21 @@ mod tests {
         let hi = Array2::from_shape_fn((64, 64), |(y, x)| if (x + y) % 2 == 0 { 0.2 } else { 1.8 });
         let disjoint = bhattacharyya(lo.view(), hi.view(), mask.view()).unwrap();
         assert!(disjoint < 1e-12, "{disjoint}");
+    }
+
+    #[test]
+    fn ranks_are_the_count_below_plus_half_the_ties() {
+        // The definition of mid-ranks, on negatives, both zeros (equal) and repeated values.
+        let values: Vec<f32> = (0..500)
+            .map(|i| ((i * 37) % 41) as f32 - 20.0)
+            .chain([0.0, -0.0, -0.0, f32::MAX, f32::MIN, 1e-40, -1e-40])
+            .collect();
+        let got = ranks(values.clone());
+        for (v, r) in values.iter().zip(&got) {
+            let below = values.iter().filter(|w| *w < v).count() as f64;
+            let equal = values.iter().filter(|w| *w == v).count() as f64;
+            assert_eq!(*r, below + (equal - 1.0) / 2.0, "value {v}");
+        }
     }
 
     #[test]
