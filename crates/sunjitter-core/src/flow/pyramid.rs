@@ -97,8 +97,9 @@ pub(crate) fn resize_taps(
         .collect()
 }
 
-/// A full-resolution image as the pyramid reads it, `(v − offset)·gain`: normalised as each
-/// pixel is read, so that no normalised copy of the image is kept.
+/// A full-resolution image as the pyramid reads it, `(v − offset)·gain` (NaN stays NaN): in
+/// units where f32 keeps full precision whatever the data's offset and scale, normalised as
+/// each pixel is read so that no normalised copy of the image is kept.
 #[derive(Clone, Copy)]
 pub(crate) struct Normalised<'a> {
     pub(crate) img: ArrayView2<'a, f32>,
