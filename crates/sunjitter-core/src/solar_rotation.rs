@@ -408,6 +408,12 @@ impl DisplacementGrid {
         sum
     }
 
+    /// Whether every node holds a displacement (none is hidden): then [`Self::at`] is finite
+    /// everywhere on the grid.
+    pub fn all_finite(&self) -> bool {
+        self.nodes.iter().flatten().all(|v| v.is_finite())
+    }
+
     /// Largest finite displacement, px.
     pub fn max_norm(&self) -> f64 {
         self.nodes

@@ -189,15 +189,23 @@ pub struct Carried {
     factor: f64,
     /// Largest motion, px of this grid.
     pub max_px: f64,
+    /// Whether every point of the grid has a motion (none is hidden).
+    all_finite: bool,
 }
+
+/// Largest `Σ|w|` of the 4 × 4 cubic convolution weights (Keys, a = −½): 1.25 per axis, at a
+/// fraction of ½. An interpolated motion is at most this times the largest node's.
+const CUBIC_CONVOLUTION_GAIN: f64 = 1.25 * 1.25;
 
 impl Carried {
     fn new(grid: DisplacementGrid) -> Carried {
         let max_px = grid.max_norm();
+        let all_finite = grid.all_finite();
         Carried {
             grid: Arc::new(grid),
             factor: 1.0,
             max_px,
+            all_finite,
         }
     }
 
@@ -208,7 +216,15 @@ impl Carried {
             grid: self.grid.clone(),
             factor: f,
             max_px: self.max_px * self.factor / f,
+            all_finite: self.all_finite,
         }
+    }
+
+    /// A bound on `|S(p) − p|` over the image, px of this grid; `None` when some point is
+    /// hidden (its `S(p)` is NaN).
+    pub fn motion_bound_px(&self) -> Option<f64> {
+        self.all_finite
+            .then_some(CUBIC_CONVOLUTION_GAIN * self.max_px)
     }
 
     /// `S(p)`: where the surface point at `p` is at the frame's time (NaN: hidden).
@@ -348,6 +364,45 @@ mod tests {
             Profile::Howard,
         );
         assert!(matches!(got, Rotation::Removed(_)));
+    }
+
+    #[test]
+    fn the_motion_bound_holds_every_points_motion_or_says_some_is_hidden() {
+        // The bound is what lets the refinement skip testing where each pixel lands: every
+        // point's |S(p) − p| must lie within it, and without one some point must be hidden.
+        let c = [127.5, 127.5];
+        let r = meta(0, 0.0, c);
+        let mask = Array2::from_elem((256, 256), true);
+        let coarse = Similarity::identity(c);
+        let mut bounded = 0;
+        for dt_s in [60, 3600, 6 * 3600] {
+            let f = meta(dt_s, 0.0, c);
+            let Rotation::Removed(d) = derotate(
+                &side(&r, &mask, Some((c, 100.0))),
+                &f,
+                coarse,
+                Profile::Howard,
+            ) else {
+                panic!("rotation removed after {dt_s} s")
+            };
+            let motions: Vec<f64> = (0..1024)
+                .flat_map(|y| (0..1024).map(move |x| (x as f64 / 4.0, y as f64 / 4.0)))
+                .map(|(x, y)| {
+                    let (sx, sy) = d.carried.at(x, y);
+                    (sx - x).hypot(sy - y)
+                })
+                .collect();
+            match d.carried.motion_bound_px() {
+                Some(bound) => {
+                    bounded += 1;
+                    let largest = motions.iter().fold(0.0f64, |a, &m| a.max(m));
+                    assert!(largest <= bound, "{dt_s} s: {largest} px beyond {bound}");
+                    assert!(largest > 0.0, "{dt_s} s: no motion");
+                }
+                None => assert!(motions.iter().any(|m| m.is_nan()), "{dt_s} s"),
+            }
+        }
+        assert!(bounded > 0, "no bound at any interval");
     }
 
     #[test]

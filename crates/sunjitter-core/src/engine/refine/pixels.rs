@@ -163,6 +163,9 @@ pub(super) struct RefinementRegion<'a, M: Fn(f64, f64) -> (f64, f64)> {
     frame_blank_free: Option<Array2<bool>>,
     map: M,
     margin: f64,
+    /// Every mask pixel maps at least `margin` inside the frame, which has no blanks: the
+    /// frame side needs no test.
+    frame_side_holds: bool,
 }
 
 pub(super) fn refinement_region<'a>(
@@ -178,11 +181,14 @@ pub(super) fn refinement_region<'a>(
     } else {
         Some(crate::engine::erode(&frame.mapv(f32::is_finite), margin))
     };
+    let frame_side_holds = frame_blank_free.is_none()
+        && mask_maps_inside(mask, t, carried, margin as f64, frame.dim());
     RefinementRegion {
         mask,
         reference,
         frame_dim: frame.dim(),
         frame_blank_free,
+        frame_side_holds,
         map: {
             let map = crate::resample::similarity_map(t);
             move |x, y| {
@@ -209,6 +215,9 @@ impl<M: Fn(f64, f64) -> (f64, f64)> RefinementRegion<'_, M> {
         {
             return false;
         }
+        if self.frame_side_holds {
+            return true;
+        }
         let (fx, fy) = (self.map)(x as f64, y as f64);
         self.inside(fx, fw)
             && self.inside(fy, fh)
@@ -217,6 +226,38 @@ impl<M: Fn(f64, f64) -> (f64, f64)> RefinementRegion<'_, M> {
                 .as_ref()
                 .is_none_or(|ok| ok[[fy.round() as usize, fx.round() as usize]])
     }
+}
+
+/// Whether every pixel of `mask`, carried by the Sun and mapped through `t`, lands at least
+/// `margin` inside an `fh × fw` frame. A similarity maps the mask's box, grown by the largest
+/// motion the Sun's field can interpolate to (and a pixel for round-off), into the hull of its
+/// corners' images, so the corners decide.
+fn mask_maps_inside(
+    mask: &Array2<bool>,
+    t: &Similarity,
+    carried: Option<&crate::engine::derotate::Carried>,
+    margin: f64,
+    (fh, fw): (usize, usize),
+) -> bool {
+    let motion = match carried.map(|c| c.motion_bound_px()) {
+        None => 0.0,
+        Some(Some(bound)) => bound,
+        Some(None) => return false,
+    };
+    let Some((x0, y0, x1, y1)) = crate::sampling::mask_bounding_box(mask.view()) else {
+        return false;
+    };
+    let grow = motion + 1.0;
+    let (lo_x, hi_x) = (x0 as f64 - grow, x1 as f64 + grow);
+    let (lo_y, hi_y) = (y0 as f64 - grow, y1 as f64 + grow);
+    let map = crate::resample::similarity_map(t);
+    let inside = |v: f64, n: usize| v >= margin && v <= n as f64 - 1.0 - margin;
+    [(lo_x, lo_y), (hi_x, lo_y), (lo_x, hi_y), (hi_x, hi_y)]
+        .into_iter()
+        .all(|(x, y)| {
+            let (fx, fy) = map(x, y);
+            inside(fx, fw) && inside(fy, fh)
+        })
 }
 
 /// The pixels inside the `side`×`side` square at the centre of `bbox` (all of them when the
@@ -264,6 +305,61 @@ pub(super) fn bounding_box(mask: &Array2<bool>) -> Option<(usize, usize, usize, 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_mask_said_to_map_inside_maps_inside_pixel_by_pixel() {
+        // The shortcut may only hold where every mask pixel's image does (the definition);
+        // it must hold for a disk well inside the frame and fail once one pixel leaves.
+        let (h, w, margin) = (200, 220, 10.0);
+        let mask = Array2::from_shape_fn((h, w), |(y, x)| {
+            (x as f64 - 110.0).hypot(y as f64 - 100.0) <= 70.0
+        });
+        let each_inside = |t: &Similarity| {
+            let map = crate::resample::similarity_map(t);
+            mask.indexed_iter().filter(|(_, &m)| m).all(|((y, x), _)| {
+                let (fx, fy) = map(x as f64, y as f64);
+                fx >= margin
+                    && fx <= w as f64 - 1.0 - margin
+                    && fy >= margin
+                    && fy <= h as f64 - 1.0 - margin
+            })
+        };
+        let mut held = 0;
+        for (dx, rotation_rad, scale) in [
+            (0.3, 0.0, 1.0),
+            (-12.0, 0.02, 1.01),
+            (15.0, -0.05, 0.98),
+            (25.0, 0.0, 1.0),
+            (30.0, 0.1, 1.05),
+        ] {
+            let t = Similarity {
+                scale,
+                rotation_rad,
+                dx,
+                dy: -0.4 * dx,
+                center: [109.5, 99.5],
+            };
+            let said = mask_maps_inside(&mask, &t, None, margin, (h, w));
+            if said {
+                held += 1;
+                assert!(each_inside(&t), "{t:?}");
+            }
+            if !each_inside(&t) {
+                assert!(!said, "{t:?}");
+            }
+        }
+        assert!(held >= 2, "held {held} times");
+        assert!(!mask_maps_inside(
+            &mask,
+            &Similarity {
+                dx: 40.0,
+                ..Similarity::identity([109.5, 99.5])
+            },
+            None,
+            margin,
+            (h, w)
+        ));
+    }
 
     #[test]
     fn the_region_keeps_the_margin_from_both_images_edges() {
