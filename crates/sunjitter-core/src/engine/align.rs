@@ -419,6 +419,7 @@ impl<'a> Stages<'a> {
                 prepared,
                 frame: self.pair.frame_data.view(),
                 mask: &work.mask,
+                mask_box: work.mask_box,
                 frame_smoothing_px: self.sig_frame,
                 blur,
                 carried: self.carried,

@@ -36,6 +36,8 @@ pub struct RefineInputs<'a> {
     pub prepared: &'a RefineReference,
     pub frame: ArrayView2<'a, f32>,
     pub mask: &'a Array2<bool>,
+    /// `mask`'s bounding box.
+    pub mask_box: crate::flow::Roi,
     /// Gaussian σ that matches the frame's resolution to the reference's, px.
     pub frame_smoothing_px: f64,
     /// How much blurrier the frame is than the reference, when measured.
@@ -149,6 +151,7 @@ impl Setup {
         let margin = gaussian_reach(frame_sigma.max(settings.smoothing_px)) + 3;
         let region = refinement_region(
             pair.mask,
+            pair.mask_box,
             pair.reference,
             pair.frame,
             flow.transform,

@@ -1,6 +1,7 @@
 //! Which reference pixels the refinement fits: the flow's grid of cells, the lattice that
 //! thins them, and the region where both images can be read.
 
+use crate::flow::Roi;
 use crate::geometry::Similarity;
 use crate::sampling::Correspondence;
 use ndarray::{Array2, ArrayView2};
@@ -170,6 +171,7 @@ pub(super) struct RefinementRegion<'a, M: Fn(f64, f64) -> (f64, f64)> {
 
 pub(super) fn refinement_region<'a>(
     mask: &'a Array2<bool>,
+    mask_box: Roi,
     reference: ArrayView2<'a, f32>,
     frame: ArrayView2<f32>,
     t: &Similarity,
@@ -182,7 +184,7 @@ pub(super) fn refinement_region<'a>(
         Some(crate::engine::erode(&frame.mapv(f32::is_finite), margin))
     };
     let frame_side_holds = frame_blank_free.is_none()
-        && mask_maps_inside(mask, t, carried, margin as f64, frame.dim());
+        && mask_maps_inside(mask_box, t, carried, margin as f64, frame.dim());
     RefinementRegion {
         mask,
         reference,
@@ -228,12 +230,13 @@ impl<M: Fn(f64, f64) -> (f64, f64)> RefinementRegion<'_, M> {
     }
 }
 
-/// Whether every pixel of `mask`, carried by the Sun and mapped through `t`, lands at least
-/// `margin` inside an `fh × fw` frame. A similarity maps the mask's box, grown by the largest
+/// Whether every pixel of the mask whose bounding box is `mask_box`, carried by the Sun and
+/// mapped through `t`, lands at least `margin` inside an `fh × fw` frame. A similarity maps
+/// the box, grown by the largest
 /// motion the Sun's field can interpolate to (and a pixel for round-off), into the hull of its
 /// corners' images, so the corners decide.
 fn mask_maps_inside(
-    mask: &Array2<bool>,
+    mask_box: Roi,
     t: &Similarity,
     carried: Option<&crate::engine::derotate::Carried>,
     margin: f64,
@@ -244,12 +247,15 @@ fn mask_maps_inside(
         Some(Some(bound)) => bound,
         Some(None) => return false,
     };
-    let Some((x0, y0, x1, y1)) = crate::sampling::mask_bounding_box(mask.view()) else {
-        return false;
-    };
     let grow = motion + 1.0;
-    let (lo_x, hi_x) = (x0 as f64 - grow, x1 as f64 + grow);
-    let (lo_y, hi_y) = (y0 as f64 - grow, y1 as f64 + grow);
+    let (lo_x, hi_x) = (
+        mask_box.x as f64 - grow,
+        (mask_box.x + mask_box.width) as f64 - 1.0 + grow,
+    );
+    let (lo_y, hi_y) = (
+        mask_box.y as f64 - grow,
+        (mask_box.y + mask_box.height) as f64 - 1.0 + grow,
+    );
     let map = crate::resample::similarity_map(t);
     let inside = |v: f64, n: usize| v >= margin && v <= n as f64 - 1.0 - margin;
     [(lo_x, lo_y), (hi_x, lo_y), (lo_x, hi_y), (hi_x, hi_y)]
@@ -305,6 +311,7 @@ pub(super) fn bounding_box(mask: &Array2<bool>) -> Option<(usize, usize, usize, 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::fine::mask_roi;
 
     #[test]
     fn a_mask_said_to_map_inside_maps_inside_pixel_by_pixel() {
@@ -339,7 +346,7 @@ mod tests {
                 dy: -0.4 * dx,
                 center: [109.5, 99.5],
             };
-            let said = mask_maps_inside(&mask, &t, None, margin, (h, w));
+            let said = mask_maps_inside(mask_roi(&mask), &t, None, margin, (h, w));
             if said {
                 held += 1;
                 assert!(each_inside(&t), "{t:?}");
@@ -350,7 +357,7 @@ mod tests {
         }
         assert!(held >= 2, "held {held} times");
         assert!(!mask_maps_inside(
-            &mask,
+            mask_roi(&mask),
             &Similarity {
                 dx: 40.0,
                 ..Similarity::identity([109.5, 99.5])
@@ -373,7 +380,15 @@ mod tests {
             dx: 3.4,
             ..Similarity::identity(Similarity::array_center(w, h))
         };
-        let region = refinement_region(&mask, reference.view(), frame.view(), &t, None, 4);
+        let region = refinement_region(
+            &mask,
+            mask_roi(&mask),
+            reference.view(),
+            frame.view(),
+            &t,
+            None,
+            4,
+        );
         for ((y, x), _) in mask.indexed_iter() {
             assert_eq!(
                 region.usable(x, y),
@@ -383,7 +398,15 @@ mod tests {
         }
         // A blank in the frame at (20, 15) removes the pixels mapping within 4 px of it.
         frame[[15, 20]] = f32::NAN;
-        let region = refinement_region(&mask, reference.view(), frame.view(), &t, None, 4);
+        let region = refinement_region(
+            &mask,
+            mask_roi(&mask),
+            reference.view(),
+            frame.view(),
+            &t,
+            None,
+            4,
+        );
         // Pixel (x, y) maps to round(x + 3.4) = x + 3: excluded when |x + 3 − 20| ≤ 4 and
         // |y − 15| ≤ 4.
         for ((y, x), _) in mask.indexed_iter() {
