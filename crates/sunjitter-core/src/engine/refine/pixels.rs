@@ -297,17 +297,6 @@ pub(super) fn pixel_box(pixels: &[(usize, usize, usize)]) -> Option<(usize, usiz
     )
 }
 
-/// Bounding box (x0, y0, x1, y1), inclusive, of the true pixels of `mask`.
-pub(super) fn bounding_box(mask: &Array2<bool>) -> Option<(usize, usize, usize, usize)> {
-    let rows: Vec<usize> = (0..mask.nrows())
-        .filter(|&y| mask.row(y).iter().any(|&m| m))
-        .collect();
-    let cols: Vec<usize> = (0..mask.ncols())
-        .filter(|&x| mask.column(x).iter().any(|&m| m))
-        .collect();
-    Some((*cols.first()?, *rows.first()?, *cols.last()?, *rows.last()?))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,6 +1,6 @@
 //! The method's systematic error on a reference, measured on synthetic frames made from it.
 
-use super::pixels::{bounding_box, lattice_pixels, pixel_box, CellGrid};
+use super::pixels::{lattice_pixels, pixel_box, CellGrid};
 use super::reference::RefineReference;
 use super::window::{mapped_window, window_margin, FrameWindow, WindowTile};
 use super::{refine, RefineSettings, MAX_PIXELS, MODEL};
@@ -130,7 +130,7 @@ pub fn self_test_floor(
 /// small enough to be tested whole.
 pub(super) fn self_test_tiles(mask: &Array2<bool>) -> Vec<(usize, usize, usize, usize)> {
     const LAYOUT: usize = 5;
-    let Some(roi) = bounding_box(mask) else {
+    let Some(roi) = crate::sampling::mask_bounding_box(mask.view()) else {
         return Vec::new();
     };
     let (x0, y0, x1, y1) = roi;
