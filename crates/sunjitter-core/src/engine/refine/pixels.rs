@@ -369,15 +369,11 @@ mod tests {
             dx: 3.4,
             ..Similarity::identity(Similarity::array_center(w, h))
         };
-        let region = refinement_region(
-            &mask,
-            mask_roi(&mask),
-            reference.view(),
-            frame.view(),
-            &t,
-            None,
-            4,
-        );
+        let mask_box = mask_roi(&mask);
+        let region_of = |frame: &Array2<f32>| {
+            refinement_region(&mask, mask_box, reference.view(), frame.view(), &t, None, 4)
+        };
+        let region = region_of(&frame);
         for ((y, x), _) in mask.indexed_iter() {
             assert_eq!(
                 region.usable(x, y),
@@ -387,15 +383,7 @@ mod tests {
         }
         // A blank in the frame at (20, 15) removes the pixels mapping within 4 px of it.
         frame[[15, 20]] = f32::NAN;
-        let region = refinement_region(
-            &mask,
-            mask_roi(&mask),
-            reference.view(),
-            frame.view(),
-            &t,
-            None,
-            4,
-        );
+        let region = region_of(&frame);
         // Pixel (x, y) maps to round(x + 3.4) = x + 3: excluded when |x + 3 − 20| ≤ 4 and
         // |y − 15| ≤ 4.
         for ((y, x), _) in mask.indexed_iter() {
