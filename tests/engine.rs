@@ -182,6 +182,38 @@ fn another_channels_limb_brightening_does_not_pass_for_a_scale_change() {
     }
 }
 
+/// Between channels the flow's answer is final; on a large frame its passes start from a
+/// seed measured on binned copies and then run at full resolution only. Forced here on a 512²
+/// TRACE crop by lowering `seed_extent_px` (by default only masks of 1400 px or more seed):
+/// the answer must still be the injected similarity, within its σ.
+#[test]
+fn between_channels_full_resolution_passes_from_a_binned_seed_recover_injected_similarities() {
+    let reference = crop(&real("trace_171_19980519T222143_1024.fits"), 512);
+    let cfg = EngineConfig {
+        seed_extent_px: 128,
+        ..EngineConfig::default()
+    };
+    let prepared = sunjitter::engine::PreparedReference::new(&reference, &cfg);
+    let center = Similarity::array_center(512, 512);
+    for truth in &draw_truths(3, 5, &TrialRanges::default(), center) {
+        let mut frame = transformed(&reference, truth);
+        frame.meta.channel = format!("{}_OTHER", reference.meta.channel);
+        let out = prepared.align(&frame);
+        let r = &out.result;
+        assert_eq!(r.status, Status::Ok, "{}", r.message);
+        assert!(
+            r.message.contains("from a seed on pyramid level 2"),
+            "{}",
+            r.message
+        );
+        let (est, t) = (
+            contract_units(&out.transform.unwrap()),
+            contract_units(truth),
+        );
+        assert_within_sigmas(r, &est, &t, 3.0);
+    }
+}
+
 #[test]
 fn unrelated_or_flipped_frames_never_come_back_as_confident_answers() {
     let reference = crop(&real("trace_171_19980519T222143_1024.fits"), 384);

@@ -5,7 +5,7 @@
 
 use super::config::EngineConfig;
 use super::fine::{
-    fine_alignment, flow_reach_px, grown, max_motion_px, Crop, FineResult, FlowRegion,
+    fine_alignment, flow_reach_px, grown, max_motion_px, Crop, FineResult, FlowRegion, PassStart,
     UNSETTLED_PASS_FACTOR,
 };
 use super::prepared::{FrameWork, Matched, ReferenceWork, Workspace};
@@ -236,6 +236,7 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<AlignOut
         converged: fine.converged,
         unsettled_px: fine.unsettled_px,
         seed_level: fine.seed_level,
+        seeded_from: fine.seeded_from,
         winsize: pair.work.winsize,
         refinement,
     };
@@ -257,8 +258,9 @@ struct Stages<'a> {
     matched: Arc<Matched>,
     /// Gaussian σ that brings the frame to the reference's resolution, px.
     sig_frame: f64,
-    /// Between channels: the circle inside the limb the flow's vectors must lie in.
-    limb_clear: Option<([f64; 2], f64)>,
+    /// Between channels: the reference's disk (centre, radius px), whose limb the flow's
+    /// windows must stay clear of.
+    limb: Option<([f64; 2], f64)>,
     refining: bool,
     coarse: Similarity,
     carried: Option<&'a derotate::Carried>,
@@ -286,17 +288,15 @@ impl<'a> Stages<'a> {
         // by its own amount and shows it at its own height, even on one telescope. Windows
         // that reach it read that as a scale change
         // (docs/validation.md#between-channels-windows-clear-of-the-limb).
-        let limb_clear = match work.reference_check.disk_px {
-            Some((centre, radius)) if work.meta.channel != frame.meta.channel => {
-                Some((centre, radius - flow_reach_px(work.winsize, cfg.poly_n)))
-            }
-            _ => None,
-        };
+        let limb = work
+            .reference_check
+            .disk_px
+            .filter(|_| work.meta.channel != frame.meta.channel);
         Stages {
             pair,
             matched,
             sig_frame,
-            limb_clear,
+            limb,
             refining,
             coarse,
             carried,
@@ -311,12 +311,16 @@ impl<'a> Stages<'a> {
     fn region(&self) -> FlowRegion<'_> {
         FlowRegion {
             mask: &self.pair.work.mask,
-            sample_within: self.limb_clear,
+            // The circle inside the limb the flow's vectors must lie in.
+            sample_within: self.limb.map(|(centre, radius)| {
+                let reach = flow_reach_px(self.pair.work.winsize, self.pair.cfg.poly_n);
+                (centre, radius - reach)
+            }),
         }
     }
 
     /// The fine stage at full resolution from `start`.
-    fn flow_from(&self, start: Similarity, max_passes: usize) -> Result<FineResult, String> {
+    fn flow_from(&self, start: PassStart, max_passes: usize) -> Result<FineResult, String> {
         let pair = self.pair;
         fine_alignment(
             self.reference(),
@@ -334,18 +338,18 @@ impl<'a> Stages<'a> {
     }
 
     fn full_flow(&self) -> Result<FineResult, String> {
-        self.flow_from(self.coarse, self.pair.cfg.max_passes)
+        self.flow_from(PassStart::Coarse(self.coarse), self.pair.cfg.max_passes)
     }
 
-    /// When the refinement follows, the flow only seeds it, on binned copies of a large
-    /// frame; should the refinement not be taken, the flow runs at full resolution after all.
+    /// On a large frame the flow starts on binned copies. When the refinement follows, that
+    /// seed is all it needs (should the refinement not be taken, the flow runs at full
+    /// resolution after all). When the flow's answer is final, full-resolution passes carry
+    /// on from the seed, in place of a first pass with the whole pyramid over the full grid:
+    /// the seed costs less and the passes converge to the same answer
+    /// (docs/validation.md#between-channels-full-resolution-passes-from-a-seed).
     fn flow_or_seed(&self) -> Result<FineResult, String> {
         let (work, cfg) = (self.pair.work, self.pair.cfg);
-        let seed_level = if self.refining {
-            seed_level(work.mask_box, cfg)
-        } else {
-            0
-        };
+        let seed_level = seed_level(work.mask_box, cfg);
         if seed_level == 0 {
             return self.full_flow();
         }
@@ -353,19 +357,36 @@ impl<'a> Stages<'a> {
             .matched
             .binned
             .get_or_init(|| Binned::new(self.reference(), &work.mask, seed_level, work.trend_px()));
-        seed_alignment(
+        let seed = seed_alignment(
             binned,
             work.cleaned.dim(),
             self.pair.frame_data,
             self.coarse,
+            self.limb,
             work.winsize,
             self.sig_frame,
             self.carried,
             cfg,
             self.pair.workspace,
-        )
+        );
         // Binned copies can lack what the full frame has (too few vectors, say).
-        .or_else(|_| self.full_flow())
+        let Ok(seed) = seed else {
+            return self.full_flow();
+        };
+        if self.refining {
+            return Ok(seed);
+        }
+        let mut fine = self.flow_from(PassStart::Seed(seed.transform), cfg.max_passes)?;
+        // A seed that the passes moved further than a seed on its level can be off misled
+        // them (binned copies can, on weak structure): the whole pyramid from the coarse start
+        // after all. Passes that only wander, as they would from any start, are kept.
+        let moved = motion_within(&seed.transform, &fine.transform, work.mask_box);
+        if fine.converged || moved <= seed_slack_px(seed_level) {
+            fine.seeded_from = Some(seed_level);
+            Ok(fine)
+        } else {
+            self.full_flow()
+        }
     }
 
     /// The blur difference between the reference and the frame around the mask's centre.
@@ -462,7 +483,7 @@ impl<'a> Stages<'a> {
             // (docs/validation.md#extra-passes-for-an-unsettled-flow).
             if fine.unsettled_px.is_some() {
                 let mut more = self.flow_from(
-                    fine.transform,
+                    PassStart::Coarse(fine.transform),
                     cfg.max_passes.max(1) * (UNSETTLED_PASS_FACTOR - 1),
                 )?;
                 more.passes += fine.passes;
@@ -662,4 +683,18 @@ fn quality_of(q: &QualityGrid, fine: &FineResult) -> (Option<f64>, Option<f64>) 
     };
     // Independent, and each partly serial: side by side.
     rayon::join(similarity, correlation)
+}
+
+/// The farthest any point of `roi` lands apart under `a` and `b`, px: at one of its corners, a
+/// similarity's displacement field being affine.
+fn motion_within(a: &Similarity, b: &Similarity, roi: Roi) -> f64 {
+    let (x0, y0) = (roi.x as f64, roi.y as f64);
+    let (x1, y1) = (x0 + roi.width as f64 - 1.0, y0 + roi.height as f64 - 1.0);
+    [[x0, y0], [x1, y0], [x0, y1], [x1, y1]]
+        .iter()
+        .map(|&p| {
+            let (pa, pb) = (a.apply(p), b.apply(p));
+            (pa[0] - pb[0]).hypot(pa[1] - pb[1])
+        })
+        .fold(0.0, f64::max)
 }

@@ -34,6 +34,9 @@ pub(super) struct FineResult {
     /// `Some(level)` for a seed for the refinement measured on images binned to that pyramid
     /// level.
     pub(super) seed_level: Option<usize>,
+    /// `Some(level)` for full-resolution passes that started from a seed measured on images
+    /// binned to that pyramid level.
+    pub(super) seeded_from: Option<usize>,
     /// What the refinement needs: the bounding box (x0, y0, x1, y1, inclusive, reference
     /// grid) of the sampling mask, over which the sampling grid's cells lie, and the inliers.
     pub(super) sample_box: Option<(usize, usize, usize, usize)>,
@@ -73,6 +76,16 @@ pub(super) enum FineError {
     },
 }
 
+/// Where the passes start.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum PassStart {
+    /// The coarse alignment: the first pass runs the flow's whole pyramid.
+    Coarse(Similarity),
+    /// A seed measured on binned copies, well within the full-resolution flow's reach: every
+    /// pass at full resolution only, with the later passes' iterations.
+    Seed(Similarity),
+}
+
 /// Where the fine stage measures: the mask, and optionally a circle (centre, radius px on the
 /// reference grid) its sampled points must also lie in.
 #[derive(Clone, Copy)]
@@ -96,7 +109,7 @@ pub(super) fn fine_alignment(
     reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     region: FlowRegion,
-    coarse: Similarity,
+    start: PassStart,
     winsize: usize,
     frame_smoothing_px: f64,
     max_passes: usize,
@@ -145,14 +158,18 @@ pub(super) fn fine_alignment(
         );
         (crop, s)
     });
-    let mut estimate = coarse.recentered(center);
+    let (mut estimate, seeded) = match start {
+        PassStart::Coarse(t) => (t.recentered(center), false),
+        PassStart::Seed(t) => (t.recentered(center), true),
+    };
     let mut solver: Option<Farneback> = workspace.take();
     let mut pass = 0;
+    let mut last_moved: Option<f64> = None;
     loop {
         pass += 1;
         let pass_started = Instant::now();
-        let first = pass == 1;
-        let pass_levels = if first { levels } else { 0 };
+        let whole_pyramid = pass == 1 && !seeded;
+        let pass_levels = if whole_pyramid { levels } else { 0 };
         let crop = crops.for_levels(pass_levels);
         let (x0, y0) = (crop.cols.start, crop.rows.start);
         let (ch, cw) = (crop.rows.len(), crop.cols.len());
@@ -175,7 +192,7 @@ pub(super) fn fine_alignment(
             pyr_scale: 0.5,
             levels: pass_levels,
             winsize,
-            iterations: if first {
+            iterations: if whole_pyramid {
                 cfg.iterations
             } else {
                 cfg.iterations.min(4)
@@ -220,10 +237,12 @@ pub(super) fn fine_alignment(
         let update = fit.transform;
         let previous = estimate;
         estimate = estimate.after(&update);
-        // Converged when the update is negligible, or lost in this pass's own noise.
+        // Converged when what is left is negligible, or lost in this pass's own noise.
         let moved = max_motion_px(&update, radius);
         let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
-        let converged = moved < cfg.convergence_px.max(0.1 * noise);
+        let left = left_after(moved, seeded.then_some(last_moved).flatten());
+        let converged = left < cfg.convergence_px.max(0.1 * noise);
+        last_moved = Some(moved);
         tracing::debug!(pass, moved, noise, estimate = ?estimate.params(), "fine pass estimate");
         if converged || pass >= max_passes.max(1) {
             if let Some(solver) = solver.take() {
@@ -244,6 +263,21 @@ pub(super) fn fine_alignment(
             };
             return Ok(last.result(center, winsize, cfg));
         }
+    }
+}
+
+/// How far the estimate is still from where the passes converge, px, after a pass that moved
+/// it by `moved`. From a seed the passes work in the flow's linear range, where each removes
+/// the same fraction of what is left: with `q = moved / previous` (the previous pass's
+/// motion), a contraction's error bound `moved · q / (1 − q)`. Otherwise, and when the
+/// passes are not clearly contracting, the motion itself.
+pub(super) fn left_after(moved: f64, previous: Option<f64>) -> f64 {
+    match previous {
+        Some(p) if moved < 0.5 * p => {
+            let q = moved / p;
+            moved * q / (1.0 - q)
+        }
+        _ => moved,
     }
 }
 
@@ -443,6 +477,7 @@ impl LastPass {
             converged,
             unsettled_px,
             seed_level: None,
+            seeded_from: None,
             sample_box,
             inliers,
         }
@@ -612,6 +647,26 @@ pub(super) fn auto_levels(extent_px: usize) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn what_is_left_of_a_contraction_is_the_rest_of_its_geometric_series() {
+        // Passes that each remove the same fraction 1 − q: their later motions sum to the
+        // estimate's remaining distance from where they converge.
+        for (first, q) in [(0.0044f64, 0.068f64), (0.19, 0.3), (1e-3, 0.49)] {
+            let motions: Vec<f64> = (0..60).map(|k| first * q.powi(k)).collect();
+            for k in 1..6 {
+                let rest: f64 = motions[k + 1..].iter().sum();
+                let left = left_after(motions[k], Some(motions[k - 1]));
+                assert!(
+                    (left - rest).abs() <= 1e-12 * first,
+                    "q {q}, pass {k}: {left} vs {rest}"
+                );
+            }
+        }
+        // Not contracting by half or more, or no previous pass: the motion itself.
+        assert_eq!(left_after(0.3, Some(0.5)), 0.3);
+        assert_eq!(left_after(0.3, None), 0.3);
+    }
 
     #[test]
     fn erosion_keeps_exactly_the_pixels_whose_whole_neighbourhood_is_valid() {

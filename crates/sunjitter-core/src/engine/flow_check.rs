@@ -15,7 +15,7 @@
 //! would see far less error than the pair's own).
 
 use super::config::EngineConfig;
-use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, FLOW_TAPER_PX};
+use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, PassStart, FLOW_TAPER_PX};
 use super::prepared::Workspace;
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
@@ -126,7 +126,7 @@ pub(super) fn flow_interpolation_check(
         sub_reference,
         &copy,
         sub_region,
-        in_sub(&local.after(&start_error)),
+        PassStart::Coarse(in_sub(&local.after(&start_error))),
         winsize,
         0.0,
         cfg.max_passes,

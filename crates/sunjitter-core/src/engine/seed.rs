@@ -1,8 +1,11 @@
-//! Seeds for the refinement: the flow stage on copies binned to a coarser pyramid level, its
-//! answer carried back to the full grid.
+//! Seeds for the refinement and for full-resolution passes: the flow stage on copies binned to
+//! a coarser pyramid level, its answer carried back to the full grid.
 
 use super::config::EngineConfig;
-use super::fine::{auto_levels, fine_alignment, grown, mask_roi, Crop, FineResult, FlowRegion};
+use super::fine::{
+    auto_levels, fine_alignment, flow_reach_px, grown, mask_roi, Crop, FineResult, FlowRegion,
+    PassStart,
+};
 use super::prepared::Workspace;
 use super::{derotate, quality};
 use crate::flow::Roi;
@@ -96,14 +99,17 @@ fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
     out
 }
 
-/// The flow stage on `binned` copies, as a seed for the refinement: the result in full-grid
-/// terms (transform, covariances, inliers, sampling mask), without a warped frame.
+/// The flow stage on `binned` copies, as a seed for the refinement or for full-resolution
+/// passes: the result in full-grid terms (transform, covariances, inliers, sampling mask),
+/// without a warped frame. Between channels `disk` is the reference's disk (centre, radius px,
+/// full grid), whose limb the flow's windows must stay clear of.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn seed_alignment(
     binned: &Binned,
     grid: (usize, usize),
     frame: &Array2<f32>,
     coarse: Similarity,
+    disk: Option<([f64; 2], f64)>,
     winsize: usize,
     frame_smoothing_px: f64,
     carried: Option<&derotate::Carried>,
@@ -140,12 +146,18 @@ pub(super) fn seed_alignment(
     let mut fine = fine_alignment(
         binned.reference.view(),
         &small_frame,
-        // Seeds run only within one channel, where the limb is common structure.
         FlowRegion {
             mask: &binned.mask,
-            sample_within: None,
+            // The flow's reach is in binned pixels here.
+            sample_within: disk.map(|([cx, cy], r)| {
+                let to_binned = |v: f64| (v + 0.5) / b - 0.5;
+                (
+                    [to_binned(cx), to_binned(cy)],
+                    r / b - flow_reach_px(winsize, cfg.poly_n),
+                )
+            }),
         },
-        coarse_small,
+        PassStart::Coarse(coarse_small),
         winsize,
         frame_smoothing_px / b,
         seed_cfg.max_passes,

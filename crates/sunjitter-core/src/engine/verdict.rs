@@ -34,6 +34,8 @@ pub(super) struct Evidence {
     pub unsettled_px: Option<f64>,
     /// The pyramid level of a seed on binned copies.
     pub seed_level: Option<usize>,
+    /// The pyramid level of the seed that full-resolution passes started from.
+    pub seeded_from: Option<usize>,
     pub winsize: usize,
     pub refinement: Refinement,
 }
@@ -108,9 +110,13 @@ pub(super) fn verdict(
         ));
     }
     reasons.extend(notes);
-    reasons.push(match e.seed_level {
-        Some(level) if level > 0 => format!(
+    reasons.push(match (e.seed_level, e.seeded_from) {
+        (Some(level), _) if level > 0 => format!(
             "window {} px, {} passes finished on pyramid level {level}",
+            e.winsize, e.passes
+        ),
+        (_, Some(level)) => format!(
+            "window {} px, {} passes from a seed on pyramid level {level}",
             e.winsize, e.passes
         ),
         _ => format!("window {} px, {} passes", e.winsize, e.passes),
@@ -173,6 +179,7 @@ mod tests {
             converged: true,
             unsettled_px: None,
             seed_level: None,
+            seeded_from: None,
             winsize: 31,
             refinement: Refinement::default(),
         }
@@ -234,6 +241,7 @@ mod tests {
             converged: false,
             passes: 4,
             seed_level: Some(2),
+            seeded_from: None,
             refinement: Refinement {
                 note: Some("refinement refused".into()),
                 disagrees: true,
