@@ -271,7 +271,7 @@ pub(super) fn fine_alignment(
 /// the same fraction of what is left: with `q = moved / previous` (the previous pass's
 /// motion), a contraction's error bound `moved · q / (1 − q)`. Otherwise, and when the
 /// passes are not clearly contracting, the motion itself.
-pub(super) fn left_after(moved: f64, previous: Option<f64>) -> f64 {
+fn left_after(moved: f64, previous: Option<f64>) -> f64 {
     match previous {
         Some(p) if moved < 0.5 * p => {
             let q = moved / p;
