@@ -82,7 +82,7 @@ fn other_channel(frame: &Image) -> Image {
 }
 
 fn cold(c: &mut Criterion) {
-    sunjitter::keep_freed_memory();
+    sunjitter::tune_allocator();
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
         let name = format!("cold_{size}");
@@ -123,7 +123,7 @@ fn cold(c: &mut Criterion) {
 }
 
 fn bench(c: &mut Criterion) {
-    sunjitter::keep_freed_memory();
+    sunjitter::tune_allocator();
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
         if !selected(&format!("end_to_end_{size}")) {

@@ -62,7 +62,7 @@ fn summary(name: &str, v: &[f64]) {
 }
 
 fn main() -> anyhow::Result<()> {
-    sunjitter::keep_freed_memory();
+    sunjitter::tune_allocator();
     // Stage timings: SUNJITTER_LOG=sunjitter=debug.
     if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG") {
         tracing_subscriber::fmt()

@@ -40,7 +40,7 @@ fn cpu_seconds() -> f64 {
 }
 
 fn main() -> anyhow::Result<()> {
-    sunjitter::keep_freed_memory();
+    sunjitter::tune_allocator();
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 2 {
         anyhow::bail!("usage: bench_pair PREV.fits NEXT.fits [REPEATS] [CASES] [CROSS.fits]");

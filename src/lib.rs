@@ -28,7 +28,7 @@ pub use sunjitter_runtime::{
 pub mod allocator;
 pub mod cli;
 
-pub use allocator::keep_freed_memory;
+pub use allocator::tune_allocator;
 pub use error::{Error, Result};
 pub use geometry::Similarity;
 pub use meta::FrameMeta;
