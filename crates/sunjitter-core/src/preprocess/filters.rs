@@ -1,6 +1,6 @@
 //! Smoothing and binning: NaN-aware Gaussians (full and trend), block means, bilinear reads.
 
-use ndarray::{Array2, ArrayView2, Axis, Zip};
+use ndarray::{Array2, ArrayView2, ArrayViewMut1, Axis, Zip};
 use rayon::prelude::*;
 
 /// Separable Gaussian smoothing with σ in pixels, NaN-aware (normalised convolution:
@@ -33,12 +33,16 @@ pub(crate) fn gaussian_smooth_as(
     let total: f32 = kernel.iter().sum();
     kernel.iter_mut().for_each(|k| *k /= total);
     let (h, w) = img.dim();
-    let values = Zip::from(&img).par_map_collect(|&v| if v.is_finite() { v } else { 0.0 });
-    let mut out = convolve_columns(&convolve_rows(&values, &kernel), &kernel);
+    // Blanks count as zeros here; their weight is divided out below.
+    let zero_blanks = |v: f32| if v.is_finite() { v } else { 0.0 };
     if has_nan {
-        let weights =
-            Zip::from(&img).par_map_collect(|&v| if v.is_finite() { 1.0f32 } else { 0.0 });
-        let den = convolve_columns(&convolve_rows(&weights, &kernel), &kernel);
+        let mut out = convolve_columns(
+            &convolve_rows(img, &kernel, zero_blanks),
+            &kernel,
+            |_, _| {},
+        );
+        let weight = |v: f32| if v.is_finite() { 1.0f32 } else { 0.0 };
+        let den = convolve_columns(&convolve_rows(img, &kernel, weight), &kernel, |_, _| {});
         Zip::from(&mut out)
             .and(&den)
             .and(&img)
@@ -49,8 +53,10 @@ pub(crate) fn gaussian_smooth_as(
                     f32::NAN
                 };
             });
+        out
     } else {
-        // Without NaNs the weight plane is the outer product of the 1-D edge sums.
+        // Without NaNs the weight plane is the outer product of the 1-D edge sums, divided out
+        // as each row is made.
         let edge_sum = |n: usize| -> Vec<f32> {
             (0..n)
                 .map(|i| {
@@ -61,16 +67,16 @@ pub(crate) fn gaussian_smooth_as(
                 .collect()
         };
         let (wx, wy) = (edge_sum(w), edge_sum(h));
-        out.axis_iter_mut(Axis(0))
-            .into_par_iter()
-            .enumerate()
-            .for_each(|(y, mut row)| {
+        convolve_columns(
+            &convolve_rows(img, &kernel, zero_blanks),
+            &kernel,
+            |y, mut row| {
                 for (o, &kx) in row.iter_mut().zip(&wx) {
                     *o /= kx * wy[y];
                 }
-            });
+            },
+        )
     }
-    out
 }
 
 /// A wide Gaussian blur (the large-scale trend) at a fraction of [`gaussian_smooth`]'s cost:
@@ -157,8 +163,13 @@ pub(crate) fn zeroed(h: usize, w: usize) -> Array2<f32> {
     Array2::from_shape_vec((h, w), values).expect("h × w values")
 }
 
-/// Zero-padded 1-D convolution along each row (symmetric kernel).
-fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+/// Zero-padded 1-D convolution along each row (symmetric kernel) of `a`'s values mapped by
+/// `map` (mapped as each row is read: no mapped copy of the image).
+fn convolve_rows(
+    a: ArrayView2<f32>,
+    kernel: &[f32],
+    map: impl Fn(f32) -> f32 + Sync,
+) -> Array2<f32> {
     let (h, w) = a.dim();
     let mut out = zeroed(h, w);
     out.axis_iter_mut(Axis(0))
@@ -166,7 +177,7 @@ fn convolve_rows(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
         .zip(a.axis_iter(Axis(0)))
         .for_each_init(Vec::new, |buf, (mut o, row)| {
             buf.clear();
-            buf.extend(row.iter().copied()); // contiguous copy: one row, cheap
+            buf.extend(row.iter().map(|&v| map(v))); // contiguous copy: one row, cheap
             match o.as_slice_mut() {
                 Some(o) => convolve_row(buf, kernel, o),
                 None => {
@@ -212,8 +223,13 @@ fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
     }
 }
 
-/// Zero-padded 1-D convolution along each column, row-wise for cache locality.
-fn convolve_columns(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+/// Zero-padded 1-D convolution along each column, row-wise for cache locality; `finish`
+/// runs on each output row once it is summed (while it is still in cache).
+fn convolve_columns(
+    a: &Array2<f32>,
+    kernel: &[f32],
+    finish: impl Fn(usize, ArrayViewMut1<f32>) + Sync,
+) -> Array2<f32> {
     let r = kernel.len() / 2;
     let (h, w) = a.dim();
     let mut out = zeroed(h, w);
@@ -225,6 +241,7 @@ fn convolve_columns(a: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
                 let k = kernel[yy + r - y];
                 o.zip_mut_with(&a.row(yy), |ov, &v| *ov += k * v);
             }
+            finish(y, o);
         });
     out
 }
