@@ -79,11 +79,13 @@ pub(super) fn align_frame(
         }
         other => other,
     }?;
+    let Measured { outcome, self_test } = outcome;
     let kept = side.kept_check.map(|(check, notes)| FrameWork {
         cleaned: side.kept_cleaned.unwrap_or(side.data),
         check,
         notes,
         hot_pixel_fraction: cfg.hot_pixel_fraction,
+        self_test,
     });
     Ok((outcome, kept))
 }
@@ -210,7 +212,7 @@ struct Start<'a> {
 }
 
 /// One measurement: flow (or seed), refinement, interpolation check, quality, verdict.
-fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<AlignOutcome, String> {
+fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured, String> {
     let cfg = pair.cfg;
     let stage = Stages::new(pair, start.coarse, start.carried);
     let mut fine = stage.flow_or_seed()?;
@@ -241,14 +243,26 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<AlignOut
         refinement,
     };
     let verdict = verdict(&evidence, notes, cfg)?;
-    Ok(outcome(
+    let outcome = outcome(
         pair,
         &fine,
         start.coarse,
         start.solar_rotation,
         similarity,
         verdict,
-    ))
+    );
+    // A frame that matched well hands the reference's self-test on, should it become the
+    // next reference.
+    let self_test = (outcome.result.status == crate::record::Status::Ok)
+        .then(|| stage.matched.self_test_to_hand_on())
+        .flatten();
+    Ok(Measured { outcome, self_test })
+}
+
+/// One measurement's outcome, and the reference's self-test cases it leaves to hand on.
+struct Measured {
+    outcome: AlignOutcome,
+    self_test: Option<(f64, refine::SelfTestCases)>,
 }
 
 /// The stages of one measurement and what they share: the reference matched to the frame's
@@ -447,15 +461,21 @@ impl<'a> Stages<'a> {
                 cfg,
             },
             |settings| {
-                *self.matched.self_test.get_or_init(|| {
-                    refine::self_test_floor(
-                        self.reference(),
-                        prepared,
-                        &work.mask,
-                        cfg.sample,
-                        settings,
-                    )
-                })
+                self.matched
+                    .self_test
+                    .get_or_init(|| {
+                        refine::self_test_floor(
+                            self.reference(),
+                            prepared,
+                            &work.mask,
+                            cfg.sample,
+                            settings,
+                            work.structure_px,
+                            self.matched.handed_on(work),
+                        )
+                    })
+                    .as_ref()
+                    .map(refine::SelfTestCases::floor)
             },
         )
     }

@@ -69,6 +69,11 @@ pub(super) struct ReferenceWork {
     pub(super) mask_error: Option<String>,
     pub(super) mask_box: Roi,
     pub(super) winsize: usize,
+    /// Correlation length of the texture inside the mask, px (`structure_length_px`).
+    pub(super) structure_px: Option<f64>,
+    /// The self-test cases of the reference this one was aligned to as a frame, and that
+    /// reference's smoothing σ, px: along a chain most of them still apply here.
+    pub(super) handed_on: Option<(f64, refine::SelfTestCases)>,
     /// Resolution-matched versions by smoothing σ (few: one per partner plate scale).
     matched: std::sync::Mutex<Vec<std::sync::Arc<Matched>>>,
 }
@@ -81,8 +86,8 @@ pub(super) struct Matched {
     /// High-pass of `data` on `quality_crop`.
     pub(super) high_pass: Array2<f32>,
     pub(super) quality_crop: Crop,
-    /// The refinement's systematic floor on this reference (measured on first use).
-    pub(super) self_test: std::sync::OnceLock<Option<refine::SelfTest>>,
+    /// The refinement's self-test on this reference (run on first use).
+    pub(super) self_test: std::sync::OnceLock<Option<refine::SelfTestCases>>,
     /// Binned copies for seed flows on large frames (made on first use).
     pub(super) binned: std::sync::OnceLock<Binned>,
     /// The reference as the refinement reads it (made on the first refinement).
@@ -101,6 +106,9 @@ pub struct FrameWork {
     pub(super) check: geometry_check::Checked,
     pub(super) notes: Vec<String>,
     pub(super) hot_pixel_fraction: f32,
+    /// The self-test cases of the reference the frame was aligned to (with its smoothing
+    /// σ, px), when that alignment was `ok`.
+    pub(super) self_test: Option<(f64, refine::SelfTestCases)>,
 }
 
 impl PreparedReference {
@@ -216,15 +224,15 @@ impl ReferenceWork {
     ) -> Result<ReferenceWork, String> {
         let (h, w) = reference.data.dim();
         check_usable("reference", &reference.data)?;
-        let (cleaned, reference_check, notes) = match kept {
+        let (cleaned, reference_check, notes, handed_on) = match kept {
             Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
-                (k.cleaned, k.check, k.notes)
+                (k.cleaned, k.check, k.notes, k.self_test)
             }
             _ => {
                 let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
                 let mut notes = Vec::new();
                 let check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
-                (cleaned, check, notes)
+                (cleaned, check, notes, None)
             }
         };
         let (checked, disk_px) = (&reference_check.meta, reference_check.disk_px);
@@ -269,6 +277,8 @@ impl ReferenceWork {
             mask_error,
             mask_box,
             winsize,
+            structure_px: structure,
+            handed_on,
             matched: std::sync::Mutex::new(Vec::new()),
         })
     }
@@ -321,6 +331,23 @@ impl ReferenceWork {
 impl Matched {
     pub(super) fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
         self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+
+    /// The self-test cases handed on to this version of the reference, if any.
+    pub(super) fn handed_on<'a>(
+        &self,
+        work: &'a ReferenceWork,
+    ) -> Option<&'a refine::SelfTestCases> {
+        work.handed_on
+            .as_ref()
+            .filter(|(sigma_px, _)| sigma_px.to_bits() == self.sigma_px.to_bits())
+            .map(|(_, cases)| cases)
+    }
+
+    /// This version's self-test cases with its smoothing σ, to hand on along a chain.
+    pub(super) fn self_test_to_hand_on(&self) -> Option<(f64, refine::SelfTestCases)> {
+        let cases = self.self_test.get()?.as_ref()?;
+        Some((self.sigma_px, cases.clone()))
     }
 }
 

@@ -22,8 +22,9 @@
 //! The reported covariance is cluster-robust in its jackknife form over blocks (grid cells,
 //! and 2 × 2 groups of them — the larger is kept; see `cluster_covariance`): it measures the
 //! residuals' correlation instead of modelling it, as long as it is shorter than a block. The
-//! method's systematic floor ([`self_test_floor`], once per reference) is added to it; the
-//! plain `σ²H⁻¹` is kept as well.
+//! method's systematic floor ([`self_test_floor`], once per reference, most of its cases
+//! handed on from the previous reference along a chain) is added to it; the plain `σ²H⁻¹` is
+//! kept as well.
 
 mod accept;
 mod apply;
@@ -39,7 +40,7 @@ mod window;
 pub use apply::{apply, FlowAnswer, RefineInputs};
 pub use pixels::{inlier_cell_pixels, CellGrid};
 pub use reference::RefineReference;
-pub use self_test::{self_test_floor, SelfTest};
+pub use self_test::{self_test_floor, SelfTest, SelfTestCases};
 pub use solve::refine;
 pub use window::FrameWindow;
 

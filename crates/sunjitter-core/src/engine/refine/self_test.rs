@@ -20,6 +20,7 @@ pub struct SelfTest {
 }
 
 /// One self-test case: the error it made, and the (cluster-robust) variance it reported.
+#[derive(Debug, Clone, Copy)]
 pub(super) struct SelfTestCase {
     pub(super) bias: [f64; 4],
     pub(super) variance: [f64; 4],
@@ -27,20 +28,95 @@ pub(super) struct SelfTestCase {
     pub(super) flat_sigma: Option<f64>,
 }
 
-/// The method's systematic floor for a reference: per parameter, the RMS of the self-test
-/// errors (`self_test_bias`) over the cases of `self_test_case`, on the lattice of the whole
-/// `mask`, beyond the σ those refinements reported themselves (quadratic excess). The error
-/// depends on the sub-pixel positions the pixels land on, so the cases spread the shift over
-/// the unit square and rotate and scale the lever arm by a fraction of a
-/// pixel (which varies the positions across the image); their RMS is the typical error of a
-/// frame, whatever its own transform. `None` when a case fails.
+/// A reference's self-test cases, one per transform, and what they depend on. Along a chain
+/// (`previous`, where every frame becomes the next reference) a reference hands them on: the
+/// next one runs only a quarter of the transforms afresh and keeps the others, as long as its
+/// pixels, lever arm, settings and structure length match. No case is then older than three
+/// references (docs/validation.md#self-test-along-a-chain).
+#[derive(Debug, Clone)]
+pub struct SelfTestCases {
+    key: CaseKey,
+    /// One result per transform, in the transforms' order.
+    cases: Vec<SelfTestCase>,
+    /// The first transform the next reference runs afresh.
+    next: usize,
+}
+
+/// What a self-test case's error depends on, besides the reference's content near the
+/// Nyquist frequency (which the structure length stands in for).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CaseKey {
+    shape: (usize, usize),
+    tiles: usize,
+    pixels: usize,
+    lever: f64,
+    structure_px: f64,
+    settings: RefineSettings,
+}
+
+impl CaseKey {
+    /// Whether cases measured under `self` stand for a reference under `other`: the same
+    /// image size, tiling and settings; the pixel count within 2 %, the lever arm within 1 %
+    /// (the disk moving by the pointing jitter, or its radius by the Earth's orbit), and the
+    /// structure length within 5 % (seeing, or a changed exposure, changes it by more).
+    fn matches(&self, other: &CaseKey) -> bool {
+        let near = |a: f64, b: f64, tol: f64| (a - b).abs() <= tol * a.abs().max(b.abs());
+        self.shape == other.shape
+            && self.tiles == other.tiles
+            && self.settings == other.settings
+            && near(self.pixels as f64, other.pixels as f64, 0.02)
+            && near(self.lever, other.lever, 0.01)
+            && near(self.structure_px, other.structure_px, 0.05)
+    }
+}
+
+impl SelfTestCases {
+    /// The systematic floor over all the cases, summed in the transforms' order.
+    pub fn floor(&self) -> SelfTest {
+        let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
+        let mut flat = Vec::with_capacity(self.cases.len());
+        for test in &self.cases {
+            for k in 0..4 {
+                sum[k] += test.bias[k] * test.bias[k];
+                seen[k] += test.variance[k];
+            }
+            flat.extend(test.flat_sigma);
+        }
+        let n = self.cases.len() as f64;
+        // Only the error the residuals do not already show: without noise the cluster
+        // covariance is made of these same interpolation residuals, and counting both
+        // overstates the σ (docs/validation.md#self-test-floor).
+        SelfTest {
+            floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / n).max(0.0).sqrt()),
+            flat_sigma: (!flat.is_empty())
+                .then(|| (flat.iter().map(|s| s * s).sum::<f64>() / flat.len() as f64).sqrt()),
+        }
+    }
+}
+
+/// Of the cases handed on along a chain, one in this many is run afresh by each reference.
+const SELF_TEST_RENEWED_EVERY: usize = 4;
+
+/// The method's systematic floor for a reference ([`SelfTestCases::floor`]): per parameter,
+/// the RMS of the self-test errors (`self_test_bias`) over the cases of `self_test_case`, on
+/// the lattice of the whole `mask`, beyond the σ those refinements reported themselves
+/// (quadratic excess). The error depends on the sub-pixel positions the pixels land on, so
+/// the cases spread the shift over the unit square and rotate and scale the lever arm by a
+/// fraction of a pixel (which varies the positions across the image); their RMS is the
+/// typical error of a frame, whatever its own transform. `structure_px` is the reference's
+/// structure length; `handed_on`, the cases of the previous reference along a chain, of which
+/// a quarter are run again when they still apply, all of them otherwise. `None` when a case
+/// fails.
+#[allow(clippy::too_many_arguments)]
 pub fn self_test_floor(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
     mask: &Array2<bool>,
     sample: usize,
     settings: &RefineSettings,
-) -> Option<SelfTest> {
+    structure_px: Option<f64>,
+    handed_on: Option<&SelfTestCases>,
+) -> Option<SelfTestCases> {
     let (h, w) = reference.dim();
     let grid = CellGrid::new(mask.view(), sample)?;
     let usable = |x: usize, y: usize| mask[[y, x]] && reference[[y, x]].is_finite();
@@ -85,11 +161,30 @@ pub fn self_test_floor(
     // small undersampled images the error varies strongly with the sub-pixel position.
     let cases = (SELF_TEST_PIXEL_BUDGET / pixels.len().max(1)).clamp(4, 16);
     let cases = if boxes.len() > 1 { 4 } else { cases };
+    // Without a structure length the key matches nothing: every case runs afresh.
+    let key = CaseKey {
+        shape: (h, w),
+        tiles: boxes.len(),
+        pixels: pixels.len(),
+        lever,
+        structure_px: structure_px.unwrap_or(f64::NAN),
+        settings,
+    };
+    // The cases to run: a quarter of those handed on where they still apply, else all.
+    let kept = handed_on.filter(|old| old.cases.len() == cases && old.key.matches(&key));
+    let (mut results, run): (Vec<Option<SelfTestCase>>, Vec<usize>) = match kept {
+        Some(old) => {
+            let fresh = (cases / SELF_TEST_RENEWED_EVERY).max(1);
+            let run = (0..fresh).map(|i| (old.next + i) % cases).collect();
+            (old.cases.iter().copied().map(Some).collect(), run)
+        }
+        None => (vec![None; cases], (0..cases).collect()),
+    };
     // The cases side by side: each one's own work leaves a core idle in its serial parts
-    // (a case's frame is made tile by tile, on a whole mask as one). Summed in case order.
-    let tests = (0..cases)
-        .into_par_iter()
-        .map(|case| {
+    // (a case's frame is made tile by tile, on a whole mask as one).
+    let tests = run
+        .par_iter()
+        .map(|&case| {
             let (dx, dy, turn_px, stretch_px) = self_test_case(case);
             let t = Similarity {
                 scale: 1.0 + stretch_px / lever,
@@ -112,22 +207,14 @@ pub fn self_test_floor(
             Some(test)
         })
         .collect::<Option<Vec<_>>>()?;
-    let (mut sum, mut seen) = ([0.0; 4], [0.0; 4]);
-    let mut flat = Vec::with_capacity(cases);
-    for test in &tests {
-        for k in 0..4 {
-            sum[k] += test.bias[k] * test.bias[k];
-            seen[k] += test.variance[k];
-        }
-        flat.extend(test.flat_sigma);
+    for (&case, test) in run.iter().zip(tests) {
+        results[case] = Some(test);
     }
-    // Only the error the residuals do not already show: without noise the cluster covariance
-    // is made of these same interpolation residuals, and counting both overstates the σ
-    // (docs/validation.md#self-test-floor).
-    Some(SelfTest {
-        floor: std::array::from_fn(|k| ((sum[k] - seen[k]) / cases as f64).max(0.0).sqrt()),
-        flat_sigma: (!flat.is_empty())
-            .then(|| (flat.iter().map(|s| s * s).sum::<f64>() / flat.len() as f64).sqrt()),
+    tracing::debug!(cases, fresh = run.len(), "self-test cases");
+    Some(SelfTestCases {
+        key,
+        cases: results.into_iter().collect::<Option<Vec<_>>>()?,
+        next: run.last().map_or(0, |&last| (last + 1) % cases),
     })
 }
 
@@ -294,4 +381,81 @@ pub(super) fn synthetic_tile(
         origin: [wx0 as f64, wy0 as f64],
         end: [wx1 as f64, wy1 as f64],
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// AIA 171 128² (undersampled: the floor is most of its σ), its whole field, and the
+    /// engine's default refinement settings.
+    fn aia() -> (Array2<f32>, Array2<bool>, RefineSettings) {
+        let image = crate::test_data::read_real("aia_171_20110215T000000_128.fits");
+        let mask = Array2::from_elem(image.dim(), true);
+        let settings = super::super::settings(&crate::engine::EngineConfig::default(), 0.0);
+        (image, mask, settings)
+    }
+
+    fn floor_of(
+        image: &Array2<f32>,
+        mask: &Array2<bool>,
+        settings: &RefineSettings,
+        structure_px: f64,
+        handed_on: Option<&SelfTestCases>,
+    ) -> SelfTestCases {
+        let prepared = RefineReference::new(image.view(), settings);
+        self_test_floor(
+            image.view(),
+            &prepared,
+            mask,
+            20,
+            settings,
+            Some(structure_px),
+            handed_on,
+        )
+        .expect("self-test runs")
+    }
+
+    #[test]
+    fn cases_are_not_handed_on_to_a_reference_whose_structure_changed() {
+        let (sharp, mask, settings) = aia();
+        let blurred = crate::preprocess::gaussian_smooth(sharp.view(), 1.0);
+        let before = floor_of(&sharp, &mask, &settings, 2.0, None);
+        let fresh = floor_of(&blurred, &mask, &settings, 2.2, None);
+        // Blurring takes out the structure near the Nyquist frequency that the model
+        // interpolates worst: the sharp reference's cases do not stand for the blurred one.
+        let (a, b) = (before.floor().floor, fresh.floor().floor);
+        assert!(
+            a[2] > 2.0 * b[2] && a[3] > 2.0 * b[3],
+            "{a:?} against {b:?}"
+        );
+        // A structure length 10 % longer: every case is run again on the blurred reference.
+        let handed = floor_of(&blurred, &mask, &settings, 2.2, Some(&before));
+        assert_eq!(handed.floor().floor, b);
+    }
+
+    #[test]
+    fn along_a_chain_a_reference_runs_a_quarter_of_the_cases_and_keeps_the_rest() {
+        let (sharp, mask, settings) = aia();
+        let blurred = crate::preprocess::gaussian_smooth(sharp.view(), 1.0);
+        // Cases measured on the blurred image, handed on under a matching key.
+        let before = floor_of(&blurred, &mask, &settings, 2.0, None);
+        let fresh = floor_of(&sharp, &mask, &settings, 2.0, None);
+        let handed = floor_of(&sharp, &mask, &settings, 2.0, Some(&before));
+        let n = fresh.cases.len();
+        assert_eq!(n, 16, "a 128² field runs 16 transforms");
+        for k in 0..n {
+            let expected = if k < n / 4 { &fresh } else { &before };
+            assert_eq!(
+                handed.cases[k].bias, expected.cases[k].bias,
+                "transform {k}"
+            );
+        }
+        // The next reference along renews the next quarter.
+        let after = floor_of(&sharp, &mask, &settings, 2.0, Some(&handed));
+        for k in 0..n {
+            let expected = if k < n / 2 { &fresh } else { &before };
+            assert_eq!(after.cases[k].bias, expected.cases[k].bias, "transform {k}");
+        }
+    }
 }
