@@ -555,3 +555,25 @@ fn along_a_chain_each_reference_gives_the_fresh_answer_within_its_sigma_of_the_t
         kept = next;
     }
 }
+
+/// A reference that served more than one frame (a keyframe) keeps its self-test to itself:
+/// the frame that becomes the next reference after it is tested afresh, with the σ a fresh
+/// preparation gives.
+#[test]
+fn a_keyframes_self_test_is_not_handed_on() {
+    use sunjitter::engine::PreparedReference;
+    let base = real("aia_171_20110215T000000_128.fits");
+    let cfg = EngineConfig::default();
+    let center = Similarity::array_center(base.data.ncols(), base.data.nrows());
+    let truths = draw_truths(4, 17, &TrialRanges::default(), center);
+    let frames: Vec<Image> = truths.iter().map(|t| transformed(&base, t)).collect();
+    let keyframe = PreparedReference::new(&frames[0], &cfg);
+    keyframe.align(&frames[1]);
+    let (out, kept) = keyframe.align_keeping(&frames[2], cfg.solar_rotation);
+    assert_eq!(out.result.status, Status::Ok, "{}", out.result.message);
+    let promoted = PreparedReference::from_frame_work(&frames[2], &cfg, kept.expect("aligned"))
+        .align(&frames[3]);
+    let fresh = PreparedReference::new(&frames[2], &cfg).align(&frames[3]);
+    assert_eq!(promoted.transform, fresh.transform);
+    assert_eq!(promoted.covariance, fresh.covariance);
+}

@@ -56,6 +56,9 @@ pub struct PreparedReference {
     file: String,
     work: Result<ReferenceWork, String>,
     workspace: std::sync::Arc<Workspace>,
+    /// Frames aligned to it so far: only a reference that served one frame, as each does
+    /// along a `previous` chain, hands its self-test on to that frame.
+    aligned: std::sync::atomic::AtomicUsize,
 }
 
 pub(super) struct ReferenceWork {
@@ -107,7 +110,7 @@ pub struct FrameWork {
     pub(super) notes: Vec<String>,
     pub(super) hot_pixel_fraction: f32,
     /// The self-test cases of the reference the frame was aligned to (with its smoothing
-    /// σ, px), when that alignment was `ok`.
+    /// σ, px), when that alignment was `ok` and the reference's first.
     pub(super) self_test: Option<(f64, refine::SelfTestCases)>,
 }
 
@@ -136,6 +139,7 @@ impl PreparedReference {
             file: crate::text::path(&reference.meta.file).into_owned(),
             work: ReferenceWork::new(reference, cfg, kept),
             workspace: Default::default(),
+            aligned: Default::default(),
         }
     }
 
@@ -186,6 +190,10 @@ impl PreparedReference {
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
+        let first = self
+            .aligned
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            == 0;
         let cfg = EngineConfig {
             solar_rotation: profile,
             ..self.cfg.clone()
@@ -198,6 +206,12 @@ impl PreparedReference {
             Ok((outcome, kept)) => (Ok(outcome), kept),
             Err(e) => (Err(e), None),
         };
+        // A reference that serves many frames (a keyframe, a fixed file) keeps its own
+        // self-test: its cases are handed on only along a chain.
+        let kept = kept.map(|k| FrameWork {
+            self_test: k.self_test.filter(|_| first),
+            ..k
+        });
         let mut outcome = result.unwrap_or_else(|reason| {
             AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
         });
