@@ -23,7 +23,7 @@ pub struct Args {
     #[arg(long, value_name = "K/N")]
     pub shard: Option<crate::shard::ShardSpec>,
     /// With --shard: frames of each channel measured before the shard's own, not logged
-    /// [default: a keyframe interval; 1 for previous and channel:NAME; 0 for fixed:FILE].
+    /// [default: a keyframe interval; 4 for previous; 1 for channel:NAME; 0 for fixed:FILE].
     #[arg(long, value_name = "FRAMES", requires = "shard")]
     pub shard_overlap: Option<usize>,
 }
@@ -62,7 +62,7 @@ pub fn run(args: &Args) -> Result<i32> {
             let all = replay_inputs(&files, &config, &reader, &History::default());
             let (sink, inputs, plan) =
                 crate::shard::open_shard(&args.run.out, &config, spec, args.shard_overlap, all)?;
-            (sink, History::default(), inputs, Some(plan))
+            (sink, plan.history(), inputs, Some(plan))
         }
     };
     let total = inputs

@@ -18,6 +18,11 @@ pub trait FrameReader: Send + Sync {
 /// Aligns one image to another: `engine::align_images` in production.
 pub trait Aligner: Send + Sync {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+    /// As [`Aligner::align`], to a reference at `position` along its chain (its sequence
+    /// number in the log; `engine::PreparedReference::at_position`).
+    fn align_at(&self, reference: &Image, _position: u64, frame: &Image) -> AlignOutcome {
+        self.align(reference, frame)
+    }
     /// Why `image` cannot serve as a reference, if it cannot.
     fn usable_as_reference(&self, _image: &Image) -> std::result::Result<(), String> {
         Ok(())

@@ -142,6 +142,11 @@ impl Default for ChannelPolicy {
 /// What a policy step needs from the outside world: the engine and image reading.
 pub trait StepContext {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome;
+    /// As [`StepContext::align`], to a reference at `position` along its chain (its
+    /// sequence number in the log).
+    fn align_at(&self, reference: &Image, _position: u64, frame: &Image) -> AlignOutcome {
+        self.align(reference, frame)
+    }
     fn load(&self, spec: &FrameSpec) -> sunjitter_core::Result<Image>;
     /// Why `image` cannot start a reference, if it cannot (the aligner's requirements).
     fn usable_as_reference(&self, _image: &Image) -> Result<(), String> {
@@ -188,6 +193,8 @@ struct RefSlot {
     /// Restart: the chain as the reference's own message logged it (σ only); completed with
     /// the image centre when the image is loaded.
     chain_hint: Option<FrameAlignment>,
+    /// The reference frame's sequence number, where this run logged it.
+    position: Option<u64>,
 }
 
 impl RefSlot {
@@ -199,7 +206,14 @@ impl RefSlot {
             chain,
             image: Some(frame.image.clone()),
             chain_hint: None,
+            position: None,
         }
+    }
+
+    /// The slot of a frame this run logged at `sequence`.
+    fn logged_at(mut self, sequence: u64) -> RefSlot {
+        self.position = Some(sequence);
+        self
     }
 
     /// A reference known only by name (restart, partner, fixed file): read when needed.
@@ -211,6 +225,7 @@ impl RefSlot {
             chain,
             image: None,
             chain_hint: None,
+            position: None,
         }
     }
 
@@ -463,7 +478,7 @@ impl ChannelState {
             image_center(&frame.image),
             ctx.plate_scale_used(&frame.image),
         );
-        let slot = RefSlot::from_frame(frame, Some(chain));
+        let slot = RefSlot::from_frame(frame, Some(chain)).logged_at(sequence);
         self.install(slot, frame, sequence, reason, records);
         self.candidate = None;
         self.frames_on_reference = 0;
@@ -494,7 +509,10 @@ impl ChannelState {
                 return self.start_chain(frame, sequence, ctx, records);
             }
         };
-        let outcome = ctx.align(&ref_image, &frame.image);
+        let outcome = match reference.position {
+            Some(position) => ctx.align_at(&ref_image, position, &frame.image),
+            None => ctx.align(&ref_image, &frame.image),
+        };
         let chain = chain_after(reference.chain.as_ref(), &outcome);
         let emitted = self.emit(
             frame,
@@ -510,7 +528,7 @@ impl ChannelState {
             self.note_failure();
         } else {
             self.consecutive_failures = 0;
-            let slot = RefSlot::from_frame(frame, chain);
+            let slot = RefSlot::from_frame(frame, chain).logged_at(sequence);
             // The first frame aligned to it is the next one.
             self.install(slot, frame, sequence + 1, "previous frame".into(), records);
         }

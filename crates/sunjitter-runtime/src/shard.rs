@@ -87,6 +87,9 @@ pub struct ShardPlan {
     /// Every frame key of the run.
     pub all: HashSet<String>,
     pub inputs_digest: String,
+    /// Per channel, the number of its frames before the first this shard measures: the
+    /// sequence number a single run gives that frame, where the shard's numbering starts.
+    pub first_measured: BTreeMap<String, u64>,
 }
 
 /// The cut points of `total` sorted frames into `count` ranges: `count + 1` indices. A cut
@@ -135,6 +138,9 @@ pub fn predicted_keyframes(times_ns: &[i64], p: &ChannelPolicy) -> Vec<usize> {
     keyframes
 }
 
+/// `previous`: frames measured before a shard's range by default.
+const PREVIOUS_OVERLAP: usize = sunjitter_core::engine::refine::SELF_TEST_QUARTERS;
+
 /// The frames of a channel measured before frame `a` (an index within the channel) so that
 /// the shard's reference at `a` is the single run's. `overlap`: at least this many frames
 /// (`None`: the policy's default, one keyframe interval for `keyframe`).
@@ -150,9 +156,33 @@ fn overlap_start(a: usize, p: &ChannelPolicy, times: &[i64], overlap: Option<usi
             let at = keyframes.partition_point(|&k| k <= s);
             keyframes[at.saturating_sub(1)]
         }
-        PolicySpec::Previous => a.saturating_sub(overlap.unwrap_or(1).max(1)),
+        // Each reference along the chain renews a quarter of the self-test cases it is handed:
+        // after as many references the shard's chain holds the single run's cases.
+        PolicySpec::Previous => a.saturating_sub(overlap.unwrap_or(PREVIOUS_OVERLAP).max(1)),
         PolicySpec::Channel(_) => a.saturating_sub(overlap.unwrap_or(1)),
         PolicySpec::Fixed(_) => a.saturating_sub(overlap.unwrap_or(0)),
+    }
+}
+
+impl ShardPlan {
+    /// Where the shard's channels start: each numbers its frames from its first measured
+    /// frame's place in the whole run, as a single run numbers them (the self-test cases a
+    /// `previous` chain renews follow these numbers).
+    pub fn history(&self) -> crate::reference::History {
+        crate::reference::History {
+            done: HashSet::new(),
+            channels: self
+                .first_measured
+                .iter()
+                .map(|(c, &n)| {
+                    let start = crate::reference::RestoredChannel {
+                        next_sequence: n,
+                        ..Default::default()
+                    };
+                    (c.clone(), start)
+                })
+                .collect(),
+        }
     }
 }
 
@@ -250,6 +280,10 @@ pub fn plan(
         measured,
         all: sorted.iter().map(|f| f.key.clone()).collect(),
         inputs_digest: inputs_digest(&sorted, other_inputs),
+        first_measured: need
+            .iter()
+            .map(|(c, &(lo, _))| (c.clone(), lo as u64))
+            .collect(),
     }
 }
 

@@ -77,6 +77,9 @@ pub(super) struct ReferenceWork {
     /// The self-test cases of the reference this one was aligned to as a frame, and that
     /// reference's smoothing σ, px: along a chain most of them still apply here.
     pub(super) handed_on: Option<(f64, refine::SelfTestCases)>,
+    /// The reference's position along its chain (its sequence number in the log), which
+    /// picks the self-test cases it renews ([`refine::HandedOn`]).
+    pub(super) position: Option<u64>,
     /// Resolution-matched versions by smoothing σ (few: one per partner plate scale).
     matched: std::sync::Mutex<Vec<std::sync::Arc<Matched>>>,
 }
@@ -146,6 +149,16 @@ impl PreparedReference {
     /// Align with `workspace`, shared with other references, instead of one of its own.
     pub fn sharing(mut self, workspace: std::sync::Arc<Workspace>) -> PreparedReference {
         self.workspace = workspace;
+        self
+    }
+
+    /// The reference at `position` along its chain (its sequence number in the log): along a
+    /// `previous` chain that picks the self-test cases it renews, so that a chain started a few
+    /// references earlier (a shard's overlap) gives the same σ as a single run.
+    pub fn at_position(mut self, position: u64) -> PreparedReference {
+        if let Ok(work) = &mut self.work {
+            work.position = Some(position);
+        }
         self
     }
 
@@ -293,6 +306,7 @@ impl ReferenceWork {
             winsize,
             structure_px: structure,
             handed_on,
+            position: None,
             matched: std::sync::Mutex::new(Vec::new()),
         })
     }
@@ -348,14 +362,14 @@ impl Matched {
     }
 
     /// The self-test cases handed on to this version of the reference, if any.
-    pub(super) fn handed_on<'a>(
-        &self,
-        work: &'a ReferenceWork,
-    ) -> Option<&'a refine::SelfTestCases> {
+    pub(super) fn handed_on<'a>(&self, work: &'a ReferenceWork) -> Option<refine::HandedOn<'a>> {
         work.handed_on
             .as_ref()
             .filter(|(sigma_px, _)| sigma_px.to_bits() == self.sigma_px.to_bits())
-            .map(|(_, cases)| cases)
+            .map(|(_, cases)| refine::HandedOn {
+                cases,
+                position: work.position,
+            })
     }
 
     /// This version's self-test cases with its smoothing σ, to hand on along a chain.

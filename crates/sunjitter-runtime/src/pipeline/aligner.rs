@@ -117,11 +117,17 @@ impl EngineAligner {
 
     /// The prepared reference for `reference`, from the cache or made now.
     fn prepared(&self, reference: &Image) -> Arc<PreparedReference> {
-        self.prepared_as(reference, ReferenceKey::of(reference))
+        self.prepared_as(reference, ReferenceKey::of(reference), None)
     }
 
-    /// [`Self::prepared`] with the reference's key already taken.
-    fn prepared_as(&self, reference: &Image, key: ReferenceKey) -> Arc<PreparedReference> {
+    /// [`Self::prepared`] with the reference's key already taken, and its position along its
+    /// chain where known.
+    fn prepared_as(
+        &self,
+        reference: &Image,
+        key: ReferenceKey,
+        position: Option<u64>,
+    ) -> Arc<PreparedReference> {
         let lock = || match self.prepared.lock() {
             Ok(g) => g,
             Err(poisoned) => poisoned.into_inner(),
@@ -138,13 +144,15 @@ impl EngineAligner {
             at.map(|i| last.swap_remove(i).2)
         };
         // Prepared outside the lock: other channels keep aligning meanwhile.
-        let made = Arc::new(
-            match kept {
-                Some(work) => PreparedReference::from_frame_work(reference, &self.config, work),
-                None => PreparedReference::new(reference, &self.config),
-            }
-            .sharing(self.workspace.clone()),
-        );
+        let made = match kept {
+            Some(work) => PreparedReference::from_frame_work(reference, &self.config, work),
+            None => PreparedReference::new(reference, &self.config),
+        }
+        .sharing(self.workspace.clone());
+        let made = Arc::new(match position {
+            Some(p) => made.at_position(p),
+            None => made,
+        });
         let mut cache = lock();
         if cache.len() >= PREPARED_REFERENCES {
             cache.remove(0);
@@ -185,13 +193,15 @@ impl std::fmt::Debug for EngineAligner {
     }
 }
 
-impl Aligner for EngineAligner {
-    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+impl EngineAligner {
+    /// Align `frame` to `reference` (at `position` along its chain, where known), keeping
+    /// the work on `frame` for when it becomes the next reference.
+    fn align_to(&self, reference: &Image, position: Option<u64>, frame: &Image) -> AlignOutcome {
         let channel = &frame.meta.channel;
         let name = self.rotation.names.get(channel).unwrap_or(channel);
         let profile = self.rotation.by_channel.get(name).copied();
         let key = ReferenceKey::of(reference);
-        let prepared = self.prepared_as(reference, key.clone());
+        let prepared = self.prepared_as(reference, key.clone(), position);
         self.used_by(channel, key);
         let (outcome, kept) =
             prepared.align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
@@ -204,6 +214,16 @@ impl Aligner for EngineAligner {
             last.push((channel.clone(), ReferenceKey::of(frame), work));
         }
         outcome
+    }
+}
+
+impl Aligner for EngineAligner {
+    fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
+        self.align_to(reference, None, frame)
+    }
+
+    fn align_at(&self, reference: &Image, position: u64, frame: &Image) -> AlignOutcome {
+        self.align_to(reference, Some(position), frame)
     }
 
     fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {

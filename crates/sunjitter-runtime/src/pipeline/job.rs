@@ -71,6 +71,9 @@ impl StepContext for JobContext {
     fn align(&self, reference: &Image, frame: &Image) -> AlignOutcome {
         self.aligner.align(reference, frame)
     }
+    fn align_at(&self, reference: &Image, position: u64, frame: &Image) -> AlignOutcome {
+        self.aligner.align_at(reference, position, frame)
+    }
     fn usable_as_reference(&self, image: &Image) -> std::result::Result<(), String> {
         self.aligner.usable_as_reference(image)
     }

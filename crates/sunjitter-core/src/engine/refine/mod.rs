@@ -40,7 +40,7 @@ mod window;
 pub use apply::{apply, FlowAnswer, RefineInputs};
 pub use pixels::{inlier_cell_pixels, CellGrid};
 pub use reference::RefineReference;
-pub use self_test::{self_test_floor, SelfTest, SelfTestCases};
+pub use self_test::{self_test_floor, HandedOn, SelfTest, SelfTestCases, SELF_TEST_QUARTERS};
 pub use solve::refine;
 pub use window::FrameWindow;
 

@@ -38,8 +38,29 @@ pub struct SelfTestCases {
     key: CaseKey,
     /// One result per transform, in the transforms' order.
     cases: Vec<SelfTestCase>,
-    /// The first transform the next reference runs afresh.
-    next: usize,
+    /// The quarter the next reference renews when it has no position of its own.
+    next_quarter: usize,
+}
+
+/// Cases handed on to a reference, and the reference's position along its chain (its
+/// sequence number in the log), which picks the quarter it renews: position `q` renews
+/// quarter `q mod 4`, so a chain that starts four references earlier (a shard's overlap)
+/// holds the same cases as a single run's from then on. Without a position the quarters
+/// are renewed in turn.
+#[derive(Debug, Clone, Copy)]
+pub struct HandedOn<'a> {
+    pub cases: &'a SelfTestCases,
+    pub position: Option<u64>,
+}
+
+/// References whose cases make up one reference's self-test along a chain: each renews a
+/// quarter of the transforms (rounded up).
+pub const SELF_TEST_QUARTERS: usize = 4;
+
+/// The transforms in quarter `quarter` of `cases`.
+fn quarter(cases: usize, quarter: usize) -> std::ops::Range<usize> {
+    let size = cases.div_ceil(SELF_TEST_QUARTERS);
+    (quarter * size).min(cases)..((quarter + 1) * size).min(cases)
 }
 
 /// What a self-test case's error depends on, besides the reference's content near the
@@ -94,9 +115,6 @@ impl SelfTestCases {
     }
 }
 
-/// Of the cases handed on along a chain, one in this many is run afresh by each reference.
-const SELF_TEST_RENEWED_EVERY: usize = 4;
-
 /// The method's systematic floor for a reference ([`SelfTestCases::floor`]): per parameter,
 /// the RMS of the self-test errors (`self_test_bias`) over the cases of `self_test_case`, on
 /// the lattice of the whole `mask`, beyond the σ those refinements reported themselves
@@ -115,7 +133,7 @@ pub fn self_test_floor(
     sample: usize,
     settings: &RefineSettings,
     structure_px: Option<f64>,
-    handed_on: Option<&SelfTestCases>,
+    handed_on: Option<HandedOn>,
 ) -> Option<SelfTestCases> {
     let (h, w) = reference.dim();
     let grid = CellGrid::new(mask.view(), sample)?;
@@ -171,14 +189,23 @@ pub fn self_test_floor(
         settings,
     };
     // The cases to run: a quarter of those handed on where they still apply, else all.
-    let kept = handed_on.filter(|old| old.cases.len() == cases && old.key.matches(&key));
-    let (mut results, run): (Vec<Option<SelfTestCase>>, Vec<usize>) = match kept {
-        Some(old) => {
-            let fresh = (cases / SELF_TEST_RENEWED_EVERY).max(1);
-            let run = (0..fresh).map(|i| (old.next + i) % cases).collect();
-            (old.cases.iter().copied().map(Some).collect(), run)
+    let kept = handed_on.filter(|h| h.cases.cases.len() == cases && h.cases.key.matches(&key));
+    let (mut results, run, renewed): (Vec<Option<SelfTestCase>>, Vec<usize>, usize) = match kept {
+        Some(HandedOn {
+            cases: old,
+            position,
+        }) => {
+            let renewed = position.map_or(old.next_quarter, |q| {
+                (q % SELF_TEST_QUARTERS as u64) as usize
+            });
+            let run = quarter(cases, renewed).collect();
+            (old.cases.iter().copied().map(Some).collect(), run, renewed)
         }
-        None => (vec![None; cases], (0..cases).collect()),
+        None => (
+            vec![None; cases],
+            (0..cases).collect(),
+            SELF_TEST_QUARTERS - 1,
+        ),
     };
     // The cases side by side: each one's own work leaves a core idle in its serial parts
     // (a case's frame is made tile by tile, on a whole mask as one).
@@ -214,7 +241,7 @@ pub fn self_test_floor(
     Some(SelfTestCases {
         key,
         cases: results.into_iter().collect::<Option<Vec<_>>>()?,
-        next: run.last().map_or(0, |&last| (last + 1) % cases),
+        next_quarter: (renewed + 1) % SELF_TEST_QUARTERS,
     })
 }
 
@@ -403,6 +430,10 @@ mod tests {
         structure_px: f64,
         handed_on: Option<&SelfTestCases>,
     ) -> SelfTestCases {
+        let handed_on = handed_on.map(|cases| HandedOn {
+            cases,
+            position: None,
+        });
         let prepared = RefineReference::new(image.view(), settings);
         self_test_floor(
             image.view(),
