@@ -10,7 +10,8 @@
 //!   as the daemon aligns every frame after the first against a reference;
 //! - `align_previous`: NEXT against a reference prepared from PREV, cold, as `replay
 //!   --reference previous` aligns every frame: PREV was aligned as a frame just before (not
-//!   timed), and what that did for it is reused when it is prepared as the reference;
+//!   timed), and what that did for it (cleaning, disk check, three quarters of its
+//!   reference's self-test) is reused when it is prepared as the reference;
 //! - `align_cross`: the whole engine, cold, PREV against CROSS.fits, a frame of another channel
 //!   (its channel differs from PREV's; `tools/bench_side_by_side.py` makes one, blurred and with
 //!   its intensities bent): the flow's answer is final, at full resolution.
@@ -89,19 +90,16 @@ fn main() -> anyhow::Result<()> {
         std::hint::black_box(prepared.align(&next)); // the reference's one-off work
         prepared
     });
-    // PREV's own reference, against which it is aligned as a frame before it becomes one.
-    let before_prev = cases.contains("align_previous").then(|| {
-        let prepared = PreparedReference::new(&next, &cfg);
-        std::hint::black_box(prepared.align(&prev));
-        prepared
-    });
+    // PREV's own reference, against which it is aligned as a frame (untimed) before it
+    // becomes one: prepared afresh for every repeat, since only a reference that served one
+    // frame hands its self-test cases on.
+    let before_prev = || PreparedReference::new(&next, &cfg);
     for case in cases.split(',') {
         let mut walls = Vec::new();
         let mut cpus = Vec::new();
         for _ in 0..repeats {
-            let kept = before_prev
-                .as_ref()
-                .filter(|_| case == "align_previous")
+            let kept = (case == "align_previous")
+                .then(before_prev)
                 .and_then(|p| p.align_keeping(&prev, cfg.solar_rotation).1);
             let c0 = cpu_seconds();
             let t0 = Instant::now();
