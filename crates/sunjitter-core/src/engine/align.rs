@@ -588,17 +588,20 @@ impl<'a> Stages<'a> {
                 },
                 fine,
             ),
-            _ => quality_of(
-                &QualityGrid {
-                    reference: work.cleaned.view(),
-                    mask: &work.mask,
-                    mask_box: work.mask_box,
-                    high_pass: &self.matched.high_pass,
-                    quality_crop: &self.matched.quality_crop,
-                    trend_px: work.trend_px(),
-                },
-                fine,
-            ),
+            _ => {
+                let (high_pass, quality_crop) = self.matched.high_pass(work);
+                quality_of(
+                    &QualityGrid {
+                        reference: work.cleaned.view(),
+                        mask: &work.mask,
+                        mask_box: work.mask_box,
+                        high_pass,
+                        quality_crop,
+                        trend_px: work.trend_px(),
+                    },
+                    fine,
+                )
+            }
         }
     }
 }

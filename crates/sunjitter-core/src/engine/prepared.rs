@@ -89,9 +89,9 @@ pub(super) struct Matched {
     sigma_px: f64,
     /// `None`: no smoothing (the cleaned reference itself).
     data: Option<Array2<f32>>,
-    /// High-pass of `data` on `quality_crop`.
-    pub(super) high_pass: Array2<f32>,
-    pub(super) quality_crop: Crop,
+    /// High-pass of `data` on the crop it covers, for the structure check on the full grid
+    /// (made on first use: a seed's checks compare on its binned copies instead).
+    high_pass: std::sync::OnceLock<(Array2<f32>, Crop)>,
     /// The refinement's self-test on this reference (run on first use).
     pub(super) self_test: std::sync::OnceLock<Option<refine::SelfTestCases>>,
     /// Binned copies for seed flows on large frames (made on first use).
@@ -326,17 +326,10 @@ impl ReferenceWork {
         }
         let data =
             (sigma_px > 0.0).then(|| preprocess::gaussian_smooth(self.cleaned.view(), sigma_px));
-        let view = data.as_ref().map_or(self.cleaned.view(), |d| d.view());
-        // Structure only: the large-scale disk brightness correlates even for unrelated images.
-        let (h, w) = self.cleaned.dim();
-        let trend_px = self.trend_px();
-        let (rows, cols) = grown(self.mask_box, trend_px, w, h);
-        let high_pass = quality::high_pass(view.slice(s![rows.clone(), cols.clone()]), trend_px);
         let made = std::sync::Arc::new(Matched {
             sigma_px,
             data,
-            high_pass,
-            quality_crop: Crop { rows, cols },
+            high_pass: std::sync::OnceLock::new(),
             self_test: std::sync::OnceLock::new(),
             binned: std::sync::OnceLock::new(),
             refine_reference: std::sync::OnceLock::new(),
@@ -359,6 +352,19 @@ impl ReferenceWork {
 impl Matched {
     pub(super) fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
         self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+
+    /// The high-pass of this version on the mask's box and the trend's reach, and that crop.
+    pub(super) fn high_pass(&self, work: &ReferenceWork) -> &(Array2<f32>, Crop) {
+        self.high_pass.get_or_init(|| {
+            // Structure only: the large-scale disk brightness correlates even for unrelated
+            // images.
+            let (h, w) = work.cleaned.dim();
+            let trend_px = work.trend_px();
+            let (rows, cols) = grown(work.mask_box, trend_px, w, h);
+            let crop = self.view(work).slice_move(s![rows.clone(), cols.clone()]);
+            (quality::high_pass(crop, trend_px), Crop { rows, cols })
+        })
     }
 
     /// The self-test cases handed on to this version of the reference, if any.
