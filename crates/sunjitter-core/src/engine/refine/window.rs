@@ -87,6 +87,17 @@ impl FrameWindow {
         )
     }
 
+    /// Whether no two tiles' interiors overlap (a self-test's tiles lie far apart).
+    fn tiles_disjoint(&self) -> bool {
+        let apart = |a: &WindowTile, b: &WindowTile| {
+            (0..2).any(|k| a.end[k] <= b.origin[k] || b.end[k] <= a.origin[k])
+        };
+        self.tiles
+            .iter()
+            .enumerate()
+            .all(|(i, a)| self.tiles[i + 1..].iter().all(|b| apart(a, b)))
+    }
+
     /// The tile that frame position `p` lies deepest in.
     fn tile_of(&self, p: [f64; 2]) -> usize {
         if self.tiles.len() == 1 {
@@ -116,6 +127,7 @@ impl FrameWindow {
     ) -> Vec<[f64; 3]> {
         let (a, b) = t.ab();
         let map = crate::resample::similarity_map(t);
+        let disjoint = self.tiles_disjoint();
         let mut out = vec![[0.0; 3]; pixels.len()];
         out.par_chunks_mut(SAMPLE_CHUNK)
             .zip(pixels.par_chunks(SAMPLE_CHUNK))
@@ -132,11 +144,16 @@ impl FrameWindow {
                     })
                     .collect();
                 // Runs of positions in one tile, each sampled from the tile it lies deepest in.
+                // Inside a tile that overlaps no other, a position lies deepest in it.
+                let inside =
+                    |tile: usize, [x, y]: [f64; 2]| disjoint && self.tiles[tile].depth(x, y) > 0.0;
                 let mut start = 0;
                 while start < positions.len() {
                     let tile = self.tile_of(positions[start]);
                     let mut stop = start + 1;
-                    while stop < positions.len() && self.tile_of(positions[stop]) == tile {
+                    while stop < positions.len()
+                        && (inside(tile, positions[stop]) || self.tile_of(positions[stop]) == tile)
+                    {
                         stop += 1;
                     }
                     let t = &self.tiles[tile];
