@@ -212,6 +212,25 @@ impl HighOrderSpline {
         }
     }
 
+    /// The spline's degree.
+    #[inline(always)]
+    pub fn order(&self) -> HighOrder {
+        self.order
+    }
+
+    /// The prefiltered coefficients.
+    #[inline(always)]
+    pub(super) fn coeffs(&self) -> &Array2<f32> {
+        &self.coeffs
+    }
+
+    /// Integer position and fraction on both axes, `None` outside the image or where the
+    /// support holds a blank.
+    #[inline(always)]
+    pub(super) fn locate_at(&self, x: f64, y: f64) -> Option<((usize, f64), (usize, f64))> {
+        self.locate(x, y)
+    }
+
     /// Integer position and fraction on both axes, `None` outside the image or where the
     /// support holds a blank.
     #[inline(always)]
@@ -395,14 +414,14 @@ impl HighOrderSpline {
     }
 }
 
-crate::flow::simd::multiversion!(fn gradients_at(
-    sp: &HighOrderSpline,
-    positions: &[[f64; 2]],
-    out: &mut [[f64; 3]],
-) => gradients_at_body);
-
-#[inline(always)]
-fn gradients_at_body(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
+/// [`HighOrderSpline::sample_with_gradient`] at each of `positions`: four at a time with AVX2
+/// where the CPU has it and the spline is quintic (identical values).
+fn gradients_at(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
+    #[cfg(target_arch = "x86_64")]
+    if sp.order == HighOrder::Quintic && crate::flow::simd::has_avx2_fma() {
+        // SAFETY: the CPU has AVX2 and the spline is quintic.
+        return unsafe { super::quintic_x86::gradients_at(sp, positions, out) };
+    }
     for (&[x, y], o) in positions.iter().zip(out) {
         *o = sp.sample_with_gradient(x, y);
     }
