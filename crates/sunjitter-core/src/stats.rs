@@ -99,50 +99,46 @@ pub fn mad_sigma(values: &[f64]) -> Option<f64> {
 }
 
 /// The `k`-th smallest (0-based) of `values`, which must all be finite: the value
-/// `select_nth_unstable` finds, but by parallel histogram passes that narrow the candidates
-/// to one bin each time, so that the refinement's robust scale is not a serial step.
+/// `select_nth_unstable_by(k, f64::total_cmp)` finds, but by parallel radix passes over the
+/// values' order-preserving bit patterns (16 bits a pass, sign and exponent first, so that
+/// heavy tails and outliers do not crowd the candidates into one bin), so that the
+/// refinement's robust scale is not a serial step.
 pub fn par_select(values: &[f64], k: usize) -> f64 {
     use rayon::prelude::*;
-    const SERIAL_BELOW: usize = 1 << 16;
-    const BINS: usize = 4096;
-    const CHUNK: usize = 1 << 14;
+    const SERIAL_BELOW: usize = 1 << 14;
+    const DIGIT: u32 = 16;
+    const BINS: usize = 1 << DIGIT;
     assert!(k < values.len(), "par_select: k out of range");
+    // Unsigned keys in the values' total order.
+    let key = |v: f64| {
+        let b = v.to_bits();
+        if b >> 63 == 1 {
+            !b
+        } else {
+            b | 1 << 63
+        }
+    };
+    let parts = (2 * rayon::current_num_threads()).max(1);
     let mut owned: Option<Vec<f64>> = None;
     let mut k = k;
-    // Each pass keeps the bin that holds the k-th value. Bins are monotone in the value, so
-    // the rank inside the kept bin is known. Whatever is left after eight passes (only for
-    // pathological spreads) goes to one serial selection, so the result is exact either way.
-    for _ in 0..8 {
+    // Each pass keeps the values whose digit at `shift` is the k-th value's; those above
+    // agree already. The rank inside the kept digit is known from the counts below it.
+    for shift in (0..64).step_by(DIGIT as usize).rev() {
         let candidates: &[f64] = owned.as_deref().unwrap_or(values);
         if candidates.len() < SERIAL_BELOW {
             break;
         }
-        let (lo, hi) = candidates
-            .par_chunks(CHUNK)
-            .map(|c| {
-                c.iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
-                        (a.min(v), b.max(v))
-                    })
-            })
-            .reduce(
-                || (f64::INFINITY, f64::NEG_INFINITY),
-                |x, y| (x.0.min(y.0), x.1.max(y.1)),
-            );
-        if lo >= hi {
-            return lo;
-        }
-        let scale = BINS as f64 / (hi - lo);
-        let bin = move |v: f64| (((v - lo) * scale) as usize).min(BINS - 1);
+        let digit = move |v: f64| ((key(v) >> shift) as usize) & (BINS - 1);
+        let chunk = candidates.len().div_ceil(parts);
         let counts = candidates
-            .par_chunks(CHUNK)
+            .par_chunks(chunk)
             .map(|c| {
-                let mut h = vec![0usize; BINS];
-                c.iter().for_each(|&v| h[bin(v)] += 1);
+                let mut h = vec![0u32; BINS];
+                c.iter().for_each(|&v| h[digit(v)] += 1);
                 h
             })
             .reduce(
-                || vec![0usize; BINS],
+                || vec![0u32; BINS],
                 |mut a, b| {
                     a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
                     a
@@ -151,16 +147,20 @@ pub fn par_select(values: &[f64], k: usize) -> f64 {
         let mut below = 0;
         let mut target = BINS - 1;
         for (i, &c) in counts.iter().enumerate() {
-            if below + c > k {
+            if below + c as usize > k {
                 target = i;
                 break;
             }
-            below += c;
+            below += c as usize;
+        }
+        if counts[target] as usize == candidates.len() {
+            // One digit for all: nothing to drop on this pass.
+            continue;
         }
         let kept: Vec<f64> = candidates
             .par_iter()
             .copied()
-            .filter(|&v| bin(v) == target)
+            .filter(|&v| digit(v) == target)
             .collect();
         k -= below;
         owned = Some(kept);
@@ -209,6 +209,34 @@ mod tests {
         assert_eq!(par_select(&small, 1), 2.0);
         let same = vec![4.5; 100_000];
         assert_eq!(par_select(&same, 77_777), 4.5);
+        // Values that share their sign, exponent and leading mantissa bits (several passes),
+        // and zeros of both signs (−0 before +0 in the total order).
+        let mut close: Vec<f64> = (0..200_000)
+            .map(|i| match i % 5 {
+                0 => -0.0,
+                1 => 0.0,
+                _ => 1.0 + ((i * 7919) % 200_003) as f64 * 1e-13,
+            })
+            .collect();
+        close.push(-3.0);
+        let mut sorted = close.clone();
+        sorted.sort_by(f64::total_cmp);
+        for k in [
+            0,
+            1,
+            40_000,
+            40_001,
+            80_000,
+            80_001,
+            123_456,
+            close.len() - 1,
+        ] {
+            assert_eq!(
+                par_select(&close, k).to_bits(),
+                sorted[k].to_bits(),
+                "k = {k}"
+            );
+        }
     }
 
     #[test]
