@@ -127,12 +127,12 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
 }
 
 fn cleaned(data: &Array2<f32>, hot_pixel_fraction: f32) -> Array2<f32> {
-    // Copied in parallel: a frame is tens of MB, faulted in page by page.
-    let mut out = ndarray::Zip::from(data).par_map_collect(|&v| v);
     if hot_pixel_fraction > 0.0 {
-        preprocess::remove_hot_pixels(&mut out, hot_pixel_fraction);
+        preprocess::hot_pixels_removed(data.view(), hot_pixel_fraction)
+    } else {
+        // Copied in parallel: a frame is tens of MB, faulted in page by page.
+        ndarray::Zip::from(data).par_map_collect(|&v| v)
     }
-    out
 }
 
 impl AlignOutcome {

@@ -41,62 +41,196 @@ pub fn remove_hot_pixels_with(
     noise_sigmas: f32,
     lone_factor: f32,
 ) -> usize {
-    let medians = median3x3(&img.view());
-    // Image-wide robust noise of the residual: 1.4826 × median |v − m|, from at most
-    // about a million pixels (plenty for a median).
-    let stride = (img.len() / (1 << 20)).max(1);
-    let residual = |(v, m): (&f32, &f32)| (v.is_finite() && m.is_finite()).then(|| (v - m).abs());
-    let mut residuals: Vec<f32> = match (img.as_slice(), medians.as_slice()) {
-        // Slices step in O(1); ndarray's element iterators walk every element.
-        (Some(a), Some(b)) => a
-            .iter()
-            .zip(b)
-            .step_by(stride)
-            .filter_map(residual)
-            .collect(),
-        _ => img
-            .iter()
-            .zip(medians.iter())
-            .step_by(stride)
-            .filter_map(residual)
-            .collect(),
-    };
-    let sigma = if residuals.is_empty() {
-        0.0
-    } else {
-        1.4826 * quantile_in_place(&mut residuals, 0.5)
-    };
-    drop(residuals);
-    // Decide on the unmodified image, then replace.
+    let test = HotPixelTest::new(img.view(), threshold_fraction, noise_sigmas, lone_factor);
     let (h, w) = img.dim();
-    let view = img.view();
-    let hits: Vec<(usize, usize, f32)> = (0..h)
+    let hits: Vec<(usize, usize, f32)> = (0..h.div_ceil(BAND))
         .into_par_iter()
-        .flat_map_iter(|y| {
-            let (view, medians) = (&view, &medians);
-            let (row, med_row) = (view.row(y), medians.row(y));
-            (0..w).filter_map(move |x| {
-                let (v, m) = (row[x], med_row[x]);
-                let dev = (v - m).abs();
-                // Cheap tests first (false for NaN): most pixels end here.
-                let suspect = dev > threshold_fraction * m.abs() && dev > noise_sigmas * sigma;
-                // The local spread is needed only for the few suspects.
-                let is_suspect = |yy: usize, xx: usize| {
-                    let (v, m) = (view[[yy, xx]], medians[[yy, xx]]);
-                    let dev = (v - m).abs();
-                    dev > threshold_fraction * m.abs() && dev > noise_sigmas * sigma
-                };
-                (suspect
-                    && dev > noise_sigmas * neighbour_spread(view, y, x, m)
-                    && stands_alone(view, medians, (y, x), lone_factor, is_suspect))
-                .then_some((y, x, m))
-            })
+        .flat_map_iter(|band| {
+            let mut hits = Vec::new();
+            test.band(
+                img.view(),
+                band * BAND..((band + 1) * BAND).min(h),
+                w,
+                |y, row| {
+                    hits.extend(row.iter().map(|&(x, m)| (y, x, m)));
+                },
+            );
+            hits
         })
         .collect();
     for &(y, x, m) in &hits {
         img[[y, x]] = m;
     }
     hits.len()
+}
+
+/// `img` cleaned as [`remove_hot_pixels`] cleans it, into a new array: each row is copied
+/// with its replacements as it is decided, and the medians are never stored whole.
+pub fn hot_pixels_removed(img: ArrayView2<f32>, threshold_fraction: f32) -> Array2<f32> {
+    let test = HotPixelTest::new(
+        img,
+        threshold_fraction,
+        HOT_PIXEL_NOISE_SIGMAS,
+        HOT_PIXEL_LONE_FACTOR,
+    );
+    let (h, w) = img.dim();
+    let mut out = Array2::<f32>::uninit((h, w));
+    out.axis_chunks_iter_mut(Axis(0), BAND)
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(band, mut rows)| {
+            let y0 = band * BAND;
+            test.band(img, y0..y0 + rows.nrows(), w, |y, hits| {
+                let mut row = rows.row_mut(y - y0);
+                for (o, &v) in row.iter_mut().zip(img.row(y)) {
+                    o.write(v);
+                }
+                for &(x, m) in hits {
+                    row[x].write(m);
+                }
+            });
+        });
+    // SAFETY: every row of every band was written above.
+    unsafe { out.assume_init() }
+}
+
+/// Rows decided together: each band computes its rows' medians (and one more on either
+/// side) in turn, while they are in cache.
+const BAND: usize = 32;
+
+/// The hot-pixel test on one image: its thresholds and the image-wide noise.
+struct HotPixelTest {
+    threshold_fraction: f32,
+    noise_sigmas: f32,
+    lone_factor: f32,
+    /// Image-wide robust noise of the residual from the 3×3 median.
+    sigma: f32,
+}
+
+impl HotPixelTest {
+    fn new(
+        img: ArrayView2<f32>,
+        threshold_fraction: f32,
+        noise_sigmas: f32,
+        lone_factor: f32,
+    ) -> HotPixelTest {
+        HotPixelTest {
+            threshold_fraction,
+            noise_sigmas,
+            lone_factor,
+            sigma: residual_noise(img),
+        }
+    }
+
+    /// The hits of rows `rows` (pixel, median), decided on `img` as it is, row by row in
+    /// order through `row_hits`.
+    fn band(
+        &self,
+        img: ArrayView2<f32>,
+        rows: std::ops::Range<usize>,
+        w: usize,
+        mut row_hits: impl FnMut(usize, &[(usize, f32)]),
+    ) {
+        let h = img.nrows();
+        let mut scratch = RowScratch::new(w);
+        // Medians of rows y − 1, y and y + 1 (a suspect's partner lies within them).
+        let mut medians = [vec![0f32; w], vec![0f32; w], vec![0f32; w]];
+        let slot = |yy: usize| (yy + 1 - rows.start) % 3;
+        for yy in rows.start.saturating_sub(1)..(rows.start + 2).min(h) {
+            median_row(&img, yy, &mut scratch, &mut medians[slot(yy)]);
+        }
+        let (mut hits, mut flags) = (Vec::new(), vec![false; w]);
+        for y in rows.clone() {
+            if y > rows.start && y + 1 < h {
+                median_row(&img, y + 1, &mut scratch, &mut medians[slot(y + 1)]);
+            }
+            let at = |yy: usize| &medians[slot(yy)];
+            let median = |yy: usize, xx: usize| at(yy)[xx];
+            let (row, med_row) = (img.row(y), at(y));
+            let sigma = self.noise_sigmas * self.sigma;
+            let suspect = |v: f32, m: f32| {
+                let dev = (v - m).abs();
+                dev > self.threshold_fraction * m.abs() && dev > sigma
+            };
+            hits.clear();
+            // Cheap tests first, over the whole row (false for NaN): most pixels end here.
+            // The local spread is needed only for the few suspects.
+            suspects_into(row, med_row, &mut flags, suspect);
+            for x in flags.iter().enumerate().filter(|(_, &f)| f).map(|(x, _)| x) {
+                let (v, m) = (row[x], med_row[x]);
+                if (v - m).abs() > self.noise_sigmas * neighbour_spread(&img, y, x, m)
+                    && stands_alone(&img, median, (y, x), self.lone_factor, |yy, xx| {
+                        suspect(img[[yy, xx]], median(yy, xx))
+                    })
+                {
+                    hits.push((x, m));
+                }
+            }
+            row_hits(y, &hits);
+        }
+    }
+}
+
+/// `flags[x] = suspect(row[x], medians[x])`.
+fn suspects_into(
+    row: ndarray::ArrayView1<f32>,
+    medians: &[f32],
+    flags: &mut [bool],
+    suspect: impl Fn(f32, f32) -> bool,
+) {
+    match row.as_slice() {
+        Some(row) => {
+            for ((f, &v), &m) in flags.iter_mut().zip(row).zip(medians) {
+                *f = suspect(v, m);
+            }
+        }
+        None => {
+            for ((f, &v), &m) in flags.iter_mut().zip(row).zip(medians) {
+                *f = suspect(v, m);
+            }
+        }
+    }
+}
+
+/// Image-wide robust noise of the residual from the 3×3 median: 1.4826 × median |v − m|,
+/// from every `stride`-th pixel in row-major order (at most about a million: plenty for a
+/// median).
+fn residual_noise(img: ArrayView2<f32>) -> f32 {
+    let (h, w) = img.dim();
+    let stride = (h * w / (1 << 20)).max(1);
+    let mut residuals: Vec<f32> = (0..h)
+        .into_par_iter()
+        .fold(
+            || (RowScratch::new(w), vec![0f32; w], Vec::new()),
+            |(mut scratch, mut medians, mut out), y| {
+                // The first pixel of row y on the stride's grid of the flattened image.
+                let x0 = (stride - (y * w) % stride) % stride;
+                if stride < 4 {
+                    // Most of the row: its medians all at once.
+                    median_row(&img, y, &mut scratch, &mut medians);
+                } else {
+                    for x in (x0..w).step_by(stride) {
+                        medians[x] = median3x3_of(&img, y, x);
+                    }
+                }
+                let row = img.row(y);
+                out.extend((x0..w).step_by(stride).filter_map(|x| {
+                    let (v, m) = (row[x], medians[x]);
+                    (v.is_finite() && m.is_finite()).then(|| (v - m).abs())
+                }));
+                (scratch, medians, out)
+            },
+        )
+        .map(|(_, _, out)| out)
+        .reduce(Vec::new, |mut a, mut b| {
+            a.append(&mut b);
+            a
+        });
+    if residuals.is_empty() {
+        0.0
+    } else {
+        1.4826 * quantile_in_place(&mut residuals, 0.5)
+    }
 }
 
 /// A hot pixel (or a cosmic ray's hit) stands alone: it rises above the floor of its 8
@@ -115,12 +249,12 @@ pub const HOT_PIXEL_LONE_FACTOR: f32 = 10.0;
 /// does among the rest of their neighbours: a cosmic ray's hit of two pixels.
 fn stands_alone(
     img: &ArrayView2<f32>,
-    medians: &Array2<f32>,
+    median: impl Fn(usize, usize) -> f32,
     at: (usize, usize),
     lone_factor: f32,
     suspect: impl Fn(usize, usize) -> bool,
 ) -> bool {
-    let above = img[[at.0, at.1]] > medians[[at.0, at.1]];
+    let above = img[[at.0, at.1]] > median(at.0, at.1);
     let Some(alone) = rise_over_neighbours(img, at, above, None) else {
         return true;
     };
@@ -211,51 +345,84 @@ fn median_of(vals: &mut [f32]) -> f32 {
     }
 }
 
-/// 3×3 median of the finite pixels (window clipped at the borders), NaN if none.
+/// 3×3 median of the finite pixels (window clipped at the borders), NaN if none: every
+/// [`median_row`] of the image.
+#[cfg(test)]
+pub(super) fn median3x3(img: &ArrayView2<f32>) -> Array2<f32> {
+    let (h, w) = img.dim();
+    let mut out = Array2::<f32>::zeros((h, w));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each_init(
+            || (RowScratch::new(w), vec![0f32; w]),
+            |(scratch, medians), (y, mut row)| {
+                median_row(img, y, scratch, medians);
+                row.iter_mut()
+                    .zip(medians.iter())
+                    .for_each(|(o, &m)| *o = m);
+            },
+        );
+    out
+}
+
+/// Working rows of [`median_row`].
+struct RowScratch {
+    lo: Vec<f32>,
+    mid: Vec<f32>,
+    hi: Vec<f32>,
+    finite: Vec<bool>,
+}
+
+impl RowScratch {
+    fn new(w: usize) -> RowScratch {
+        RowScratch {
+            lo: vec![0.0; w],
+            mid: vec![0.0; w],
+            hi: vec![0.0; w],
+            finite: vec![false; w],
+        }
+    }
+}
+
+/// Row `y` of the 3×3 median of the finite pixels (window clipped at the borders, NaN if
+/// none) into `out`.
 ///
 /// Interior pixels with nine finite values use the column-sort identity: with each column's
 /// three values sorted into (lo, mid, hi), the median of the nine is
 /// `med3(max(lo), med3(mid), min(hi))` — exact, and each column sort is shared by three
 /// outputs, in straight-line min/max loops the compiler vectorises. Other pixels fall back
 /// to sorting their finite neighbours.
-pub(super) fn median3x3(img: &ArrayView2<f32>) -> Array2<f32> {
+fn median_row(img: &ArrayView2<f32>, y: usize, s: &mut RowScratch, out: &mut [f32]) {
     let (h, w) = img.dim();
-    let mut out = super::filters::zeroed(h, w);
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each_init(
-            || (vec![0f32; w], vec![0f32; w], vec![0f32; w], vec![false; w]),
-            |(lo, mid, hi, finite), (y, mut row)| {
-                let mut fast_ok = false;
-                if y >= 1 && y + 1 < h && w >= 3 {
-                    if let (Some(a), Some(b), Some(c)) = (
-                        img.row(y - 1).to_slice(),
-                        img.row(y).to_slice(),
-                        img.row(y + 1).to_slice(),
-                    ) {
-                        sort_columns(a, b, c, lo, mid, hi, finite);
-                        if let Some(o) = row.as_slice_mut() {
-                            median_of_sorted_columns(lo, mid, hi, o);
-                            fast_ok = true;
-                        }
-                    }
-                }
-                for x in 0..w {
-                    let interior = fast_ok && x >= 1 && x + 1 < w;
-                    if interior && finite[x - 1] && finite[x] && finite[x + 1] {
-                        continue;
-                    }
-                    row[x] = median3x3_at(img, y, x);
-                }
-            },
-        );
-    out
+    let mut fast_ok = false;
+    if y >= 1 && y + 1 < h && w >= 3 {
+        if let (Some(a), Some(b), Some(c)) = (
+            img.row(y - 1).to_slice(),
+            img.row(y).to_slice(),
+            img.row(y + 1).to_slice(),
+        ) {
+            let all_finite = sort_columns(a, b, c, &mut s.lo, &mut s.mid, &mut s.hi, &mut s.finite);
+            median_of_sorted_columns(&s.lo, &s.mid, &s.hi, out);
+            if all_finite {
+                // Only the border columns' windows are clipped.
+                out[0] = median3x3_at(img, y, 0);
+                out[w - 1] = median3x3_at(img, y, w - 1);
+                return;
+            }
+            fast_ok = true;
+        }
+    }
+    for (x, o) in out.iter_mut().enumerate() {
+        let interior = fast_ok && x >= 1 && x + 1 < w;
+        if interior && s.finite[x - 1] && s.finite[x] && s.finite[x + 1] {
+            continue;
+        }
+        *o = median3x3_at(img, y, x);
+    }
 }
 
-/// Each column `x` of rows `a`, `b`, `c` sorted into `lo ≤ mid ≤ hi`; `finite[x]` when all
-/// three values are finite (otherwise the sorted values are meaningless).
-fn sort_columns(
+crate::flow::simd::multiversion!(fn sort_columns(
     a: &[f32],
     b: &[f32],
     c: &[f32],
@@ -263,7 +430,22 @@ fn sort_columns(
     mid: &mut [f32],
     hi: &mut [f32],
     finite: &mut [bool],
-) {
+) -> bool => sort_columns_body);
+
+/// Each column `x` of rows `a`, `b`, `c` sorted into `lo ≤ mid ≤ hi`; `finite[x]` when all
+/// three values are finite (otherwise the sorted values are meaningless). Whether every
+/// column is.
+#[inline(always)]
+fn sort_columns_body(
+    a: &[f32],
+    b: &[f32],
+    c: &[f32],
+    lo: &mut [f32],
+    mid: &mut [f32],
+    hi: &mut [f32],
+    finite: &mut [bool],
+) -> bool {
+    let mut all = true;
     for x in 0..a.len() {
         let (p, q, r) = (a[x], b[x], c[x]);
         let (l1, h1) = (p.min(q), p.max(q));
@@ -271,13 +453,24 @@ fn sort_columns(
         let m = l1.max(r);
         mid[x] = m.min(h1);
         hi[x] = m.max(h1);
-        finite[x] = p.is_finite() & q.is_finite() & r.is_finite();
+        let f = p.is_finite() & q.is_finite() & r.is_finite();
+        finite[x] = f;
+        all &= f;
     }
+    all
 }
+
+crate::flow::simd::multiversion!(fn median_of_sorted_columns(
+    lo: &[f32],
+    mid: &[f32],
+    hi: &[f32],
+    out: &mut [f32],
+) => median_of_sorted_columns_body);
 
 /// `out[x] = med3(max(lo[x-1..=x+1]), med3(mid[x-1..=x+1]), min(hi[x-1..=x+1]))` for the
 /// interior columns.
-fn median_of_sorted_columns(lo: &[f32], mid: &[f32], hi: &[f32], out: &mut [f32]) {
+#[inline(always)]
+fn median_of_sorted_columns_body(lo: &[f32], mid: &[f32], hi: &[f32], out: &mut [f32]) {
     #[inline(always)]
     fn med3(a: f32, b: f32, c: f32) -> f32 {
         a.min(b).max(a.max(b).min(c))
@@ -289,6 +482,57 @@ fn median_of_sorted_columns(lo: &[f32], mid: &[f32], hi: &[f32], out: &mut [f32]
         let u = hi[x - 1].min(hi[x]).min(hi[x + 1]);
         out[x] = med3(l, m, u);
     }
+}
+
+/// [`median_row`]'s value at `(y, x)`, on its own: an interior window of nine finite values
+/// by a sorting network (its median is theirs, the sign of a zero aside), else as the row's
+/// fallback does.
+pub(super) fn median3x3_of(img: &ArrayView2<f32>, y: usize, x: usize) -> f32 {
+    let (h, w) = img.dim();
+    if y >= 1 && y + 1 < h && x >= 1 && x + 1 < w {
+        let mut v = [0f32; 9];
+        for (k, yy) in (y - 1..=y + 1).enumerate() {
+            for (j, xx) in (x - 1..=x + 1).enumerate() {
+                v[3 * k + j] = img[[yy, xx]];
+            }
+        }
+        if v.iter().all(|v| v.is_finite()) {
+            return median9(v);
+        }
+    }
+    median3x3_at(img, y, x)
+}
+
+/// Median of nine values by the 19 exchanges of Paeth's network.
+fn median9(mut p: [f32; 9]) -> f32 {
+    let mut sort = |a: usize, b: usize| {
+        let (lo, hi) = (p[a].min(p[b]), p[a].max(p[b]));
+        (p[a], p[b]) = (lo, hi);
+    };
+    for (a, b) in [
+        (1, 2),
+        (4, 5),
+        (7, 8),
+        (0, 1),
+        (3, 4),
+        (6, 7),
+        (1, 2),
+        (4, 5),
+        (7, 8),
+        (0, 3),
+        (5, 8),
+        (4, 7),
+        (3, 6),
+        (1, 4),
+        (2, 5),
+        (4, 7),
+        (4, 2),
+        (6, 4),
+        (4, 2),
+    ] {
+        sort(a, b);
+    }
+    p[4]
 }
 
 /// Median of the finite pixels of the 3×3 window at `(y, x)`, clipped at the borders.
