@@ -4,7 +4,7 @@
 use super::pixels::{pixel_box, CellGrid};
 use super::reference::RefineReference;
 use super::self_test::{self_test_bias, FrameMaker, SelfTest, SelfTestCase};
-use super::solve::MIN_PSI_RATIO;
+use super::solve::{FitPixels, MIN_PSI_RATIO};
 use super::{RefineSettings, Refined};
 use crate::geometry::{Covariance4, Similarity};
 use ndarray::ArrayView2;
@@ -102,9 +102,8 @@ pub(super) fn check_at_fractional_shift(
         ..*transform
     };
     let whole = [pixel_box(pixels)?];
-    self_test_bias(
-        reference, prepared, pixels, &whole, grid, &local, &settings, maker,
-    )
+    let fit = FitPixels::new(prepared, pixels, local.center).ok()?;
+    self_test_bias(reference, &fit, &whole, grid, &local, &settings, maker)
 }
 
 /// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives

@@ -2,8 +2,9 @@
 
 use super::pixels::{lattice_pixels, pixel_box, CellGrid};
 use super::reference::RefineReference;
+use super::solve::{refine_fitted, FitPixels};
 use super::window::{mapped_window, window_margin, FrameWindow, WindowTile};
-use super::{refine, RefineSettings, MAX_PIXELS, MODEL};
+use super::{RefineSettings, MAX_PIXELS, MODEL};
 use crate::geometry::Similarity;
 use crate::resample::{HighOrderSpline, SplineImage};
 use ndarray::{s, Array2, ArrayView2};
@@ -207,6 +208,8 @@ pub fn self_test_floor(
             SELF_TEST_QUARTERS - 1,
         ),
     };
+    // Every case refines the same pixels about the same centre: their instruments once.
+    let fit = FitPixels::new(prepared, &pixels, center).ok()?;
     // The cases side by side: each one's own work leaves a core idle in its serial parts
     // (a case's frame is made tile by tile, on a whole mask as one).
     let tests = run
@@ -222,8 +225,7 @@ pub fn self_test_floor(
             };
             let test = self_test_bias(
                 reference,
-                prepared,
-                &pixels,
+                &fit,
                 &boxes,
                 &grid,
                 &t,
@@ -331,8 +333,7 @@ pub(super) enum FrameMaker {
 #[allow(clippy::too_many_arguments)]
 pub(super) fn self_test_bias(
     reference: ArrayView2<f32>,
-    prepared: &RefineReference,
-    pixels: &[(usize, usize, usize)],
+    fit: &FitPixels,
     boxes: &[(usize, usize, usize, usize)],
     grid: &CellGrid,
     transform: &Similarity,
@@ -347,7 +348,7 @@ pub(super) fn self_test_bias(
         tiles,
         carried: None,
     };
-    let test = refine(prepared, &window, pixels, grid, *transform, settings).ok()?;
+    let test = refine_fitted(fit, &window, grid, *transform, settings).ok()?;
     let (a, b) = (transform.params(), test.transform.params());
     let bias = [0, 1, 2, 3].map(|k| b[k] - a[k]);
     let variance = [0, 1, 2, 3].map(|k| test.covariance[k][k]);

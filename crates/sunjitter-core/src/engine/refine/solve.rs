@@ -42,13 +42,30 @@ pub fn refine(
     start: Similarity,
     settings: &RefineSettings,
 ) -> Result<Refined, RefineFailure> {
-    if pixels.len() < 64 {
-        return Err(RefineFailure::Unusable(format!(
-            "{} usable pixels in the inlier cells; too few to refine",
-            pixels.len()
-        )));
-    }
-    let problem = Problem::new(reference, frame, pixels, grid, start.center, settings)?;
+    let fit = FitPixels::new(reference, pixels, start.center)?;
+    refine_fitted(&fit, frame, grid, start, settings)
+}
+
+/// [`refine`] on pixels whose instruments are made already: refinements of several frames
+/// against one reference on the same pixels (a self-test's cases) share them.
+pub(super) fn refine_fitted(
+    fit: &FitPixels,
+    frame: &FrameWindow,
+    grid: &CellGrid,
+    start: Similarity,
+    settings: &RefineSettings,
+) -> Result<Refined, RefineFailure> {
+    debug_assert!(
+        start.center == fit.center,
+        "the pixels' lever arms are about the start's centre"
+    );
+    let problem = Problem {
+        carried: frame.carried_positions(&fit.pixels),
+        fit,
+        frame,
+        grid,
+        settings,
+    };
     let mut state = SolverState::start(&problem, start);
     loop {
         match step(&problem, state)? {
@@ -67,35 +84,28 @@ fn failed(iterations: usize, why: &str) -> RefineFailure {
     }
 }
 
-/// What the iterations do not change: the pixels, their instruments, the lever arm that
-/// conditions the scale and rotation columns (they are `q / lever`), and the frame.
-struct Problem<'a> {
+/// The pixels of a refinement against one reference, their instruments, and the lever arm
+/// that conditions the scale and rotation columns (they are `q / lever`) about `center`.
+pub(super) struct FitPixels {
     pixels: Vec<Pixel>,
     /// The instruments, one row per pixel.
     jac: Vec<[f64; 6]>,
     center: [f64; 2],
     lever: f64,
-    frame: &'a FrameWindow,
-    /// Where the Sun carried each pixel, when it moved.
-    carried: Option<Vec<(f64, f64)>>,
-    grid: &'a CellGrid,
-    settings: &'a RefineSettings,
 }
 
-/// A row of the equations: geometric columns from a gradient and lever arm, then gain, offset.
-fn rows(gx: f64, gy: f64, qx: f64, qy: f64, v: f64) -> Vector6<f64> {
-    Vector6::new(gx * qx + gy * qy, -gx * qy + gy * qx, gx, gy, v, 1.0)
-}
-
-impl<'a> Problem<'a> {
-    fn new(
+impl FitPixels {
+    pub(super) fn new(
         reference: &RefineReference,
-        frame: &'a FrameWindow,
         pixels: &[(usize, usize, usize)],
-        grid: &'a CellGrid,
         center: [f64; 2],
-        settings: &'a RefineSettings,
-    ) -> Result<Problem<'a>, RefineFailure> {
+    ) -> Result<FitPixels, RefineFailure> {
+        if pixels.len() < 64 {
+            return Err(RefineFailure::Unusable(format!(
+                "{} usable pixels in the inlier cells; too few to refine",
+                pixels.len()
+            )));
+        }
         let pixels = reference.fit_pixels(pixels);
         if pixels.len() < 64 {
             return Err(RefineFailure::Unusable(
@@ -114,26 +124,21 @@ impl<'a> Problem<'a> {
         ) / pixels.len() as f64)
             .sqrt()
             .max(1.0);
-        let mut problem = Problem {
+        let mut fit = FitPixels {
             pixels,
             jac: Vec::new(),
             center,
             lever,
-            frame,
-            carried: None,
-            grid,
-            settings,
         };
-        problem.jac = problem
+        fit.jac = fit
             .pixels
             .par_iter()
             .map(|p| {
-                let (qx, qy) = problem.lever_arm(p);
+                let (qx, qy) = fit.lever_arm(p);
                 rows(p.gx, p.gy, qx, qy, p.neighbours).into()
             })
             .collect();
-        problem.carried = frame.carried_positions(&problem.pixels);
-        Ok(problem)
+        Ok(fit)
     }
 
     fn lever_arm(&self, p: &Pixel) -> (f64, f64) {
@@ -142,17 +147,35 @@ impl<'a> Problem<'a> {
             (p.y as f64 - self.center[1]) / self.lever,
         )
     }
+}
 
+/// What the iterations do not change: the pixels and their instruments, and the frame.
+struct Problem<'a> {
+    fit: &'a FitPixels,
+    frame: &'a FrameWindow,
+    /// Where the Sun carried each pixel, when it moved.
+    carried: Option<Vec<(f64, f64)>>,
+    grid: &'a CellGrid,
+    settings: &'a RefineSettings,
+}
+
+/// A row of the equations: geometric columns from a gradient and lever arm, then gain, offset.
+fn rows(gx: f64, gy: f64, qx: f64, qy: f64, v: f64) -> Vector6<f64> {
+    Vector6::new(gx * qx + gy * qy, -gx * qy + gy * qx, gx, gy, v, 1.0)
+}
+
+impl<'a> Problem<'a> {
     /// Pixel `k`'s row of the slope: the warped frame's own gradient (times the gain).
     fn frame_row(&self, k: usize, gain: f64, sampled: &[[f64; 3]]) -> Vector6<f64> {
-        let (qx, qy) = self.lever_arm(&self.pixels[k]);
+        let (qx, qy) = self.fit.lever_arm(&self.fit.pixels[k]);
         let [v, fx, fy] = sampled[k];
         rows(gain * fx, gain * fy, qx, qy, v)
     }
 
     /// The frame at the image of every pixel through `t`.
     fn sample(&self, t: &Similarity) -> Vec<[f64; 3]> {
-        self.frame.sample(&self.pixels, self.carried.as_deref(), t)
+        self.frame
+            .sample(&self.fit.pixels, self.carried.as_deref(), t)
     }
 }
 
@@ -172,13 +195,13 @@ struct SolverState {
 impl SolverState {
     fn start(problem: &Problem, start: Similarity) -> SolverState {
         let sampled = problem.sample(&start);
-        let (gain, offset) = initial_photometry(&problem.pixels, &sampled);
+        let (gain, offset) = initial_photometry(&problem.fit.pixels, &sampled);
         SolverState {
             estimate: start,
             gain,
             offset,
             sampled,
-            weights: vec![0.0; problem.pixels.len()],
+            weights: vec![0.0; problem.fit.pixels.len()],
             scale: f64::NAN,
             iterations: 0,
         }
@@ -196,7 +219,7 @@ enum Next {
 fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure> {
     state.iterations += 1;
     let iterations = state.iterations;
-    let pixels = &problem.pixels;
+    let pixels = &problem.fit.pixels;
     let sampled = &state.sampled;
     // The pixels were chosen to map inside the frame from the start: most of them
     // leaving it means the iterations ran away from the start (from a flow far off on a
@@ -232,7 +255,7 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
                     continue;
                 }
                 let f = problem.frame_row(k, gain, sampled);
-                let jv = Vector6::from(problem.jac[k]);
+                let jv = Vector6::from(problem.fit.jac[k]);
                 slope += jv * f.transpose() * wt;
                 score += jv * (wt * residuals[k]);
             }
@@ -247,14 +270,14 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
             "the refinement's equations are singular (no structure)",
         )
     })?;
-    let lever = problem.lever;
+    let lever = problem.fit.lever;
     let delta = [step[0] / lever, step[1] / lever, step[2], step[3]];
     let update = Similarity {
         scale: (1.0 + delta[0]).hypot(delta[1]),
         rotation_rad: delta[1].atan2(1.0 + delta[0]),
         dx: delta[2],
         dy: delta[3],
-        center: problem.center,
+        center: problem.fit.center,
     };
     let moved = (delta[2].hypot(delta[3])) + delta[0].hypot(delta[1]) * lever * 2.0;
     if !moved.is_finite() {
@@ -340,7 +363,7 @@ fn finish(
     state: &SolverState,
     last: LastStep,
 ) -> Result<Refined, RefineFailure> {
-    let (pixels, jac, lever) = (&problem.pixels, &problem.jac, problem.lever);
+    let (pixels, jac, lever) = (&problem.fit.pixels, &problem.fit.jac, problem.fit.lever);
     let (residuals, weights, scale) = (last.residuals, &state.weights, state.scale);
     let ainv = last.slope.try_inverse().ok_or_else(|| {
         failed(
@@ -398,7 +421,7 @@ fn finish(
         let unlever = [1.0 / lever, 1.0 / lever, 1.0, 1.0];
         std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)] * unlever[i] * unlever[j]))
     };
-    let identity = Similarity::identity(problem.center);
+    let identity = Similarity::identity(problem.fit.center);
     let zero = [[0.0; 4]; 4];
     let (_, covariance) = compose_with_covariance(&final_t, &zero, &identity, &to4(&robust));
     let (_, plain_covariance) = compose_with_covariance(&final_t, &zero, &identity, &to4(&plain));
