@@ -211,15 +211,47 @@ fn convolve_row(row: &[f32], kernel: &[f32], out: &mut [f32]) {
         return;
     }
     let n = w - 2 * r;
-    let inner = &mut out[r..r + n];
-    inner.iter_mut().for_each(|o| *o = 0.0);
-    for (t, &k) in kernel.iter().enumerate() {
-        for (o, &v) in inner.iter_mut().zip(&row[t..t + n]) {
-            *o += v * k;
-        }
-    }
+    convolve_interior(row, kernel, &mut out[r..r + n]);
     for x in (0..r).chain(r + n..w) {
         out[x] = direct(x);
+    }
+}
+
+/// Outputs summed side by side in registers, each over the taps in order.
+const CONVOLVE_BLOCK: usize = 32;
+
+crate::flow::simd::multiversion!(fn convolve_interior(
+    row: &[f32],
+    kernel: &[f32],
+    inner: &mut [f32],
+) => convolve_interior_body);
+
+/// `inner[x] = Σ_t kernel[t]·row[x + t]`, summed from 0 in tap order, block by block of
+/// outputs (the sums stay in registers across the taps).
+#[inline(always)]
+fn convolve_interior_body(row: &[f32], kernel: &[f32], inner: &mut [f32]) {
+    let n = inner.len();
+    let mut blocks = inner.chunks_exact_mut(CONVOLVE_BLOCK);
+    for (b, out) in (&mut blocks).enumerate() {
+        let x = b * CONVOLVE_BLOCK;
+        let mut acc = [0f32; CONVOLVE_BLOCK];
+        for (t, &k) in kernel.iter().enumerate() {
+            let src: &[f32; CONVOLVE_BLOCK] = row[x + t..x + t + CONVOLVE_BLOCK]
+                .try_into()
+                .expect("a block of the row");
+            for (a, &v) in acc.iter_mut().zip(src) {
+                *a += v * k;
+            }
+        }
+        out.copy_from_slice(&acc);
+    }
+    let tail = blocks.into_remainder();
+    let x0 = n - tail.len();
+    tail.iter_mut().for_each(|o| *o = 0.0);
+    for (t, &k) in kernel.iter().enumerate() {
+        for (o, &v) in tail.iter_mut().zip(&row[x0 + t..]) {
+            *o += v * k;
+        }
     }
 }
 
@@ -237,13 +269,56 @@ fn convolve_columns(
         .into_par_iter()
         .enumerate()
         .for_each(|(y, mut o)| {
-            for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
-                let k = kernel[yy + r - y];
-                o.zip_mut_with(&a.row(yy), |ov, &v| *ov += k * v);
+            let taps = y.saturating_sub(r)..=(y + r).min(h - 1);
+            match (o.as_slice_mut(), a.as_slice()) {
+                (Some(out), Some(a)) => {
+                    let rows: Vec<(&[f32], f32)> = taps
+                        .map(|yy| (&a[yy * w..(yy + 1) * w], kernel[yy + r - y]))
+                        .collect();
+                    sum_rows(&rows, out);
+                }
+                _ => {
+                    for yy in taps {
+                        let k = kernel[yy + r - y];
+                        o.zip_mut_with(&a.row(yy), |ov, &v| *ov += k * v);
+                    }
+                }
             }
             finish(y, o);
         });
     out
+}
+
+crate::flow::simd::multiversion!(fn sum_rows(rows: &[(&[f32], f32)], out: &mut [f32]) => sum_rows_body);
+
+/// `out[x] += Σ k·row[x]` over `rows` in order, block by block of columns (the sums stay in
+/// registers across the rows).
+#[inline(always)]
+fn sum_rows_body(rows: &[(&[f32], f32)], out: &mut [f32]) {
+    let mut x = 0;
+    for out in out.chunks_mut(CONVOLVE_BLOCK) {
+        let len = out.len();
+        if len == CONVOLVE_BLOCK {
+            let acc: &mut [f32; CONVOLVE_BLOCK] = out.try_into().expect("a block");
+            let mut sums = *acc;
+            for &(row, k) in rows {
+                let src: &[f32; CONVOLVE_BLOCK] = row[x..x + CONVOLVE_BLOCK]
+                    .try_into()
+                    .expect("a block of the row");
+                for (s, &v) in sums.iter_mut().zip(src) {
+                    *s += k * v;
+                }
+            }
+            *acc = sums;
+        } else {
+            for &(row, k) in rows {
+                for (o, &v) in out.iter_mut().zip(&row[x..x + len]) {
+                    *o += k * v;
+                }
+            }
+        }
+        x += len;
+    }
 }
 
 /// NaN-aware block mean by an integer factor.
@@ -301,4 +376,56 @@ pub(super) fn bilinear(img: ArrayView2<f32>, x: f64, y: f64) -> Option<f64> {
     let top = img[[y0, x0]] as f64 * (1.0 - tx) + img[[y0, x1]] as f64 * tx;
     let bottom = img[[y1, x0]] as f64 * (1.0 - tx) + img[[y1, x1]] as f64 * tx;
     Some(top * (1.0 - ty) + bottom * ty)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn convolutions_sum_each_output_over_its_taps_in_order() {
+        // The definition: out[x] = Σ_t k[t]·v[x + t − r] over the taps inside the image, summed
+        // from zero in tap order (rows), and the same down each column (rows in order). Row
+        // lengths around the 32-output blocks, kernels short and long.
+        let mut state = 5u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 100.0 - 30.0
+        };
+        for (h, w, taps) in [(9, 31, 7), (40, 77, 7), (70, 64, 65), (41, 203, 17)] {
+            let kernel: Vec<f32> = (0..taps).map(|_| next().abs() / 50.0).collect();
+            let r = taps / 2;
+            let img = Array2::from_shape_fn((h, w), |_| next());
+            let rows = convolve_rows(img.view(), &kernel, |v| v);
+            let cols = convolve_columns(&img, &kernel, |_, _| {});
+            for y in 0..h {
+                for x in 0..w {
+                    let mut along = 0f32;
+                    for (t, &k) in kernel.iter().enumerate() {
+                        if let Some(xx) = (x + t).checked_sub(r).filter(|&xx| xx < w) {
+                            along += img[[y, xx]] * k;
+                        }
+                    }
+                    let mut down = 0f32;
+                    for (t, &k) in kernel.iter().enumerate() {
+                        if let Some(yy) = (y + t).checked_sub(r).filter(|&yy| yy < h) {
+                            down += k * img[[yy, x]];
+                        }
+                    }
+                    assert_eq!(
+                        rows[[y, x]].to_bits(),
+                        along.to_bits(),
+                        "row sum at ({x}, {y})"
+                    );
+                    assert_eq!(
+                        cols[[y, x]].to_bits(),
+                        down.to_bits(),
+                        "column sum at ({x}, {y})"
+                    );
+                }
+            }
+        }
+    }
 }
