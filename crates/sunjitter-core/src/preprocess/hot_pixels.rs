@@ -42,7 +42,7 @@ pub fn remove_hot_pixels_with(
     lone_factor: f32,
 ) -> usize {
     let test = HotPixelTest::new(img.view(), threshold_fraction, noise_sigmas, lone_factor);
-    let (h, w) = img.dim();
+    let h = img.nrows();
     let hits: Vec<(usize, usize, f32)> = (0..h.div_ceil(BAND))
         .into_par_iter()
         .flat_map_iter(|band| {
@@ -50,7 +50,6 @@ pub fn remove_hot_pixels_with(
             test.band(
                 img.view(),
                 band * BAND..((band + 1) * BAND).min(h),
-                w,
                 |y, row| {
                     hits.extend(row.iter().map(|&(x, m)| (y, x, m)));
                 },
@@ -80,7 +79,7 @@ pub fn hot_pixels_removed(img: ArrayView2<f32>, threshold_fraction: f32) -> Arra
         .enumerate()
         .for_each(|(band, mut rows)| {
             let y0 = band * BAND;
-            test.band(img, y0..y0 + rows.nrows(), w, |y, hits| {
+            test.band(img, y0..y0 + rows.nrows(), |y, hits| {
                 let mut row = rows.row_mut(y - y0);
                 for (o, &v) in row.iter_mut().zip(img.row(y)) {
                     o.write(v);
@@ -128,10 +127,9 @@ impl HotPixelTest {
         &self,
         img: ArrayView2<f32>,
         rows: std::ops::Range<usize>,
-        w: usize,
         mut row_hits: impl FnMut(usize, &[(usize, f32)]),
     ) {
-        let h = img.nrows();
+        let (h, w) = img.dim();
         let mut scratch = RowScratch::new(w);
         // Medians of rows y − 1, y and y + 1 (a suspect's partner lies within them).
         let mut medians = [vec![0f32; w], vec![0f32; w], vec![0f32; w]];

@@ -133,6 +133,10 @@ unsafe fn div(a: __m256d, b: __m256d) -> __m256d {
 
 /// The six taps of support row `j` of the four lanes, tap by tap across the lanes, as f64:
 /// each lane's row read as eight contiguous values (two past its support) and transposed.
+///
+/// # Safety
+/// The CPU must have AVX2, and `start[l] + offset + 8` must not pass the end of `data` for
+/// any lane (as [`block`] checks for every support row).
 #[inline]
 #[target_feature(enable = "avx2")]
 unsafe fn row_taps(data: *const f32, start: &[usize; LANES], offset: usize) -> [__m256d; TAPS] {
@@ -161,6 +165,8 @@ pub(super) unsafe fn gradients_at(
     out: &mut [[f64; 3]],
 ) {
     let (_, w) = sp.coeffs().dim();
+    // Row-major and contiguous, as `HighOrderSpline::new` leaves them.
+    debug_assert!(sp.coeffs().is_standard_layout());
     let data = sp.coeffs().as_ptr();
     let mut blocks = positions.chunks_exact(LANES);
     let mut outs = out.chunks_exact_mut(LANES);
@@ -216,6 +222,8 @@ pub(super) unsafe fn values_at(
     out: &mut [f32],
 ) {
     let (_, w) = sp.coeffs().dim();
+    // Row-major and contiguous, as `HighOrderSpline::new` leaves them.
+    debug_assert!(sp.coeffs().is_standard_layout());
     let data = sp.coeffs().as_ptr();
     let n = out.len();
     let full = n - n % LANES;
