@@ -219,6 +219,7 @@ impl HighOrderSpline {
     }
 
     /// The prefiltered coefficients.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub(super) fn coeffs(&self) -> &Array2<f32> {
         &self.coeffs
@@ -226,6 +227,7 @@ impl HighOrderSpline {
 
     /// Integer position and fraction on both axes, `None` outside the image or where the
     /// support holds a blank.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub(super) fn locate_at(&self, x: f64, y: f64) -> Option<((usize, f64), (usize, f64))> {
         self.locate(x, y)
