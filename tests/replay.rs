@@ -276,10 +276,18 @@ async fn replay_writes_what_watch_wrote_for_the_same_frames() {
         history,
     );
     daemon.watching().await;
-    for f in &frames {
+    // Frames arrive in time order, as from an instrument: each one reaches the scheduler
+    // before the next is written, so the daemon sees the order `replay` reads.
+    for (k, f) in frames.iter().enumerate() {
         let tmp_name = watched.join(format!(".{}.tmp", f.name));
         std::fs::write(&tmp_name, &f.bytes).unwrap();
         std::fs::rename(&tmp_name, watched.join(&f.name)).unwrap();
+        let seen = k as u64 + 1;
+        daemon
+            .wait_for("the frame to reach the scheduler", |p| {
+                p.queued_per_channel.values().sum::<u64>() + p.finished >= seen
+            })
+            .await;
     }
     let n = frames.len() as u64;
     daemon.wait_for("every frame", |p| p.finished >= n).await;

@@ -207,18 +207,26 @@ impl Driver {
     }
 
     /// A job's records go to the log, after the frame's lag; then its channel moves on.
-    async fn finished(&mut self, done: JobDone) -> Result<()> {
-        if let Some(frame) = done.records.iter().find_map(|r| match r {
+    async fn finished(&mut self, mut done: JobDone) -> Result<()> {
+        let records = std::mem::take(&mut done.records);
+        let lag_s = done.arrived.elapsed().as_secs_f64();
+        // The frame leaves the queue count before the writer counts it finished, so
+        // `queued + finished` never counts a frame twice.
+        self.scheduler.complete(done);
+        publish_queue(
+            &self.progress,
+            &self.scheduler,
+            self.pending_files.as_deref(),
+        );
+        if let Some(frame) = records.iter().find_map(|r| match r {
             Record::Frame { message, .. } => Some(message.align.frame.clone()),
             _ => None,
         }) {
-            let lag_s = done.arrived.elapsed().as_secs_f64();
             self.send(WriterMsg::Lag { frame, lag_s }).await?;
         }
-        for record in &done.records {
-            self.send(WriterMsg::Record(record.clone())).await?;
+        for record in records {
+            self.send(WriterMsg::Record(record)).await?;
         }
-        self.scheduler.complete(done);
         Ok(())
     }
 
