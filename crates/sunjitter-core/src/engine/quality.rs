@@ -95,15 +95,24 @@ pub fn rank_correlation(
     b: ArrayView2<f32>,
     mask: ArrayView2<bool>,
 ) -> Option<f64> {
-    let pairs: Vec<(f32, f32)> = a
-        .iter()
-        .zip(b.iter())
-        .zip(mask.iter())
-        .filter(|((x, y), m)| **m && x.is_finite() && y.is_finite())
-        .map(|((x, y), _)| (*x, *y))
-        .collect();
-    let stride = pairs.len().div_ceil(MAX_RANK_PAIRS).max(1);
-    let pairs: Vec<(f32, f32)> = pairs.into_iter().step_by(stride).collect();
+    let usable = |x: &f32, y: &f32, m: &bool| *m && x.is_finite() && y.is_finite();
+    // Every `stride`-th usable pair, counted first so that only the chosen ones are kept.
+    let n_usable = ndarray::Zip::from(&a).and(&b).and(&mask).par_fold(
+        || 0usize,
+        |n, x, y, m| n + usize::from(usable(x, y, m)),
+        |p, q| p + q,
+    );
+    let stride = n_usable.div_ceil(MAX_RANK_PAIRS).max(1);
+    let mut pairs: Vec<(f32, f32)> = Vec::with_capacity(n_usable.div_ceil(stride));
+    let mut k = 0usize;
+    for ((x, y), m) in a.iter().zip(b.iter()).zip(mask.iter()) {
+        if usable(x, y, m) {
+            if k % stride == 0 {
+                pairs.push((*x, *y));
+            }
+            k += 1;
+        }
+    }
     if pairs.len() < 16 {
         return None;
     }

@@ -51,6 +51,18 @@ use ndarray::{Array2, ArrayView2};
 use pyramid::cv_round;
 use rayon::prelude::*;
 
+/// `out` as `n` zeros, written by every thread: a large buffer's pages are faulted in (and
+/// cleared by the kernel) side by side, and a buffer too small is replaced, not grown, so the
+/// old contents are not copied.
+pub(crate) fn zeroed(out: &mut Vec<f32>, n: usize) {
+    if out.capacity() < n {
+        *out = Vec::with_capacity(n);
+    } else {
+        out.clear();
+    }
+    out.par_extend(rayon::iter::repeat_n(0.0f32, n));
+}
+
 /// Farneback parameters (OpenCV's names and meanings).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FarnebackParams {
@@ -526,10 +538,8 @@ impl Farneback {
             } else {
                 let n = dh * dw;
                 for b in 0..2 {
-                    self.u[b].clear();
-                    self.u[b].resize(n, 0.0);
-                    self.v[b].clear();
-                    self.v[b].resize(n, 0.0);
+                    zeroed(&mut self.u[b], n);
+                    zeroed(&mut self.v[b], n);
                 }
                 if let Some(pg) = prev_geom {
                     upsample(
@@ -713,10 +723,8 @@ impl Farneback {
                 ytaps: &ytaps,
                 affine: false,
             };
-            self.u[0].clear();
-            self.u[0].resize(fw * fh, 0.0);
-            self.v[0].clear();
-            self.v[0].resize(fw * fh, 0.0);
+            zeroed(&mut self.u[0], fw * fh);
+            zeroed(&mut self.v[0], fw * fh);
             let (pu, pv) = (&self.prev_u, &self.prev_v);
             self.u[0]
                 .par_chunks_mut(fw)
@@ -728,10 +736,8 @@ impl Farneback {
         }
         let to = geoms[0];
         let n = to.dom.width() * to.dom.height();
-        self.u[0].clear();
-        self.u[0].resize(n, 0.0);
-        self.v[0].clear();
-        self.v[0].resize(n, 0.0);
+        zeroed(&mut self.u[0], n);
+        zeroed(&mut self.v[0], n);
         upsample(
             &self.prev_u,
             &self.prev_v,

@@ -253,8 +253,7 @@ pub(crate) fn build_level(
         c
     };
     let ncols = need_cols.len();
-    rows_buf.clear();
-    rows_buf.resize(need_rows.len() * ncols, 0.0);
+    super::zeroed(rows_buf, need_rows.len() * ncols);
     rows_buf
         .par_chunks_mut(ncols.max(1))
         .zip(need_rows.par_iter())
@@ -286,8 +285,7 @@ pub(crate) fn build_level(
         })
         .collect();
     let dw = dom.width();
-    out.clear();
-    out.resize(dom.height() * dw, 0.0);
+    super::zeroed(out, dom.height() * dw);
     let rows_buf: &[f32] = rows_buf;
     out.par_chunks_mut(dw.max(1))
         .zip(ytaps.par_iter())
