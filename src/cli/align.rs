@@ -56,7 +56,16 @@ pub fn run(args: &Args) -> Result<i32> {
         (reference, frame)
     });
     let (reference, frame) = (reference?, frame?);
-    let outcome = engine::align_images(&reference, &frame, &cfg);
+    // The per-frame products read the images as read; without them their pixels are freed
+    // as soon as the engine has its cleaned copies.
+    let (outcome, images) = if outputs.is_empty() {
+        (engine::align_images_owned(reference, frame, &cfg), None)
+    } else {
+        (
+            engine::align_images(&reference, &frame, &cfg),
+            Some((reference, frame)),
+        )
+    };
     let mut result = outcome.result.clone();
     result.reference = args.reference.clone();
     result.frame = args.frame.clone();
@@ -70,11 +79,13 @@ pub fn run(args: &Args) -> Result<i32> {
     }
 
     // After the report, so `--json` prints its document even when a file cannot be written.
-    if let Some(path) = &args.aligned {
-        crate::aligned::write_aligned(path, &reference, &frame, &outcome)?;
-    }
-    if let Some(path) = &args.quicklook {
-        crate::aligned::write_quicklook(path, &reference, &frame, &outcome)?;
+    if let Some((reference, frame)) = &images {
+        if let Some(path) = &args.aligned {
+            crate::aligned::write_aligned(path, reference, frame, &outcome)?;
+        }
+        if let Some(path) = &args.quicklook {
+            crate::aligned::write_quicklook(path, reference, frame, &outcome)?;
+        }
     }
     Ok(if result.status == Status::Failed {
         exit::FAILED

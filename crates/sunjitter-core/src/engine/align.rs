@@ -11,14 +11,17 @@ use super::fine::{
 use super::prepared::{FrameWork, Matched, ReferenceWork, Workspace};
 use super::seed::{seed_alignment, seed_level, seed_slack_px, Binned};
 use super::verdict::{verdict, Evidence, Refinement, Verdict};
-use super::{check_usable, cleaned, derotate, flow_check, geometry_check, photometry, quality};
-use super::{refine, AlignOutcome, Image, SigmaMethod};
+use super::{
+    check_usable, cleaned_from, derotate, flow_check, geometry_check, photometry, quality,
+};
+use super::{refine, AlignOutcome, SigmaMethod};
 use crate::flow::Roi;
 use crate::geometry::{sigmas, Similarity};
 use crate::meta::FrameMeta;
 use crate::preprocess;
 use crate::record::{AlignResult, SolarRotationFields, TransformFields};
 use ndarray::{s, Array2, ArrayView2};
+use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -26,14 +29,15 @@ use std::time::Instant;
 /// that preparing it as a reference would repeat.
 pub(super) fn align_frame(
     work: &ReferenceWork,
-    frame: &Image,
+    frame: &FrameMeta,
+    data: Cow<'_, Array2<f32>>,
     cfg: &EngineConfig,
     keep: bool,
     workspace: &Workspace,
 ) -> Result<(AlignOutcome, Option<FrameWork>), String> {
-    check_usable("frame", &frame.data)?;
+    check_usable("frame", &data)?;
     let started = Instant::now();
-    let side = prepare_frame(work, frame, cfg, keep, started)?;
+    let side = prepare_frame(work, frame, data, cfg, keep, started)?;
     let (h, w) = work.cleaned.dim();
     let partial = !derotate::holds_the_disk(work.reference_check.disk_px, w, h);
     let pair = Pair {
@@ -111,21 +115,22 @@ struct FrameSide {
 /// the intensity match: everything before the flow.
 fn prepare_frame(
     work: &ReferenceWork,
-    frame: &Image,
+    frame: &FrameMeta,
+    data: Cow<'_, Array2<f32>>,
     cfg: &EngineConfig,
     keep: bool,
     started: Instant,
 ) -> Result<FrameSide, String> {
     let mut notes: Vec<String> = work.notes.clone();
-    let mut frame_data = cleaned(&frame.data, cfg.hot_pixel_fraction);
+    let mut frame_data = cleaned_from(data, cfg.hot_pixel_fraction);
     let cleaned_at = started.elapsed();
 
     // Coarse: headers, checked against the disks the images show.
     let mut own_notes = Vec::new();
-    let own = geometry_check::checked(&frame.meta, &frame_data, &mut own_notes);
+    let own = geometry_check::checked(frame, &frame_data, &mut own_notes);
     let kept_check = keep.then(|| (own.clone(), own_notes.clone()));
     let frame_meta = geometry_check::frame_against_reference(
-        &frame.meta,
+        frame,
         own,
         own_notes,
         &work.meta,
@@ -196,7 +201,8 @@ fn prepare_frame(
 /// What every measurement of one frame against the reference reads.
 struct Pair<'a> {
     work: &'a ReferenceWork,
-    frame: &'a Image,
+    /// The frame's header as read.
+    frame: &'a FrameMeta,
     frame_meta: &'a FrameMeta,
     frame_data: &'a Array2<f32>,
     cfg: &'a EngineConfig,
@@ -297,7 +303,7 @@ impl<'a> Stages<'a> {
             grid_plate,
         );
         let matched = work.matched(sig_ref);
-        let refining = refine::wanted(cfg.refine, &work.meta, &frame.meta);
+        let refining = refine::wanted(cfg.refine, &work.meta, frame);
         // Between channels the limb is no common structure: each channel brightens towards it
         // by its own amount and shows it at its own height, even on one telescope. Windows
         // that reach it read that as a scale change
@@ -305,7 +311,7 @@ impl<'a> Stages<'a> {
         let limb = work
             .reference_check
             .disk_px
-            .filter(|_| work.meta.channel != frame.meta.channel);
+            .filter(|_| work.meta.channel != frame.channel);
         Stages {
             pair,
             matched,
@@ -625,7 +631,7 @@ fn outcome(
     let ps = work.reference_check.meta.plate_scale_arcsec;
     let result = AlignResult {
         reference: crate::text::path(&work.meta.file).into_owned(),
-        frame: crate::text::path(&pair.frame.meta.file).into_owned(),
+        frame: crate::text::path(&pair.frame.file).into_owned(),
         scale: Some(t.scale),
         rotation_arcsec: Some(t.rotation_arcsec()),
         dx_px: Some(t.dx),

@@ -12,6 +12,7 @@ use crate::meta::FrameMeta;
 use crate::preprocess;
 use ndarray::{s, Array2, ArrayView2, Zip};
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::time::Instant;
 
 /// Working memory kept from one alignment to the next: the flow solver, whose buffers
@@ -177,13 +178,22 @@ impl PreparedReference {
         self.align_with(frame, self.cfg.solar_rotation)
     }
 
+    /// [`PreparedReference::align`] for a caller done with `frame`: its pixels as read are
+    /// freed once the cleaned copy exists.
+    pub fn align_owned(&self, frame: Image) -> AlignOutcome {
+        let Image { data, meta } = frame;
+        let profile = self.cfg.solar_rotation;
+        self.align_inner(&meta, Cow::Owned(data), profile, false).0
+    }
+
     /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
     pub fn align_with(
         &self,
         frame: &Image,
         profile: crate::solar_rotation::Profile,
     ) -> AlignOutcome {
-        self.align_inner(frame, profile, false).0
+        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, false)
+            .0
     }
 
     /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
@@ -193,12 +203,13 @@ impl PreparedReference {
         frame: &Image,
         profile: crate::solar_rotation::Profile,
     ) -> (AlignOutcome, Option<FrameWork>) {
-        self.align_inner(frame, profile, true)
+        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, true)
     }
 
     fn align_inner(
         &self,
-        frame: &Image,
+        frame_meta: &FrameMeta,
+        frame_data: Cow<'_, Array2<f32>>,
         profile: crate::solar_rotation::Profile,
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
@@ -212,7 +223,7 @@ impl PreparedReference {
             ..self.cfg.clone()
         };
         let result = match &self.work {
-            Ok(work) => align_frame(work, frame, &cfg, keep, &self.workspace),
+            Ok(work) => align_frame(work, frame_meta, frame_data, &cfg, keep, &self.workspace),
             Err(reason) => Err(reason.clone()),
         };
         let (result, kept) = match result {
@@ -226,7 +237,7 @@ impl PreparedReference {
             ..k
         });
         let mut outcome = result.unwrap_or_else(|reason| {
-            AlignOutcome::failed(&self.file, &crate::text::path(&frame.meta.file), &reason)
+            AlignOutcome::failed(&self.file, &crate::text::path(&frame_meta.file), &reason)
         });
         outcome.reference_geometry = self.geometry();
         outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;

@@ -107,7 +107,7 @@ pub fn rank_correlation(
     let mut k = 0usize;
     for ((x, y), m) in a.iter().zip(b.iter()).zip(mask.iter()) {
         if usable(x, y, m) {
-            if k % stride == 0 {
+            if k.is_multiple_of(stride) {
                 pairs.push((*x, *y));
             }
             k += 1;

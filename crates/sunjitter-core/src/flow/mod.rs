@@ -480,11 +480,12 @@ impl Farneback {
     ) -> Result<()> {
         let (h, w) = prev.dim();
         let roi_rect = checked_domain(prev.dim(), next.dim(), roi, init)?;
+        // Filled by every thread: a fresh array's pages are faulted in side by side.
         for a in [&mut out.u, &mut out.v] {
             if a.dim() == (h, w) {
-                a.fill(f32::NAN);
+                a.par_mapv_inplace(|_| f32::NAN);
             } else {
-                *a = Array2::from_elem((h, w), f32::NAN);
+                *a = ndarray::Zip::from(ndarray::indices((h, w))).par_map_collect(|_| f32::NAN);
             }
         }
         let (out_u, out_v) = (&mut out.u, &mut out.v);
