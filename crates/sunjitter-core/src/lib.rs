@@ -29,6 +29,8 @@ pub mod flow;
 pub mod sampling;
 pub mod stats;
 
+pub(crate) mod pages;
+
 pub mod chain;
 pub mod engine;
 pub mod simulate;

@@ -47,21 +47,10 @@ pub(crate) mod simd;
 mod solve;
 
 use crate::error::{Error, Result};
+use crate::pages::{fill_vec, filled};
 use ndarray::{Array2, ArrayView2};
 use pyramid::cv_round;
 use rayon::prelude::*;
-
-/// `out` as `n` zeros, written by every thread: a large buffer's pages are faulted in (and
-/// cleared by the kernel) side by side, and a buffer too small is replaced, not grown, so the
-/// old contents are not copied.
-pub(crate) fn zeroed(out: &mut Vec<f32>, n: usize) {
-    if out.capacity() < n {
-        *out = Vec::with_capacity(n);
-    } else {
-        out.clear();
-    }
-    out.par_extend(rayon::iter::repeat_n(0.0f32, n));
-}
 
 /// Farneback parameters (OpenCV's names and meanings).
 #[derive(Debug, Clone, PartialEq)]
@@ -480,12 +469,11 @@ impl Farneback {
     ) -> Result<()> {
         let (h, w) = prev.dim();
         let roi_rect = checked_domain(prev.dim(), next.dim(), roi, init)?;
-        // Filled by every thread: a fresh array's pages are faulted in side by side.
         for a in [&mut out.u, &mut out.v] {
             if a.dim() == (h, w) {
                 a.par_mapv_inplace(|_| f32::NAN);
             } else {
-                *a = ndarray::Zip::from(ndarray::indices((h, w))).par_map_collect(|_| f32::NAN);
+                *a = filled(h, w, f32::NAN);
             }
         }
         let (out_u, out_v) = (&mut out.u, &mut out.v);
@@ -539,8 +527,8 @@ impl Farneback {
             } else {
                 let n = dh * dw;
                 for b in 0..2 {
-                    zeroed(&mut self.u[b], n);
-                    zeroed(&mut self.v[b], n);
+                    fill_vec(&mut self.u[b], n, 0.0);
+                    fill_vec(&mut self.v[b], n, 0.0);
                 }
                 if let Some(pg) = prev_geom {
                     upsample(
@@ -724,8 +712,8 @@ impl Farneback {
                 ytaps: &ytaps,
                 affine: false,
             };
-            zeroed(&mut self.u[0], fw * fh);
-            zeroed(&mut self.v[0], fw * fh);
+            fill_vec(&mut self.u[0], fw * fh, 0.0);
+            fill_vec(&mut self.v[0], fw * fh, 0.0);
             let (pu, pv) = (&self.prev_u, &self.prev_v);
             self.u[0]
                 .par_chunks_mut(fw)
@@ -737,8 +725,8 @@ impl Farneback {
         }
         let to = geoms[0];
         let n = to.dom.width() * to.dom.height();
-        zeroed(&mut self.u[0], n);
-        zeroed(&mut self.v[0], n);
+        fill_vec(&mut self.u[0], n, 0.0);
+        fill_vec(&mut self.v[0], n, 0.0);
         upsample(
             &self.prev_u,
             &self.prev_v,

@@ -81,7 +81,7 @@ impl PolyKernel {
 /// the other (`out[y·5w + c·w + x]`): each channel is contiguous along x, and everything the
 /// flow update reads for a row sits together in memory.
 pub(crate) fn expand(k: &PolyKernel, img: &[f32], h: usize, w: usize, out: &mut Vec<f32>) {
-    super::zeroed(out, h * w * 5);
+    crate::pages::fill_vec(out, h * w * 5, 0.0);
     out.par_chunks_mut(5 * w).enumerate().for_each_init(
         || vec![0f32; (w + 2 * k.n) * 3 + 6 * w],
         |buf, (y, row)| {

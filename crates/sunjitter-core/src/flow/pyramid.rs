@@ -253,7 +253,7 @@ pub(crate) fn build_level(
         c
     };
     let ncols = need_cols.len();
-    super::zeroed(rows_buf, need_rows.len() * ncols);
+    crate::pages::fill_vec(rows_buf, need_rows.len() * ncols, 0.0);
     rows_buf
         .par_chunks_mut(ncols.max(1))
         .zip(need_rows.par_iter())
@@ -285,7 +285,7 @@ pub(crate) fn build_level(
         })
         .collect();
     let dw = dom.width();
-    super::zeroed(out, dom.height() * dw);
+    crate::pages::fill_vec(out, dom.height() * dw, 0.0);
     let rows_buf: &[f32] = rows_buf;
     out.par_chunks_mut(dw.max(1))
         .zip(ytaps.par_iter())

@@ -115,7 +115,7 @@ pub fn gaussian_trend(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
             .collect()
     };
     let (xt, yt) = (taps(w, bw), taps(h, bh));
-    let mut out = zeroed(h, w);
+    let mut out = crate::pages::filled(h, w, 0.0);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
@@ -152,17 +152,6 @@ pub fn gaussian_trend(img: ArrayView2<f32>, sigma_px: f64) -> Array2<f32> {
     out
 }
 
-/// A zeroed `h × w` array whose pages every thread faults in: written by one thread, a
-/// frame-sized array costs the kernel's page clearing serially.
-pub(crate) fn zeroed(h: usize, w: usize) -> Array2<f32> {
-    let mut values = Vec::with_capacity(h * w);
-    (0..h * w)
-        .into_par_iter()
-        .map(|_| 0f32)
-        .collect_into_vec(&mut values);
-    Array2::from_shape_vec((h, w), values).expect("h × w values")
-}
-
 /// Zero-padded 1-D convolution along each row (symmetric kernel) of `a`'s values mapped by
 /// `map` (mapped as each row is read: no mapped copy of the image).
 fn convolve_rows(
@@ -171,7 +160,7 @@ fn convolve_rows(
     map: impl Fn(f32) -> f32 + Sync,
 ) -> Array2<f32> {
     let (h, w) = a.dim();
-    let mut out = zeroed(h, w);
+    let mut out = crate::pages::filled(h, w, 0.0);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(a.axis_iter(Axis(0)))
@@ -264,7 +253,7 @@ fn convolve_columns(
 ) -> Array2<f32> {
     let r = kernel.len() / 2;
     let (h, w) = a.dim();
-    let mut out = zeroed(h, w);
+    let mut out = crate::pages::filled(h, w, 0.0);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()

@@ -206,7 +206,7 @@ impl Driver {
         }
     }
 
-    /// A job's records go to the log, after the frame's lag; then its channel moves on.
+    /// A job's channel moves on; then its records go to the log, after the frame's lag.
     async fn finished(&mut self, mut done: JobDone) -> Result<()> {
         let records = std::mem::take(&mut done.records);
         let lag_s = done.arrived.elapsed().as_secs_f64();
