@@ -228,9 +228,8 @@ pub struct Farneback {
     prev_grid_ys: Vec<usize>,
     poly: poly::PolyKernel,
     gauss: Option<Vec<f32>>,
-    img0: Vec<f32>,
-    img1: Vec<f32>,
-    rows_buf: Vec<f32>,
+    /// The two images' polynomial expansions at the current level (the levels themselves are
+    /// made band by band as they are expanded, and not kept).
     r0: Vec<f32>,
     r1: Vec<f32>,
     u: [Vec<f32>; 2],
@@ -331,9 +330,6 @@ impl Farneback {
             prev_grid_ys: Vec::new(),
             poly,
             gauss,
-            img0: Vec::new(),
-            img1: Vec::new(),
-            rows_buf: Vec::new(),
             r0: Vec::new(),
             r1: Vec::new(),
             u: [Vec::new(), Vec::new()],
@@ -502,24 +498,10 @@ impl Farneback {
             }
             let dom = g.dom;
             let (dh, dw) = (dom.height(), dom.width());
-            pyramid::build_level(
-                norm0,
-                g.scale,
-                (g.h, g.w),
-                dom,
-                &mut self.img0,
-                &mut self.rows_buf,
-            );
-            pyramid::build_level(
-                norm1,
-                g.scale,
-                (g.h, g.w),
-                dom,
-                &mut self.img1,
-                &mut self.rows_buf,
-            );
-            poly::expand(&self.poly, &self.img0, dh, dw, &mut self.r0);
-            poly::expand(&self.poly, &self.img1, dh, dw, &mut self.r1);
+            for (img, r) in [(norm0, &mut self.r0), (norm1, &mut self.r1)] {
+                let level = pyramid::LevelRows::new(img, g.scale, (g.h, g.w), dom);
+                poly::expand(&self.poly, &level, r);
+            }
 
             // Initial flow for this level (dense, or on the grid).
             if use_grid {

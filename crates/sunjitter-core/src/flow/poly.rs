@@ -5,9 +5,11 @@
 //! Borders replicate the edge pixel, as OpenCV does. A pixel whose support touches missing
 //! data (NaN) gets NaN in all five channels.
 
+use super::pyramid::LevelRows;
 use super::simd;
 use nalgebra::SMatrix;
 use rayon::prelude::*;
+use std::ops::Range;
 
 /// Separable kernels and the entries of the inverse Gram matrix the expansion needs.
 pub(crate) struct PolyKernel {
@@ -77,51 +79,101 @@ impl PolyKernel {
     }
 }
 
-/// Expand `img` (h×w, row-major) into `out`, row by row with the 5 channels of a row one after
-/// the other (`out[y·5w + c·w + x]`): each channel is contiguous along x, and everything the
-/// flow update reads for a row sits together in memory.
-pub(crate) fn expand(k: &PolyKernel, img: &[f32], h: usize, w: usize, out: &mut Vec<f32>) {
+/// Rows of an image as the expansion reads them, a band at a time.
+pub(crate) trait Rows: Sync {
+    fn height(&self) -> usize;
+    fn width(&self) -> usize;
+    /// Rows `rows` into `out` (row-major); `scratch` is the source's own working space.
+    fn fill(&self, rows: Range<usize>, out: &mut [f32], scratch: &mut Vec<f32>);
+}
+
+impl Rows for LevelRows<'_> {
+    fn height(&self) -> usize {
+        LevelRows::height(self)
+    }
+    fn width(&self) -> usize {
+        LevelRows::width(self)
+    }
+    fn fill(&self, rows: Range<usize>, out: &mut [f32], scratch: &mut Vec<f32>) {
+        LevelRows::fill(self, rows, out, scratch)
+    }
+}
+
+/// Rows each task expands; it makes them and the `n` rows on either side that their
+/// neighbourhoods read.
+const BAND_ROWS: usize = 32;
+
+/// Expand `src` into `out`, row by row with the 5 channels of a row one after the other
+/// (`out[y·5w + c·w + x]`): each channel is contiguous along x, and everything the flow
+/// update reads for a row sits together in memory. The source's rows are made band by band
+/// as they are expanded.
+pub(crate) fn expand(k: &PolyKernel, src: &impl Rows, out: &mut Vec<f32>) {
+    let (h, w) = (src.height(), src.width());
     crate::pages::fill_vec(out, h * w * 5, 0.0);
-    out.par_chunks_mut(5 * w).enumerate().for_each_init(
-        || vec![0f32; (w + 2 * k.n) * 3 + 6 * w],
-        |buf, (y, row)| {
-            let (d0, rest) = row.split_at_mut(w);
-            let (d1, rest) = rest.split_at_mut(w);
-            let (d2, rest) = rest.split_at_mut(w);
-            let (d3, d4) = rest.split_at_mut(w);
-            expand_row_mv(k, img, h, w, y, buf, [d0, d1, d2, d3, d4])
-        },
-    );
+    if h * w == 0 {
+        return;
+    }
+    let n = k.n;
+    out.par_chunks_mut(5 * w * BAND_ROWS)
+        .enumerate()
+        .for_each_init(
+            || (Vec::new(), Vec::new(), vec![0f32; (w + 2 * n) * 3 + 6 * w]),
+            |(band, scratch, buf), (b, chunk)| {
+                let y0 = b * BAND_ROWS;
+                let y1 = (y0 + BAND_ROWS).min(h);
+                let (lo, hi) = (y0.saturating_sub(n), (y1 + n).min(h));
+                band.resize((hi - lo) * w, 0.0);
+                src.fill(lo..hi, band, scratch);
+                let rows = Band {
+                    rows: band,
+                    lo,
+                    h,
+                    w,
+                };
+                for (y, row) in (y0..y1).zip(chunk.chunks_mut(5 * w)) {
+                    let (d0, rest) = row.split_at_mut(w);
+                    let (d1, rest) = rest.split_at_mut(w);
+                    let (d2, rest) = rest.split_at_mut(w);
+                    let (d3, d4) = rest.split_at_mut(w);
+                    expand_row_mv(k, &rows, y, buf, [d0, d1, d2, d3, d4])
+                }
+            },
+        );
+}
+
+/// Rows `lo..` of an image `h` rows high and `w` wide.
+struct Band<'a> {
+    rows: &'a [f32],
+    lo: usize,
+    h: usize,
+    w: usize,
+}
+
+impl Band<'_> {
+    #[inline(always)]
+    fn row(&self, y: usize) -> &[f32] {
+        &self.rows[(y - self.lo) * self.w..][..self.w]
+    }
 }
 
 simd::multiversion!(fn expand_row_mv(
     k: &PolyKernel,
-    img: &[f32],
-    h: usize,
-    w: usize,
+    img: &Band<'_>,
     y: usize,
     buf: &mut [f32],
     d: [&mut [f32]; 5],
 ) => expand_row);
 
 #[inline(always)]
-fn expand_row(
-    k: &PolyKernel,
-    img: &[f32],
-    h: usize,
-    w: usize,
-    y: usize,
-    buf: &mut [f32],
-    d: [&mut [f32]; 5],
-) {
-    let n = k.n;
+fn expand_row(k: &PolyKernel, img: &Band<'_>, y: usize, buf: &mut [f32], d: [&mut [f32]; 5]) {
+    let (n, h, w) = (k.n, img.h, img.w);
     let wp = w + 2 * n;
     let (r0, rest) = buf.split_at_mut(wp);
     let (r1, rest) = rest.split_at_mut(wp);
     let (r2, rest) = rest.split_at_mut(wp);
     let (acc, _) = rest.split_at_mut(6 * w);
     // Vertical pass: (Σg·f, Σ y·g·f, Σ y²·g·f) along the column, replicate border.
-    let s0 = &img[y * w..][..w];
+    let s0 = img.row(y);
     {
         let (q0, q1, q2) = (&mut r0[n..n + w], &mut r1[n..n + w], &mut r2[n..n + w]);
         let g0 = k.g[0];
@@ -131,8 +183,8 @@ fn expand_row(
             q2[x] = 0.0;
         }
         for t in 1..=n {
-            let a = &img[y.saturating_sub(t) * w..][..w];
-            let b = &img[(y + t).min(h - 1) * w..][..w];
+            let a = img.row(y.saturating_sub(t));
+            let b = img.row((y + t).min(h - 1));
             let (g0, g1, g2) = (k.g[t], k.xg[t], k.xxg[t]);
             for x in 0..w {
                 let p = a[x] + b[x];
@@ -199,6 +251,25 @@ fn expand_row(
 mod tests {
     use super::*;
 
+    /// An image held whole.
+    struct Whole<'a> {
+        img: &'a [f32],
+        h: usize,
+        w: usize,
+    }
+
+    impl Rows for Whole<'_> {
+        fn height(&self) -> usize {
+            self.h
+        }
+        fn width(&self) -> usize {
+            self.w
+        }
+        fn fill(&self, rows: Range<usize>, out: &mut [f32], _: &mut Vec<f32>) {
+            out.copy_from_slice(&self.img[rows.start * self.w..rows.end * self.w]);
+        }
+    }
+
     /// A quadratic image is reproduced exactly by the expansion (away from borders):
     /// f = 3 + 0.5x − 0.25y + 0.1x² − 0.05y² + 0.02xy.
     #[test]
@@ -211,7 +282,7 @@ mod tests {
             .collect();
         let k = PolyKernel::new(5, 1.1);
         let mut out = Vec::new();
-        expand(&k, &img, h, w, &mut out);
+        expand(&k, &Whole { img: &img, h, w }, &mut out);
         let (x, y) = (11usize, 10usize);
         let d: Vec<f32> = (0..5).map(|c| out[y * 5 * w + c * w + x]).collect();
         // Gradient at (x, y): b_y = −0.25 − 0.1y + 0.02x, b_x = 0.5 + 0.2x + 0.02y.
@@ -230,7 +301,7 @@ mod tests {
         img[15 * w + 15] = f32::NAN;
         let k = PolyKernel::new(5, 1.1);
         let mut out = Vec::new();
-        expand(&k, &img, h, w, &mut out);
+        expand(&k, &Whole { img: &img, h, w }, &mut out);
         assert!(out[15 * 5 * w + 20].is_nan());
         assert!(out[15 * 5 * w + 21].is_finite());
         assert!(out[9 * 5 * w + 15].is_finite());

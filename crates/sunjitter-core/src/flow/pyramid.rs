@@ -8,7 +8,6 @@
 
 use super::Rect;
 use ndarray::{s, ArrayView2};
-use rayon::prelude::*;
 
 /// OpenCV's `cvRound` (round half to even).
 pub(crate) fn cv_round(v: f64) -> i64 {
@@ -191,109 +190,124 @@ fn blur_row(job: &RowJob<'_, '_>, sy: usize, vrow: &mut [f32], dst: &mut [f32]) 
     }
 }
 
-/// Fill `out` (domain-sized, row-major) with level pixels of `img`.
-/// `level_size` = (height, width) of the whole level; `scale` its pyramid scale.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn build_level(
-    img: Normalised,
-    scale: f64,
-    level_size: (usize, usize),
-    dom: Rect,
-    out: &mut Vec<f32>,
-    rows_buf: &mut Vec<f32>,
-) {
-    let kernel = level_kernel(scale);
-    let r = kernel.len() / 2;
-    let (lh, lw) = level_size;
-    let (src_h, src_w) = img.img.dim();
+/// A pyramid level's pixels over a domain, made a band of rows at a time as the polynomial
+/// expansion reads them: no level-sized copy of an image is kept, only its expansion.
+pub(crate) struct LevelRows<'a> {
+    img: Normalised<'a>,
+    src_h: usize,
+    src_w: usize,
+    kernel: Vec<f32>,
+    /// Resize taps of every domain row.
+    ytaps: Vec<Tap>,
+    /// Source columns the resize reads, and where each domain column finds its two.
+    need_cols: Vec<usize>,
+    col_pos: Vec<(usize, usize, f32)>,
+    /// Columns the horizontal blur reads (reflections stay inside this span, see reflect101).
+    vlo: usize,
+    vw: usize,
+}
 
-    // Which source rows/columns the resize reads for this domain.
-    let ytaps: Vec<Tap> = (dom.y0..dom.y1)
-        .map(|d| {
-            if lh == src_h {
+impl<'a> LevelRows<'a> {
+    /// The level of `img` with scale `scale`, `level_size` = (height, width) of the whole level,
+    /// over `dom`.
+    pub(crate) fn new(
+        img: Normalised<'a>,
+        scale: f64,
+        level_size: (usize, usize),
+        dom: Rect,
+    ) -> LevelRows<'a> {
+        let kernel = level_kernel(scale);
+        let r = kernel.len() / 2;
+        let (lh, lw) = level_size;
+        let (src_h, src_w) = img.img.dim();
+        let tap = |d: usize, src: usize, level: usize| {
+            if level == src {
                 Tap {
                     i0: d,
                     i1: d,
                     w1: 0.0,
                 }
             } else {
-                resize_tap(d, src_h, lh)
+                resize_tap(d, src, level)
             }
-        })
-        .collect();
-    let xtaps: Vec<Tap> = (dom.x0..dom.x1)
-        .map(|d| {
-            if lw == src_w {
-                Tap {
-                    i0: d,
-                    i1: d,
-                    w1: 0.0,
-                }
-            } else {
-                resize_tap(d, src_w, lw)
-            }
-        })
-        .collect();
-    let mut need_rows: Vec<usize> = ytaps.iter().flat_map(|t| [t.i0, t.i1]).collect();
-    need_rows.sort_unstable();
-    need_rows.dedup();
-    let col_lo = xtaps.iter().map(|t| t.i0).min().unwrap_or(0);
-    let col_hi = xtaps.iter().map(|t| t.i1).max().unwrap_or(0);
-    // Columns the horizontal blur reads (reflections stay inside this span, see reflect101).
-    let vlo = col_lo.saturating_sub(r);
-    let vhi = (col_hi + r).min(src_w - 1);
-    let vw = vhi - vlo + 1;
+        };
+        let ytaps: Vec<Tap> = (dom.y0..dom.y1).map(|d| tap(d, src_h, lh)).collect();
+        let xtaps: Vec<Tap> = (dom.x0..dom.x1).map(|d| tap(d, src_w, lw)).collect();
+        let col_lo = xtaps.iter().map(|t| t.i0).min().unwrap_or(0);
+        let col_hi = xtaps.iter().map(|t| t.i1).max().unwrap_or(0);
+        let vlo = col_lo.saturating_sub(r);
+        let vhi = (col_hi + r).min(src_w - 1);
+        let mut need_cols: Vec<usize> = xtaps.iter().flat_map(|t| [t.i0, t.i1]).collect();
+        need_cols.sort_unstable();
+        need_cols.dedup();
+        let col_pos = xtaps
+            .iter()
+            .map(|t| {
+                (
+                    need_cols.binary_search(&t.i0).unwrap_or(0),
+                    need_cols.binary_search(&t.i1).unwrap_or(0),
+                    t.w1,
+                )
+            })
+            .collect();
+        LevelRows {
+            img,
+            src_h,
+            src_w,
+            kernel,
+            ytaps,
+            need_cols,
+            col_pos,
+            vlo,
+            vw: vhi - vlo + 1,
+        }
+    }
 
-    // Vertical blur of the needed rows over [vlo, vhi]; then horizontal blur at the needed
-    // columns only. Row buffer: one blurred row per needed source row.
-    let need_cols: Vec<usize> = {
-        let mut c: Vec<usize> = xtaps.iter().flat_map(|t| [t.i0, t.i1]).collect();
-        c.sort_unstable();
-        c.dedup();
-        c
-    };
-    let ncols = need_cols.len();
-    crate::pages::fill_vec(rows_buf, need_rows.len() * ncols, 0.0);
-    rows_buf
-        .par_chunks_mut(ncols.max(1))
-        .zip(need_rows.par_iter())
-        .for_each_init(
-            || vec![0f32; vw],
-            |vrow, (dst, &sy)| {
-                let job = RowJob {
-                    img,
-                    src_h,
-                    src_w,
-                    kernel: &kernel,
-                    vlo,
-                    need_cols: &need_cols,
-                };
-                blur_row_mv(&job, sy, vrow, dst)
-            },
-        );
+    /// Rows of the domain.
+    pub(crate) fn height(&self) -> usize {
+        self.ytaps.len()
+    }
 
-    // Bilinear combination into the domain.
-    let row_pos = |sy: usize| need_rows.binary_search(&sy).unwrap_or(0);
-    let col_pos: Vec<(usize, usize, f32)> = xtaps
-        .iter()
-        .map(|t| {
-            (
-                need_cols.binary_search(&t.i0).unwrap_or(0),
-                need_cols.binary_search(&t.i1).unwrap_or(0),
-                t.w1,
-            )
-        })
-        .collect();
-    let dw = dom.width();
-    crate::pages::fill_vec(out, dom.height() * dw, 0.0);
-    let rows_buf: &[f32] = rows_buf;
-    out.par_chunks_mut(dw.max(1))
-        .zip(ytaps.par_iter())
-        .for_each(|(orow, ty)| {
-            let a = &rows_buf[row_pos(ty.i0) * ncols..][..ncols];
-            let b = &rows_buf[row_pos(ty.i1) * ncols..][..ncols];
+    /// Columns of the domain.
+    pub(crate) fn width(&self) -> usize {
+        self.col_pos.len()
+    }
+
+    /// Domain rows `rows` into `out` (row-major, [`width`](Self::width) wide): the vertical
+    /// blur of the source rows they read over the blur's columns, the horizontal blur at the
+    /// resize's columns only, then the bilinear combination. `scratch` holds the blurred rows.
+    pub(crate) fn fill(
+        &self,
+        rows: std::ops::Range<usize>,
+        out: &mut [f32],
+        scratch: &mut Vec<f32>,
+    ) {
+        let taps = &self.ytaps[rows];
+        let mut need_rows: Vec<usize> = taps.iter().flat_map(|t| [t.i0, t.i1]).collect();
+        need_rows.sort_unstable();
+        need_rows.dedup();
+        let ncols = self.need_cols.len();
+        scratch.resize(need_rows.len() * ncols + self.vw, 0.0);
+        let (blurred, vrow) = scratch.split_at_mut(need_rows.len() * ncols);
+        let job = RowJob {
+            img: self.img,
+            src_h: self.src_h,
+            src_w: self.src_w,
+            kernel: &self.kernel,
+            vlo: self.vlo,
+            need_cols: &self.need_cols,
+        };
+        for (dst, &sy) in blurred.chunks_mut(ncols.max(1)).zip(&need_rows) {
+            blur_row_mv(&job, sy, vrow, dst);
+        }
+        let blurred: &[f32] = blurred;
+        let row_pos = |sy: usize| need_rows.binary_search(&sy).unwrap_or(0);
+        let dw = self.width();
+        for (orow, ty) in out.chunks_mut(dw.max(1)).zip(taps) {
+            let a = &blurred[row_pos(ty.i0) * ncols..][..ncols];
+            let b = &blurred[row_pos(ty.i1) * ncols..][..ncols];
             let wy = ty.w1;
-            for (o, &(c0, c1, wx)) in orow.iter_mut().zip(&col_pos) {
+            for (o, &(c0, c1, wx)) in orow.iter_mut().zip(&self.col_pos) {
                 let top = a[c0] + wx * (a[c1] - a[c0]);
                 let bot = b[c0] + wx * (b[c1] - b[c0]);
                 *o = if wy == 0.0 {
@@ -302,7 +316,8 @@ pub(crate) fn build_level(
                     top + wy * (bot - top)
                 };
             }
-        });
+        }
+    }
 }
 
 #[cfg(test)]
