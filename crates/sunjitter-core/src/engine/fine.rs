@@ -165,6 +165,7 @@ pub(super) fn fine_alignment(
     let mut solver: Option<Farneback> = workspace.take();
     let mut pass = 0;
     let mut last_moved: Option<f64> = None;
+    let mut last_crop: Option<Crop> = None;
     loop {
         pass += 1;
         let pass_started = Instant::now();
@@ -205,11 +206,16 @@ pub(super) fn fine_alignment(
             ..FlowOptions::affine_grid(winsize)
         };
         let mut s = configured_solver(solver.take(), &params, &options)?;
+        // The same reference crop as the last pass's: its expansion is kept.
+        if last_crop.as_ref() == Some(&crop) {
+            s.next_prev_unchanged();
+        }
         let warped_at = pass_started.elapsed();
         let flow = s
             .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
         solver = Some(s);
+        last_crop = Some(crop.clone());
         let flow_at = pass_started.elapsed();
 
         let sample_mask = sample_mask(

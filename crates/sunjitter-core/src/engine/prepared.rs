@@ -261,6 +261,7 @@ impl ReferenceWork {
         kept: Option<FrameWork>,
     ) -> Result<ReferenceWork, String> {
         let (h, w) = reference.data.dim();
+        let started = Instant::now();
         check_usable("reference", &reference.data)?;
         let (cleaned, reference_check, notes, handed_on) = match kept {
             Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
@@ -273,6 +274,7 @@ impl ReferenceWork {
                 (cleaned, check, notes, None)
             }
         };
+        let checked_at = started.elapsed();
         let (checked, disk_px) = (&reference_check.meta, reference_check.disk_px);
 
         // Mask on the reference grid: the disk without its limb, or the whole valid field.
@@ -282,8 +284,12 @@ impl ReferenceWork {
         };
         Zip::from(&mut mask)
             .and(&cleaned)
-            .for_each(|m, v| *m = *m && v.is_finite());
-        let mask_pixels = mask.iter().filter(|m| **m).count();
+            .par_for_each(|m, v| *m = *m && v.is_finite());
+        let mask_pixels = mask
+            .axis_iter(ndarray::Axis(0))
+            .into_par_iter()
+            .map(|row| row.iter().filter(|m| **m).count())
+            .sum::<usize>();
         let mask_error = (mask_pixels < 64).then(|| {
             format!(
                 "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"
@@ -292,6 +298,7 @@ impl ReferenceWork {
         // Filters and statistics below only matter inside the mask: run them on its bounding
         // box plus the filter's reach (the disk covers under half of a full-disk frame).
         let mask_box = mask_roi(&mask);
+        let masked_at = started.elapsed();
 
         // Window sized for the plate scale, bounded by what the image's structure supports.
         let plate = checked.plate_scale_arcsec[0].abs();
@@ -305,7 +312,7 @@ impl ReferenceWork {
             None
         };
         let winsize = choose_window(cfg, plate, structure, disk_px.map(|d| d.1), w, h);
-        tracing::debug!(?structure, winsize, plate, "window chosen");
+        tracing::debug!(?structure, winsize, plate, ?checked_at, ?masked_at, chosen_at = ?started.elapsed(), "window chosen");
         Ok(ReferenceWork {
             meta: reference.meta.clone(),
             reference_check,
@@ -444,19 +451,24 @@ fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f
         return None;
     }
     let trend = preprocess::gaussian_smooth(img, STRUCTURE_TREND_SIGMA_PX);
-    let hp = |yy: usize, xx: usize| (img[[yy, xx]] - trend[[yy, xx]]) as f64;
     // Row sums in parallel, added in row order: the same figure whatever the thread count.
     let rows: Vec<[f64; 4]> = (1..h - 1)
         .into_par_iter()
         .map(|y| {
+            let hp_row = |yy: usize| {
+                let (i, t) = (img.row(yy), trend.row(yy));
+                move |xx: usize| (i[xx] - t[xx]) as f64
+            };
+            let (above, here, below) = (hp_row(y - 1), hp_row(y), hp_row(y + 1));
+            let m = mask.row(y);
             let mut sums = [0.0f64; 4];
             for x in 1..w - 1 {
-                if !mask[[y, x]] {
+                if !m[x] {
                     continue;
                 }
-                let v = hp(y, x);
-                let gx = (hp(y, x + 1) - hp(y, x - 1)) / 2.0;
-                let gy = (hp(y + 1, x) - hp(y - 1, x)) / 2.0;
+                let v = here(x);
+                let gx = (here(x + 1) - here(x - 1)) / 2.0;
+                let gy = (below(x) - above(x)) / 2.0;
                 if !(v.is_finite() && gx.is_finite() && gy.is_finite()) {
                     continue;
                 }

@@ -231,6 +231,10 @@ pub struct Farneback {
     /// The two images' polynomial expansions at the current level (the levels themselves are
     /// made band by band as they are expanded, and not kept).
     r0: Vec<f32>,
+    /// What `r0` was expanded from, and whether the next computation's first image is the
+    /// last one's ([`Farneback::next_prev_unchanged`]).
+    r0_key: Option<ExpansionKey>,
+    prev_unchanged: bool,
     r1: Vec<f32>,
     u: [Vec<f32>; 2],
     v: [Vec<f32>; 2],
@@ -313,6 +317,18 @@ fn finite_stats(img: ArrayView2<f32>, rect: Rect) -> Option<(f64, f64)> {
     }
 }
 
+/// What an expansion depends on besides the image's pixels: its size and level, the domain,
+/// the normalisation and the kernel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ExpansionKey {
+    image: (usize, usize),
+    level: (usize, usize),
+    dom: Rect,
+    offset: f32,
+    gain: f32,
+    poly: (usize, f64),
+}
+
 impl Farneback {
     pub fn new(params: FarnebackParams) -> Result<Self> {
         check_params(&params)?;
@@ -331,6 +347,8 @@ impl Farneback {
             poly,
             gauss,
             r0: Vec::new(),
+            r0_key: None,
+            prev_unchanged: false,
             r1: Vec::new(),
             u: [Vec::new(), Vec::new()],
             v: [Vec::new(), Vec::new()],
@@ -342,6 +360,13 @@ impl Farneback {
 
     pub fn params(&self) -> &FarnebackParams {
         &self.params
+    }
+
+    /// Declare that the next computation's first image holds the same pixels as the last
+    /// one's: its expansion is kept where the level, domain and normalisation are the same
+    /// too (successive passes against one reference).
+    pub fn next_prev_unchanged(&mut self) {
+        self.prev_unchanged = true;
     }
 
     /// Change the parameters and options, keeping every buffer (a solver reused for another
@@ -464,6 +489,7 @@ impl Farneback {
         out: &mut Flow,
     ) -> Result<()> {
         let (h, w) = prev.dim();
+        let reuse = std::mem::take(&mut self.prev_unchanged);
         let roi_rect = checked_domain(prev.dim(), next.dim(), roi, init)?;
         for a in [&mut out.u, &mut out.v] {
             if a.dim() == (h, w) {
@@ -498,10 +524,23 @@ impl Farneback {
             }
             let dom = g.dom;
             let (dh, dw) = (dom.height(), dom.width());
-            for (img, r) in [(norm0, &mut self.r0), (norm1, &mut self.r1)] {
+            let key = ExpansionKey {
+                image: (h, w),
+                level: (g.h, g.w),
+                dom,
+                offset,
+                gain,
+                poly: (self.params.poly_n, self.params.poly_sigma),
+            };
+            let expand = |img, r: &mut Vec<f32>| {
                 let level = pyramid::LevelRows::new(img, g.scale, (g.h, g.w), dom);
                 poly::expand(&self.poly, &level, r);
+            };
+            if !(reuse && self.r0_key == Some(key)) {
+                expand(norm0, &mut self.r0);
             }
+            expand(norm1, &mut self.r1);
+            self.r0_key = Some(key);
 
             // Initial flow for this level (dense, or on the grid).
             if use_grid {

@@ -322,3 +322,53 @@ fn initial_flow_is_used() {
     let cu = median(cold.u.iter().copied().collect());
     assert!((cu - 12.30).abs() > 1.0, "without the initial flow: {cu}");
 }
+
+/// A solver told that its first image is unchanged keeps that image's expansion: a second
+/// pass against the same reference gives, bit for bit, the field a fresh solver gives (and
+/// the injected shift); told so before an image of another size, it expands that one afresh.
+#[test]
+fn a_kept_reference_expansion_gives_the_fresh_solvers_field() {
+    let prev = load_fixture("prev.f32");
+    let next = load_fixture("shift_next.f32");
+    let other = load_fixture("warp_next.f32");
+    let p = FarnebackParams {
+        levels: 0,
+        ..small_params()
+    };
+    let solver = || {
+        Farneback::new(p.clone())
+            .and_then(|f| f.with_options(FlowOptions::affine_grid(p.winsize)))
+            .expect("solver")
+    };
+    let same = |a: &Flow, b: &Flow| {
+        let bits = |x: &Array2<f32>| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        bits(&a.u) == bits(&b.u) && bits(&a.v) == bits(&b.v)
+    };
+    let mut kept = solver();
+    kept.compute(prev.view(), other.view(), None, None)
+        .expect("flow");
+    kept.next_prev_unchanged();
+    let again = kept
+        .compute(prev.view(), next.view(), None, None)
+        .expect("flow");
+    let fresh = solver()
+        .compute(prev.view(), next.view(), None, None)
+        .expect("flow");
+    assert!(same(&again, &fresh), "kept expansion changed the field");
+    let mu = median(again.u.iter().copied().collect());
+    let mv = median(again.v.iter().copied().collect());
+    assert!(
+        (mu - 0.30).abs() < 0.01 && (mv + 0.45).abs() < 0.01,
+        "median flow ({mu}, {mv}) vs (0.30, -0.45)"
+    );
+
+    let part = ndarray::s![..160, 20..200];
+    kept.next_prev_unchanged();
+    let cropped = kept
+        .compute(prev.slice(part), next.slice(part), None, None)
+        .expect("flow");
+    let fresh = solver()
+        .compute(prev.slice(part), next.slice(part), None, None)
+        .expect("flow");
+    assert!(same(&cropped, &fresh), "a stale expansion was used");
+}

@@ -154,13 +154,17 @@ pub(super) fn noise_covariance(
     if used.len() < 64 {
         return None;
     }
-    let gradient = |k: usize| pixels[k].gx.hypot(pixels[k].gy);
-    let mut gradients: Vec<f64> = used.par_iter().map(|&k| gradient(k)).collect();
-    let (_, &mut flattest, _) = gradients.select_nth_unstable_by(used.len() / 4, f64::total_cmp);
+    let gradients: Vec<f64> = used
+        .par_iter()
+        .map(|&k| pixels[k].gx.hypot(pixels[k].gy))
+        .collect();
+    let mut order = gradients.clone();
+    let (_, &mut flattest, _) = order.select_nth_unstable_by(used.len() / 4, f64::total_cmp);
     let flat: Vec<f64> = used
         .par_iter()
-        .filter(|&&k| gradient(k) <= flattest)
-        .map(|&k| residuals[k])
+        .zip(&gradients)
+        .filter(|&(_, &g)| g <= flattest)
+        .map(|(&k, _)| residuals[k])
         .collect();
     let flat_sigma = robust_sigma(&flat)?;
     if !with_covariance {
