@@ -5,7 +5,6 @@
 //! Borders replicate the edge pixel, as OpenCV does. A pixel whose support touches missing
 //! data (NaN) gets NaN in all five channels.
 
-use super::pyramid::LevelRows;
 use super::simd;
 use nalgebra::SMatrix;
 use rayon::prelude::*;
@@ -85,18 +84,6 @@ pub(crate) trait Rows: Sync {
     fn width(&self) -> usize;
     /// Rows `rows` into `out` (row-major); `scratch` is the source's own working space.
     fn fill(&self, rows: Range<usize>, out: &mut [f32], scratch: &mut Vec<f32>);
-}
-
-impl Rows for LevelRows<'_> {
-    fn height(&self) -> usize {
-        LevelRows::height(self)
-    }
-    fn width(&self) -> usize {
-        LevelRows::width(self)
-    }
-    fn fill(&self, rows: Range<usize>, out: &mut [f32], scratch: &mut Vec<f32>) {
-        LevelRows::fill(self, rows, out, scratch)
-    }
 }
 
 /// Rows each task expands; it makes them and the `n` rows on either side that their

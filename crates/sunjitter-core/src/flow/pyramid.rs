@@ -262,26 +262,21 @@ impl<'a> LevelRows<'a> {
             vw: vhi - vlo + 1,
         }
     }
+}
 
-    /// Rows of the domain.
-    pub(crate) fn height(&self) -> usize {
+impl super::poly::Rows for LevelRows<'_> {
+    fn height(&self) -> usize {
         self.ytaps.len()
     }
 
-    /// Columns of the domain.
-    pub(crate) fn width(&self) -> usize {
+    fn width(&self) -> usize {
         self.col_pos.len()
     }
 
-    /// Domain rows `rows` into `out` (row-major, [`width`](Self::width) wide): the vertical
-    /// blur of the source rows they read over the blur's columns, the horizontal blur at the
-    /// resize's columns only, then the bilinear combination. `scratch` holds the blurred rows.
-    pub(crate) fn fill(
-        &self,
-        rows: std::ops::Range<usize>,
-        out: &mut [f32],
-        scratch: &mut Vec<f32>,
-    ) {
+    /// Domain rows `rows`: the vertical blur of the source rows they read over the blur's
+    /// columns, the horizontal blur at the resize's columns only, then the bilinear
+    /// combination. `scratch` holds the blurred rows.
+    fn fill(&self, rows: std::ops::Range<usize>, out: &mut [f32], scratch: &mut Vec<f32>) {
         let taps = &self.ytaps[rows];
         let mut need_rows: Vec<usize> = taps.iter().flat_map(|t| [t.i0, t.i1]).collect();
         need_rows.sort_unstable();
