@@ -231,11 +231,11 @@ pub struct Farneback {
     /// The two images' polynomial expansions at the current level (the levels themselves are
     /// made band by band as they are expanded, and not kept).
     r0: Vec<f32>,
+    r1: Vec<f32>,
     /// What `r0` was expanded from, and whether the next computation's first image is the
     /// last one's ([`Farneback::next_prev_unchanged`]).
     r0_key: Option<ExpansionKey>,
     prev_unchanged: bool,
-    r1: Vec<f32>,
     u: [Vec<f32>; 2],
     v: [Vec<f32>; 2],
     prev_u: Vec<f32>,
@@ -347,9 +347,9 @@ impl Farneback {
             poly,
             gauss,
             r0: Vec::new(),
+            r1: Vec::new(),
             r0_key: None,
             prev_unchanged: false,
-            r1: Vec::new(),
             u: [Vec::new(), Vec::new()],
             v: [Vec::new(), Vec::new()],
             prev_u: Vec::new(),
