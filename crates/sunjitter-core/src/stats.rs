@@ -98,17 +98,81 @@ pub fn mad_sigma(values: &[f64]) -> Option<f64> {
     Some(1.482_602_218_505_602 * median(&dev)?)
 }
 
+/// Below this many values a selection runs serially.
+const SERIAL_SELECT_BELOW: usize = 1 << 14;
+
 /// The `k`-th smallest (0-based) of `values`, which must all be finite: the value
-/// `select_nth_unstable_by(k, f64::total_cmp)` finds, but by parallel radix passes over the
-/// values' order-preserving bit patterns (16 bits a pass, sign and exponent first, so that
-/// heavy tails and outliers do not crowd the candidates into one bin), so that the
-/// refinement's robust scale is not a serial step.
+/// `select_nth_unstable_by(k, f64::total_cmp)` finds, in parallel, so that the refinement's
+/// robust scale is not a serial step. A strided sample brackets rank `k` and one pass keeps
+/// the values inside the bracket ([`bracketed_select`]); when the bracket misses (values
+/// laid out against the stride), parallel radix passes find it ([`radix_select`]).
 pub fn par_select(values: &[f64], k: usize) -> f64 {
+    assert!(k < values.len(), "par_select: k out of range");
+    if values.len() < SERIAL_SELECT_BELOW {
+        let mut rest = values.to_vec();
+        return *rest.select_nth_unstable_by(k, f64::total_cmp).1;
+    }
+    bracketed_select(values, k).unwrap_or_else(|| radix_select(values, k))
+}
+
+/// [`par_select`] from a bracket: a strided sample of 8192 values, sorted, gives two
+/// values whose ranks lie well either side of `k` (the sample's rank at `k` is uncertain by
+/// at most `√8192 / 2` ≈ 45 places; the bracket is 256 places either side). One parallel
+/// pass counts the values below the bracket and keeps those inside it, about 6 % of them;
+/// `None` when rank `k` falls outside.
+fn bracketed_select(values: &[f64], k: usize) -> Option<f64> {
     use rayon::prelude::*;
-    const SERIAL_BELOW: usize = 1 << 14;
+    use std::cmp::Ordering::{Greater, Less};
+    const SAMPLE: usize = 8192;
+    const MARGIN: usize = 256;
+    let n = values.len();
+    let stride = n / SAMPLE;
+    if stride < 2 {
+        return None;
+    }
+    let mut sample: Vec<f64> = (0..SAMPLE)
+        .map(|i| values[i * stride + stride / 2])
+        .collect();
+    sample.sort_unstable_by(f64::total_cmp);
+    let at = ((k as f64 / n as f64) * SAMPLE as f64) as usize;
+    // Open-ended where the bracket would pass the sample's ends.
+    let lo = at.checked_sub(MARGIN).map(|i| sample[i]);
+    let hi = (at + MARGIN < SAMPLE).then(|| sample[at + MARGIN]);
+    let below_lo = |v: &f64| lo.is_some_and(|lo| v.total_cmp(&lo) == Less);
+    let above_hi = |v: &f64| hi.is_some_and(|hi| v.total_cmp(&hi) == Greater);
+    let chunk = n.div_ceil(4 * rayon::current_num_threads().max(1));
+    let parts: Vec<(usize, Vec<f64>)> = values
+        .par_chunks(chunk)
+        .map(|c| {
+            let mut below = 0;
+            let mut inside = Vec::with_capacity(c.len() / 8);
+            for v in c {
+                if below_lo(v) {
+                    below += 1;
+                } else if !above_hi(v) {
+                    inside.push(*v);
+                }
+            }
+            (below, inside)
+        })
+        .collect();
+    let below: usize = parts.iter().map(|p| p.0).sum();
+    let inside_len: usize = parts.iter().map(|p| p.1.len()).sum();
+    if k < below || k >= below + inside_len {
+        return None;
+    }
+    let mut inside = Vec::with_capacity(inside_len);
+    parts.into_iter().for_each(|p| inside.extend(p.1));
+    Some(*inside.select_nth_unstable_by(k - below, f64::total_cmp).1)
+}
+
+/// [`par_select`] by parallel radix passes over the values' order-preserving bit patterns
+/// (16 bits a pass, sign and exponent first, so that heavy tails and outliers do not crowd
+/// the candidates into one bin).
+fn radix_select(values: &[f64], k: usize) -> f64 {
+    use rayon::prelude::*;
     const DIGIT: u32 = 16;
     const BINS: usize = 1 << DIGIT;
-    assert!(k < values.len(), "par_select: k out of range");
     // Unsigned keys in the values' total order.
     let key = |v: f64| {
         let b = v.to_bits();
@@ -125,7 +189,7 @@ pub fn par_select(values: &[f64], k: usize) -> f64 {
     // agree already. The rank inside the kept digit is known from the counts below it.
     for shift in (0..64).step_by(DIGIT as usize).rev() {
         let candidates: &[f64] = owned.as_deref().unwrap_or(values);
-        if candidates.len() < SERIAL_BELOW {
+        if candidates.len() < SERIAL_SELECT_BELOW {
             break;
         }
         let digit = move |v: f64| ((key(v) >> shift) as usize) & (BINS - 1);
@@ -237,6 +301,30 @@ mod tests {
                 "k = {k}"
             );
         }
+    }
+
+    #[test]
+    fn both_selections_find_what_a_full_sort_finds() {
+        let mut rng = SplitMix64::new(11);
+        let n = 100_000;
+        let stride = n / 8192;
+        // Gaussian values, and the same with every value the strided sample reads made a far
+        // outlier: the sample's bracket then holds none of the ranks asked for.
+        let plain: Vec<f64> = (0..n).map(|_| rng.gaussian()).collect();
+        let mut against = plain.clone();
+        for i in 0..8192 {
+            against[i * stride + stride / 2] = 1e9 + i as f64;
+        }
+        for values in [&plain, &against] {
+            let mut sorted = values.clone();
+            sorted.sort_by(f64::total_cmp);
+            for k in [0, 7, 300, n / 4, n / 2, n / 2 + 1, n - 9000, n - 1] {
+                assert_eq!(radix_select(values, k), sorted[k], "radix, k = {k}");
+                assert_eq!(par_select(values, k), sorted[k], "k = {k}");
+            }
+        }
+        assert!(bracketed_select(&plain, n / 2).is_some());
+        assert!(bracketed_select(&against, n / 2).is_none());
     }
 
     #[test]

@@ -147,19 +147,15 @@ pub(super) fn noise_covariance(
 ) -> Option<(Option<Matrix6<f64>>, f64)> {
     let (jac, residuals, weights) = (fit.jac, fit.residuals, fit.weights);
     let counts = |k: usize| weights[k] > 0.0 && residuals[k].is_finite();
-    let used: Vec<usize> = (0..pixels.len())
+    let (used, gradients): (Vec<usize>, Vec<f64>) = (0..pixels.len())
         .into_par_iter()
         .filter(|&k| counts(k))
-        .collect();
+        .map(|k| (k, pixels[k].gx.hypot(pixels[k].gy)))
+        .unzip();
     if used.len() < 64 {
         return None;
     }
-    let gradients: Vec<f64> = used
-        .par_iter()
-        .map(|&k| pixels[k].gx.hypot(pixels[k].gy))
-        .collect();
-    let mut order = gradients.clone();
-    let (_, &mut flattest, _) = order.select_nth_unstable_by(used.len() / 4, f64::total_cmp);
+    let flattest = crate::stats::par_select(&gradients, used.len() / 4);
     let flat: Vec<f64> = used
         .par_iter()
         .zip(&gradients)
@@ -170,13 +166,19 @@ pub(super) fn noise_covariance(
     if !with_covariance {
         return Some((None, flat_sigma));
     }
-    let u: Vec<Vector6<f64>> = (0..pixels.len())
+    // Each pixel's ψ′ (zero where it does not count); its row `ψ′·J` is made where it is
+    // read, instead of a frame of 6-vectors.
+    let psi: Vec<f64> = (0..pixels.len())
         .into_par_iter()
         .map(|k| match counts(k) {
-            true => Vector6::from(jac[k]) * tukey_psi_slope(residuals[k], tukey_c),
-            false => Vector6::zeros(),
+            true => tukey_psi_slope(residuals[k], tukey_c),
+            false => 0.0,
         })
         .collect();
+    let u = |k: usize| match counts(k) {
+        true => Vector6::from(jac[k]) * psi[k],
+        false => Vector6::zeros(),
+    };
     // Summed in fixed chunks, in order: the same σ whatever the thread count.
     let slope = sum_in_chunks(
         used.len(),
@@ -212,11 +214,11 @@ pub(super) fn noise_covariance(
             for x in x0..=x1 {
                 let j = row[x];
                 if j != u32::MAX {
-                    near += u[j as usize] * weights[x + reach - cx];
+                    near += u(j as usize) * weights[x + reach - cx];
                 }
             }
         }
-        u[i] * near.transpose()
+        u(i) * near.transpose()
     };
     let meat = sum_in_chunks(
         used.len(),
@@ -246,19 +248,24 @@ struct Lattice {
 impl Lattice {
     fn of(pixels: &[Pixel]) -> Option<Lattice> {
         let step = pixels
-            .windows(2)
+            .par_windows(2)
             .filter(|p| p[0].y == p[1].y && p[1].x > p[0].x)
             .map(|p| p[1].x - p[0].x)
             .min()
             .unwrap_or(1);
-        let (x0, x1) = (
-            pixels.iter().map(|p| p.x).min()?,
-            pixels.iter().map(|p| p.x).max()?,
-        );
-        let (y0, y1) = (
-            pixels.iter().map(|p| p.y).min()?,
-            pixels.iter().map(|p| p.y).max()?,
-        );
+        let (x0, y0, x1, y1) = pixels
+            .par_iter()
+            .fold(
+                || (usize::MAX, usize::MAX, 0, 0),
+                |b, p| (b.0.min(p.x), b.1.min(p.y), b.2.max(p.x), b.3.max(p.y)),
+            )
+            .reduce(
+                || (usize::MAX, usize::MAX, 0, 0),
+                |a, b| (a.0.min(b.0), a.1.min(b.1), a.2.max(b.2), a.3.max(b.3)),
+            );
+        if pixels.is_empty() {
+            return None;
+        }
         let origin = (x0 / step, y0 / step);
         let mut lattice = Lattice {
             step,

@@ -177,6 +177,12 @@ impl<'a> Problem<'a> {
         self.frame
             .sample(&self.fit.pixels, self.carried.as_deref(), t)
     }
+
+    /// [`Self::sample`] into the buffer of the last one.
+    fn resample(&self, t: &Similarity, out: &mut [[f64; 3]]) {
+        self.frame
+            .sample_into(&self.fit.pixels, self.carried.as_deref(), t, out)
+    }
 }
 
 /// The iterations' state: the estimate and photometry, the frame sampled there, and the
@@ -187,6 +193,8 @@ struct SolverState {
     offset: f64,
     /// The frame at `estimate`.
     sampled: Vec<[f64; 3]>,
+    /// The residuals' buffer, filled anew by every iteration.
+    residuals: Vec<f64>,
     weights: Vec<f64>,
     scale: f64,
     iterations: usize,
@@ -201,6 +209,7 @@ impl SolverState {
             gain,
             offset,
             sampled,
+            residuals: vec![0.0; problem.fit.pixels.len()],
             weights: vec![0.0; problem.fit.pixels.len()],
             scale: f64::NAN,
             iterations: 0,
@@ -236,11 +245,12 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
         )));
     }
     let (gain, offset) = (state.gain, state.offset);
-    let residuals: Vec<f64> = pixels
-        .par_iter()
+    let mut residuals = std::mem::take(&mut state.residuals);
+    residuals
+        .par_iter_mut()
+        .zip(pixels)
         .zip(sampled)
-        .map(|(p, s)| p.value - gain * s[0] - offset)
-        .collect();
+        .for_each(|((r, p), s)| *r = p.value - gain * s[0] - offset);
     reweigh(&mut state, &residuals)?;
     let (sampled, weights) = (&state.sampled, &state.weights);
     // Its slope, `Σ w·J_ref·J_frameᵀ`, in fixed chunks summed in order (deterministic).
@@ -279,7 +289,7 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
         dy: delta[3],
         center: problem.fit.center,
     };
-    let moved = (delta[2].hypot(delta[3])) + delta[0].hypot(delta[1]) * lever * 2.0;
+    let moved = moved_px(&step, lever);
     if !moved.is_finite() {
         return Err(failed(iterations, "the refinement diverged"));
     }
@@ -298,8 +308,15 @@ fn step(problem: &Problem, mut state: SolverState) -> Result<Next, RefineFailure
     state.estimate = state.estimate.after(&update);
     state.gain += step[4];
     state.offset += step[5];
-    state.sampled = problem.sample(&state.estimate);
+    state.residuals = residuals;
+    problem.resample(&state.estimate, &mut state.sampled);
     Ok(Next::Continue(state))
+}
+
+/// How far a step moves the pixels, px: its shift, and twice what its scale and rotation
+/// change move the lever arm.
+fn moved_px(step: &Vector6<f64>, lever: f64) -> f64 {
+    step[2].hypot(step[3]) + (step[0] / lever).hypot(step[1] / lever) * lever * 2.0
 }
 
 /// Iteratively reweighted for the first iterations, then with the weights frozen: on real

@@ -125,10 +125,24 @@ impl FrameWindow {
         carried: Option<&[(f64, f64)]>,
         t: &Similarity,
     ) -> Vec<[f64; 3]> {
+        let mut out = vec![[0.0; 3]; pixels.len()];
+        self.sample_into(pixels, carried, t, &mut out);
+        out
+    }
+
+    /// [`Self::sample`] into `out` (one entry per pixel): iterations resample into the
+    /// buffer they read last, instead of faulting in a new one.
+    pub(super) fn sample_into(
+        &self,
+        pixels: &[Pixel],
+        carried: Option<&[(f64, f64)]>,
+        t: &Similarity,
+        out: &mut [[f64; 3]],
+    ) {
+        assert_eq!(out.len(), pixels.len(), "one sample per pixel");
         let (a, b) = t.ab();
         let map = crate::resample::similarity_map(t);
         let disjoint = self.tiles_disjoint();
-        let mut out = vec![[0.0; 3]; pixels.len()];
         out.par_chunks_mut(SAMPLE_CHUNK)
             .zip(pixels.par_chunks(SAMPLE_CHUNK))
             .enumerate()
@@ -170,7 +184,6 @@ impl FrameWindow {
                     *s = [v, a * fx + b * fy, -b * fx + a * fy];
                 }
             });
-        out
     }
 }
 
