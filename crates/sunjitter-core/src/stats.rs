@@ -112,7 +112,25 @@ pub fn par_select(values: &[f64], k: usize) -> f64 {
         let mut rest = values.to_vec();
         return *rest.select_nth_unstable_by(k, f64::total_cmp).1;
     }
-    bracketed_select(values, k).unwrap_or_else(|| radix_select(values, k))
+    bracketed_select(values, k, &f64::total_cmp).unwrap_or_else(|| radix_select(values, k))
+}
+
+/// The `k`-th smallest of `values` in the order `cmp` (a total order), in parallel: the value
+/// `select_nth_unstable_by(k, cmp)` finds. From a bracket ([`bracketed_select`]) when it
+/// holds rank `k`, else serially.
+pub fn par_select_by<T: Copy + Send + Sync>(
+    values: &[T],
+    k: usize,
+    cmp: impl Fn(&T, &T) -> std::cmp::Ordering + Sync,
+) -> T {
+    assert!(k < values.len(), "par_select_by: k out of range");
+    if values.len() >= SERIAL_SELECT_BELOW {
+        if let Some(v) = bracketed_select(values, k, &cmp) {
+            return v;
+        }
+    }
+    let mut rest = values.to_vec();
+    *rest.select_nth_unstable_by(k, cmp).1
 }
 
 /// [`par_select`] from a bracket: a strided sample of 8192 values, sorted, gives two
@@ -120,7 +138,11 @@ pub fn par_select(values: &[f64], k: usize) -> f64 {
 /// at most `√8192 / 2` ≈ 45 places; the bracket is 256 places either side). One parallel
 /// pass counts the values below the bracket and keeps those inside it, about 6 % of them;
 /// `None` when rank `k` falls outside.
-fn bracketed_select(values: &[f64], k: usize) -> Option<f64> {
+fn bracketed_select<T: Copy + Send + Sync>(
+    values: &[T],
+    k: usize,
+    cmp: &(impl Fn(&T, &T) -> std::cmp::Ordering + Sync),
+) -> Option<T> {
     use rayon::prelude::*;
     use std::cmp::Ordering::{Greater, Less};
     const SAMPLE: usize = 8192;
@@ -130,18 +152,18 @@ fn bracketed_select(values: &[f64], k: usize) -> Option<f64> {
     if stride < 2 {
         return None;
     }
-    let mut sample: Vec<f64> = (0..SAMPLE)
+    let mut sample: Vec<T> = (0..SAMPLE)
         .map(|i| values[i * stride + stride / 2])
         .collect();
-    sample.sort_unstable_by(f64::total_cmp);
+    sample.sort_unstable_by(cmp);
     let at = ((k as f64 / n as f64) * SAMPLE as f64) as usize;
     // Open-ended where the bracket would pass the sample's ends.
     let lo = at.checked_sub(MARGIN).map(|i| sample[i]);
     let hi = (at + MARGIN < SAMPLE).then(|| sample[at + MARGIN]);
-    let below_lo = |v: &f64| lo.is_some_and(|lo| v.total_cmp(&lo) == Less);
-    let above_hi = |v: &f64| hi.is_some_and(|hi| v.total_cmp(&hi) == Greater);
+    let below_lo = |v: &T| lo.as_ref().is_some_and(|lo| cmp(v, lo) == Less);
+    let above_hi = |v: &T| hi.as_ref().is_some_and(|hi| cmp(v, hi) == Greater);
     let chunk = n.div_ceil(4 * rayon::current_num_threads().max(1));
-    let parts: Vec<(usize, Vec<f64>)> = values
+    let parts: Vec<(usize, Vec<T>)> = values
         .par_chunks(chunk)
         .map(|c| {
             let mut below = 0;
@@ -163,7 +185,7 @@ fn bracketed_select(values: &[f64], k: usize) -> Option<f64> {
     }
     let mut inside = Vec::with_capacity(inside_len);
     parts.into_iter().for_each(|p| inside.extend(p.1));
-    Some(*inside.select_nth_unstable_by(k - below, f64::total_cmp).1)
+    Some(*inside.select_nth_unstable_by(k - below, cmp).1)
 }
 
 /// [`par_select`] by parallel radix passes over the values' order-preserving bit patterns
@@ -323,8 +345,22 @@ mod tests {
                 assert_eq!(par_select(values, k), sorted[k], "k = {k}");
             }
         }
-        assert!(bracketed_select(&plain, n / 2).is_some());
-        assert!(bracketed_select(&against, n / 2).is_none());
+        let order = &f64::total_cmp;
+        assert!(bracketed_select(&plain, n / 2, order).is_some());
+        assert!(bracketed_select(&against, n / 2, order).is_none());
+        // Single precision, through the bracket and serially.
+        for values in [&plain, &against] {
+            let single: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+            let mut sorted = single.clone();
+            sorted.sort_by(f32::total_cmp);
+            for k in [0, 300, n / 2, n - 1] {
+                assert_eq!(
+                    par_select_by(&single, k, f32::total_cmp),
+                    sorted[k],
+                    "k = {k}"
+                );
+            }
+        }
     }
 
     #[test]

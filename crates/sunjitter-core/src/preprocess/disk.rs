@@ -4,7 +4,7 @@ use ndarray::{ArrayView2, Axis};
 use rayon::prelude::*;
 
 use super::filters::{bilinear, bin_mean};
-use super::quantile_in_place;
+use super::quantile;
 
 // ---------------------------------------------------------------------------------------
 // Solar disk from the image
@@ -115,7 +115,7 @@ fn detect_disk_at(img: ArrayView2<f32>) -> Option<DiskFit> {
     // The background level from at most about a million pixels (every k-th row and column:
     // plenty for a quantile; a 4096² frame's full sort costs more than the rest of the fit).
     let k = ((h * w) as f64 / (1 << 20) as f64).sqrt().ceil().max(1.0) as usize;
-    let mut sampled: Vec<f32> = img
+    let sampled: Vec<f32> = img
         .axis_iter(Axis(0))
         .step_by(k)
         .flat_map(|row| {
@@ -129,7 +129,7 @@ fn detect_disk_at(img: ArrayView2<f32>) -> Option<DiskFit> {
     if sampled.is_empty() {
         return None;
     }
-    let background = quantile_in_place(&mut sampled, 0.02);
+    let background = quantile(&sampled, 0.02);
     drop(sampled);
     // NaN (often off-limb in pipeline products) reads as sky: the darkest finite level,
     // since a masked or resampled image may keep almost no sky of its own.
@@ -206,11 +206,11 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
     let bin = h.max(w).div_ceil(COARSE_SIZE_PX).max(1);
     let small = bin_mean(img.view(), bin);
     let (sh, sw) = small.dim();
-    let mut vals: Vec<f32> = small.iter().copied().filter(|v| v.is_finite()).collect();
+    let vals: Vec<f32> = small.iter().copied().filter(|v| v.is_finite()).collect();
     if vals.is_empty() {
         return None;
     }
-    let top = quantile_in_place(&mut vals, 0.75);
+    let top = quantile(&vals, 0.75);
     if top.partial_cmp(&background) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
@@ -239,12 +239,12 @@ fn first_guess(img: &ArrayView2<f32>, background: f32, sky: f32) -> Option<First
         }
     }
     let profile: Vec<f64> = annuli
-        .iter_mut()
+        .iter()
         .enumerate()
         .map(|(k, a)| {
             let expected = 2.0 * std::f64::consts::PI * (k as f64 + 0.5);
             if !a.is_empty() && a.len() as f64 >= 0.5 * expected {
-                quantile_in_place(a, 0.5) as f64
+                quantile(a, 0.5) as f64
             } else {
                 f64::NAN
             }

@@ -3,7 +3,7 @@
 use ndarray::{Array2, ArrayView2, Axis};
 use rayon::prelude::*;
 
-use super::quantile_in_place;
+use super::quantile;
 
 /// Noise guard of [`remove_hot_pixels`], in robust standard deviations: a pixel must
 /// also stand out from the noise, estimated both over the image and among its own 8
@@ -196,7 +196,7 @@ fn suspects_into(
 fn residual_noise(img: ArrayView2<f32>) -> f32 {
     let (h, w) = img.dim();
     let stride = (h * w / (1 << 20)).max(1);
-    let mut residuals: Vec<f32> = (0..h)
+    let residuals: Vec<f32> = (0..h)
         .into_par_iter()
         .fold(
             || (RowScratch::new(w), vec![0f32; w], Vec::new()),
@@ -227,7 +227,7 @@ fn residual_noise(img: ArrayView2<f32>) -> f32 {
     if residuals.is_empty() {
         0.0
     } else {
-        1.4826 * quantile_in_place(&mut residuals, 0.5)
+        1.4826 * quantile(&residuals, 0.5)
     }
 }
 

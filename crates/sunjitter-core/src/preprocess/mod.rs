@@ -108,10 +108,10 @@ pub fn resolution_matching_sigmas(
     )
 }
 
-/// `q`-quantile (0..=1) by selection; reorders `v`. `v` must not be empty.
-fn quantile_in_place(v: &mut [f32], q: f64) -> f32 {
+/// `q`-quantile (0..=1) by selection. `v` must not be empty.
+fn quantile(v: &[f32], q: f64) -> f32 {
     let k = ((v.len() - 1) as f64 * q.clamp(0.0, 1.0)).round() as usize;
-    *v.select_nth_unstable_by(k, f32::total_cmp).1
+    crate::stats::par_select_by(v, k, f32::total_cmp)
 }
 
 #[cfg(test)]
