@@ -5,7 +5,7 @@ use super::config::EngineConfig;
 use super::prepared::Workspace;
 use super::{derotate, refine, sigma, SigmaMethod};
 use crate::fit::{fit_similarity, FitFailure, RansacParams, SimilarityFit};
-use crate::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+use crate::flow::{Farneback, FarnebackParams, FlowOptions, Roi, RowLattice};
 use crate::geometry::{compose_with_covariance, sigmas, Covariance4, Similarity};
 use crate::preprocess;
 use crate::resample::HighOrderSpline;
@@ -205,19 +205,6 @@ pub(super) fn fine_alignment(
         let options = FlowOptions {
             ..FlowOptions::affine_grid(winsize)
         };
-        let mut s = configured_solver(solver.take(), &params, &options)?;
-        // The same reference crop as the last pass's: its expansion is kept.
-        if last_crop.as_ref() == Some(&crop) {
-            s.next_prev_unchanged();
-        }
-        let warped_at = pass_started.elapsed();
-        let flow = s
-            .compute(ref_crop, warped.view(), Some(roi_crop), None)
-            .map_err(|e| FineError::Flow(e.to_string()))?;
-        solver = Some(s);
-        last_crop = Some(crop.clone());
-        let flow_at = pass_started.elapsed();
-
         let sample_mask = sample_mask(
             &warped,
             ref_crop,
@@ -226,6 +213,26 @@ pub(super) fn fine_alignment(
             region.sample_within,
             (x0, y0),
         );
+        let mut s = configured_solver(solver.take(), &params, &options)?;
+        // The same reference crop as the last pass's: its expansion is kept.
+        if last_crop.as_ref() == Some(&crop) {
+            s.next_prev_unchanged();
+        }
+        // The flow is read only on the sampling lattice's rows.
+        s.next_rows(crate::sampling::mask_bounding_box(sample_mask.view()).map(
+            |(_, first, _, _)| RowLattice {
+                first,
+                step: stride,
+            },
+        ));
+        let warped_at = pass_started.elapsed();
+        let flow = s
+            .compute(ref_crop, warped.view(), Some(roi_crop), None)
+            .map_err(|e| FineError::Flow(e.to_string()))?;
+        solver = Some(s);
+        last_crop = Some(crop.clone());
+        let flow_at = pass_started.elapsed();
+
         let mut points = grid_median_sample(
             flow.u.view(),
             flow.v.view(),
@@ -395,17 +402,16 @@ fn sample_mask(
     // Only where the whole window saw data: a window cut by the frame's edge (or a blank
     // region) measures a biased motion. The crop's own edge is further than the window from
     // the mask unless it is the image's edge, which erosion treats alike.
-    let mut valid = warped.mapv(f32::is_finite);
-    Zip::from(&mut valid)
+    let valid = Zip::from(warped)
         .and(&ref_crop)
-        .for_each(|m, v| *m = *m && v.is_finite());
+        .par_map_collect(|w, v| w.is_finite() && v.is_finite());
     let mut sample_mask = erode(&valid, winsize / 2);
     Zip::from(&mut sample_mask)
         .and(&mask_crop)
-        .for_each(|a, b| *a = *a && *b);
+        .par_for_each(|a, b| *a = *a && *b);
     if let Some(([cx, cy], r)) = sample_within {
         let r2 = if r > 0.0 { r * r } else { -1.0 };
-        Zip::indexed(&mut sample_mask).for_each(|(y, x), m| {
+        Zip::indexed(&mut sample_mask).par_for_each(|(y, x), m| {
             let (dx, dy) = ((x + x0) as f64 - cx, (y + y0) as f64 - cy);
             *m = *m && dx * dx + dy * dy <= r2;
         });

@@ -236,6 +236,8 @@ pub struct Farneback {
     /// last one's ([`Farneback::next_prev_unchanged`]).
     r0_key: Option<ExpansionKey>,
     prev_unchanged: bool,
+    /// The output rows the next computation's caller reads ([`Farneback::next_rows`]).
+    next_rows: Option<RowLattice>,
     u: [Vec<f32>; 2],
     v: [Vec<f32>; 2],
     prev_u: Vec<f32>,
@@ -317,6 +319,19 @@ fn finite_stats(img: ArrayView2<f32>, rect: Rect) -> Option<(f64, f64)> {
     }
 }
 
+/// Every `step`-th row from row `first`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RowLattice {
+    pub first: usize,
+    pub step: usize,
+}
+
+impl RowLattice {
+    fn holds(&self, y: usize) -> bool {
+        y >= self.first && (y - self.first).is_multiple_of(self.step.max(1))
+    }
+}
+
 /// What an expansion depends on besides the image's pixels: its size and level, the domain,
 /// the normalisation and the kernel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -350,6 +365,7 @@ impl Farneback {
             r1: Vec::new(),
             r0_key: None,
             prev_unchanged: false,
+            next_rows: None,
             u: [Vec::new(), Vec::new()],
             v: [Vec::new(), Vec::new()],
             prev_u: Vec::new(),
@@ -367,6 +383,13 @@ impl Farneback {
     /// too (successive passes against one reference).
     pub fn next_prev_unchanged(&mut self) {
         self.prev_unchanged = true;
+    }
+
+    /// Declare that the caller of the next computation reads only the output rows `rows`
+    /// (a sampling lattice's): the dense flow is made there alone, the other rows are left
+    /// NaN. Every row is made without it.
+    pub fn next_rows(&mut self, rows: Option<RowLattice>) {
+        self.next_rows = rows;
     }
 
     /// Change the parameters and options, keeping every buffer (a solver reused for another
@@ -490,6 +513,7 @@ impl Farneback {
     ) -> Result<()> {
         let (h, w) = prev.dim();
         let reuse = std::mem::take(&mut self.prev_unchanged);
+        let rows = self.next_rows.take();
         let roi_rect = checked_domain(prev.dim(), next.dim(), roi, init)?;
         for a in [&mut out.u, &mut out.v] {
             if a.dim() == (h, w) {
@@ -655,7 +679,7 @@ impl Farneback {
         if finest > 0 {
             self.upsample_finish(&geoms, finest);
         } else if self.options.uses_grid() {
-            self.densify(d0, roi_rect, prev, out_u, out_v);
+            self.densify(d0, roi_rect, rows, prev, out_u, out_v);
             return Ok(());
         }
         let (pu, pv) = (&self.prev_u, &self.prev_v);
@@ -666,6 +690,7 @@ impl Farneback {
             .enumerate()
             .skip(roi_rect.y0)
             .take(roi_rect.y1 - roi_rect.y0)
+            .filter(|(y, _)| rows.is_none_or(|r| r.holds(*y)))
             .for_each(|(y, (mut ur, mut vr))| {
                 for x in roi_rect.x0..roi_rect.x1 {
                     if prev[[y, x]].is_finite() {
@@ -767,6 +792,7 @@ impl Farneback {
         &self,
         d0: Rect,
         roi: Rect,
+        rows: Option<RowLattice>,
         prev: ArrayView2<f32>,
         out_u: &mut Array2<f32>,
         out_v: &mut Array2<f32>,
@@ -787,7 +813,7 @@ impl Farneback {
             .into_par_iter()
             .zip(out_v.axis_iter_mut(ndarray::Axis(0)).into_par_iter())
             .enumerate()
-            .filter(|(y, _)| (roi.y0..roi.y1).contains(y))
+            .filter(|(y, _)| (roi.y0..roi.y1).contains(y) && rows.is_none_or(|r| r.holds(*y)))
             .for_each_init(
                 || (vec![0f32; dw], vec![0f32; dw]),
                 |(ru, rv), (y, (mut ou, mut ov))| {
