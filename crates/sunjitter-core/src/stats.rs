@@ -134,10 +134,11 @@ pub fn par_select_by<T: Copy + Send + Sync>(
 }
 
 /// [`par_select`] from a bracket: a strided sample of 8192 values, sorted, gives two
-/// values whose ranks lie well either side of `k` (the sample's rank at `k` is uncertain by
-/// at most `√8192 / 2` ≈ 45 places; the bracket is 256 places either side). One parallel
-/// pass counts the values below the bracket and keeps those inside it, about 6 % of them;
-/// `None` when rank `k` falls outside.
+/// values whose ranks lie well either side of `k` (for values in no order against the
+/// stride, the sample's place for rank `k` has a standard deviation of at most
+/// `√8192 / 2` ≈ 45; the bracket is 256 places either side). One parallel pass counts the
+/// values below the bracket and keeps those inside it, about 6 % of them; `None` when rank
+/// `k` falls outside.
 fn bracketed_select<T: Copy + Send + Sync>(
     values: &[T],
     k: usize,
