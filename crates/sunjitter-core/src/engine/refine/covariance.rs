@@ -166,8 +166,8 @@ pub(super) fn noise_covariance(
     if !with_covariance {
         return Some((None, flat_sigma));
     }
-    // Each pixel's ψ′ (zero where it does not count); its row `ψ′·J` is made where it is
-    // read, instead of a frame of 6-vectors.
+    // Each counted pixel's ψ′; its row `ψ′·J` is made where it is read, instead of a frame
+    // of 6-vectors.
     let psi: Vec<f64> = (0..pixels.len())
         .into_par_iter()
         .map(|k| match counts(k) {
@@ -247,6 +247,9 @@ struct Lattice {
 
 impl Lattice {
     fn of(pixels: &[Pixel]) -> Option<Lattice> {
+        if pixels.is_empty() {
+            return None;
+        }
         let step = pixels
             .par_windows(2)
             .filter(|p| p[0].y == p[1].y && p[1].x > p[0].x)
@@ -263,9 +266,6 @@ impl Lattice {
                 || (usize::MAX, usize::MAX, 0, 0),
                 |a, b| (a.0.min(b.0), a.1.min(b.1), a.2.max(b.2), a.3.max(b.3)),
             );
-        if pixels.is_empty() {
-            return None;
-        }
         let origin = (x0 / step, y0 / step);
         let mut lattice = Lattice {
             step,
