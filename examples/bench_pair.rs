@@ -7,6 +7,9 @@
 //! - `align`: the whole engine (`align_images_owned`, default configuration, as `sunjitter
 //!   align` runs it; copies of the two images made before the timing), cold: the reference
 //!   prepared and its self-test run inside the timing;
+//! - `align_kept`: `align` as `sunjitter align` runs it again with the same reference: its
+//!   self-test cases read from where the first run kept them (a directory of this process's,
+//!   filled by one untimed run), the rest cold;
 //! - `align_per_frame`: one frame against a reference prepared (and self-tested) beforehand,
 //!   as the daemon aligns every frame after the first against a reference;
 //! - `align_previous`: NEXT against a reference prepared from PREV, cold, as `replay
@@ -24,7 +27,10 @@
 //! /proc/self/stat) of every repeat.
 
 use std::time::Instant;
-use sunjitter::engine::{align_images_owned, EngineConfig, PreparedReference};
+use std::sync::Arc;
+use sunjitter::engine::{
+    align_images_owned, align_images_owned_in, EngineConfig, PreparedReference, Workspace,
+};
 use sunjitter::fits::{read_frame, FrameSpec};
 use sunjitter::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
 
@@ -91,6 +97,20 @@ fn main() -> anyhow::Result<()> {
         std::hint::black_box(prepared.align(&next)); // the reference's one-off work
         prepared
     });
+    let kept_dir = tempfile::tempdir()?;
+    let keeping = || {
+        let cache = sunjitter::self_tests::SelfTestCache::at(kept_dir.path());
+        Arc::new(Workspace::keeping_self_tests(Arc::new(cache)))
+    };
+    if cases.contains("align_kept") {
+        // The first run, which keeps the self-test.
+        std::hint::black_box(align_images_owned_in(
+            prev.clone(),
+            next.clone(),
+            &cfg,
+            keeping(),
+        ));
+    }
     // PREV's own reference, against which it is aligned as a frame (untimed) before it
     // becomes one: prepared afresh for every repeat, since only a reference that served one
     // frame hands its self-test cases on.
@@ -104,7 +124,7 @@ fn main() -> anyhow::Result<()> {
                 .and_then(|p| p.align_keeping(&prev, cfg.solar_rotation).1);
             // What `sunjitter align` hands the engine: images it has no further use for.
             let owned = match case {
-                "align" => Some((prev.clone(), next.clone())),
+                "align" | "align_kept" => Some((prev.clone(), next.clone())),
                 "align_cross" => cross.as_ref().map(|c| (prev.clone(), c.clone())),
                 _ => None,
             };
@@ -134,6 +154,14 @@ fn main() -> anyhow::Result<()> {
                 "align" | "align_cross" => {
                     if let Some((reference, frame)) = owned {
                         std::hint::black_box(align_images_owned(reference, frame, &cfg));
+                    }
+                }
+                "align_kept" => {
+                    if let Some((reference, frame)) = owned {
+                        let workspace = keeping();
+                        std::hint::black_box(align_images_owned_in(
+                            reference, frame, &cfg, workspace,
+                        ));
                     }
                 }
                 "align_per_frame" => {

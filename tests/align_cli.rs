@@ -29,9 +29,14 @@ struct Run {
 }
 
 fn sunjitter<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> Run {
+    sunjitter_with(args, &[("SUNJITTER_LOG", "warn".as_ref())])
+}
+
+/// [`sunjitter`] with these environment variables set.
+fn sunjitter_with<S: AsRef<std::ffi::OsStr>>(args: &[S], env: &[(&str, &std::ffi::OsStr)]) -> Run {
     let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
         .args(args)
-        .env("SUNJITTER_LOG", "warn")
+        .envs(env.iter().copied())
         .output()
         .expect("run sunjitter");
     Run {
@@ -709,6 +714,77 @@ fn a_band_limited_subpixel_shift_is_covered_by_its_sigma() {
         let error = (num(&doc, key) - value).abs();
         assert!(error < 2e-4, "{key} off by {error} px: {doc}");
     }
+}
+
+/// A reference's self-test cases kept between runs (`SUNJITTER_CACHE_DIR`): the second
+/// `align` of the same pair reads them instead of running the self-test, and its answer is
+/// the first's, within σ of the injected shift. A kept file that does not parse is not
+/// trusted: the cases are run again and the file made whole. An empty variable keeps nothing.
+#[test]
+fn kept_self_tests_give_the_same_answer_and_a_broken_file_is_run_again() {
+    let truth = [("dx_px", 0.25), ("dy_px", 0.0)];
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/trace_fourier_shift");
+    let args = [
+        "align".into(),
+        dir.join("ref.fits").into_os_string(),
+        dir.join("frame.fits").into_os_string(),
+        "--json".into(),
+    ];
+    let cache = tempfile::tempdir().unwrap();
+    let run = |cache_dir: &std::ffi::OsStr, home: &std::ffi::OsStr| {
+        let run = sunjitter_with(
+            &args,
+            &[
+                (
+                    "SUNJITTER_LOG",
+                    "sunjitter_core::engine::align=debug".as_ref(),
+                ),
+                ("SUNJITTER_CACHE_DIR", cache_dir),
+                ("HOME", home),
+            ],
+        );
+        assert_eq!(run.code, Some(0), "{}", run.stderr);
+        let doc = one_document(&run.stdout);
+        for (key, value) in truth {
+            let z = (num(&doc, key) - value).abs() / num(&doc, &format!("sigma_{key}"));
+            assert!(z <= 3.0, "{key}: {z:.1}σ off: {doc}");
+        }
+        let kept = run
+            .stderr
+            .contains("self-test cases kept from an earlier run");
+        (doc, kept)
+    };
+    let numbers = |doc: &Value| -> Vec<(String, Value)> {
+        let mut doc = doc.as_object().unwrap().clone();
+        doc.remove("elapsed_ms");
+        doc.into_iter().collect()
+    };
+    let files = |dir: &Path| -> Vec<PathBuf> {
+        std::fs::read_dir(dir.join("self-test"))
+            .map(|d| d.map(|e| e.unwrap().path()).collect())
+            .unwrap_or_default()
+    };
+    let home = tempfile::tempdir().unwrap();
+    let (fresh, kept) = run(cache.path().as_os_str(), home.path().as_os_str());
+    assert!(!kept, "nothing kept yet");
+    assert_eq!(files(cache.path()).len(), 1, "one reference, one file");
+    let (again, kept) = run(cache.path().as_os_str(), home.path().as_os_str());
+    assert!(kept, "the second run reads the kept cases");
+    assert_eq!(numbers(&again), numbers(&fresh));
+
+    let file = files(cache.path()).remove(0);
+    std::fs::write(&file, b"{\"format\":1,\"key\":").unwrap();
+    let (rerun, kept) = run(cache.path().as_os_str(), home.path().as_os_str());
+    assert!(!kept, "a broken file is not trusted");
+    assert_eq!(numbers(&rerun), numbers(&fresh));
+    let text = std::fs::read_to_string(&file).unwrap();
+    serde_json::from_str::<Value>(&text).expect("the file is whole again");
+
+    // Set empty: nothing kept, nowhere (not in the home directory's cache either).
+    let (off, kept) = run("".as_ref(), home.path().as_os_str());
+    assert!(!kept);
+    assert_eq!(numbers(&off), numbers(&fresh));
+    assert_eq!(std::fs::read_dir(home.path()).unwrap().count(), 0);
 }
 
 /// EIT 195 → 171 (data/README.md): the headers say 2.63″/px, but the images were binned

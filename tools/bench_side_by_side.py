@@ -12,7 +12,8 @@ poly_n 5, poly_sigma 1.1, flags 0 = box window) on the whole float32 frame, as t
 Ours (target/release/examples/bench_pair, same thread count through RAYON_NUM_THREADS):
 flow_opencv_semantics (the same algorithm, whole frame), flow_engine (affine-window grid inside
 the disk mask's bounding box, as the engine runs it) and align (the whole engine, default
-configuration, cold: reference preparation and self-test included), align_per_frame (one
+configuration, cold: reference preparation and self-test included), align_kept (align again
+with the same reference: its self-test read from where the first run kept it), align_per_frame (one
 frame against a reference prepared beforehand, as the daemon runs), align_previous (NEXT against
 a reference prepared from PREV, cold, as `replay --reference previous` runs every frame) and
 align_cross (cold, PREV against NEXT made another channel's: Gaussian-blurred by 1.5 px, its
@@ -40,8 +41,8 @@ from scipy import ndimage
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 OURS = ROOT / "target/release/examples/bench_pair"
-CASES = ["flow_opencv_semantics", "flow_engine", "align", "align_per_frame", "align_previous",
-         "align_cross"]
+CASES = ["flow_opencv_semantics", "flow_engine", "align", "align_kept", "align_per_frame",
+         "align_previous", "align_cross"]
 
 
 def cross_channel(next_path, out_dir):

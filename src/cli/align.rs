@@ -58,11 +58,15 @@ pub fn run(args: &Args) -> Result<i32> {
     let (reference, frame) = (reference?, frame?);
     // The per-frame products read the images as read; without them their pixels are freed
     // as soon as the engine has its cleaned copies.
+    let workspace = std::sync::Arc::new(super::workspace());
     let (outcome, images) = if outputs.is_empty() {
-        (engine::align_images_owned(reference, frame, &cfg), None)
+        (
+            engine::align_images_owned_in(reference, frame, &cfg, workspace),
+            None,
+        )
     } else {
         (
-            engine::align_images(&reference, &frame, &cfg),
+            engine::align_images_in(&reference, &frame, &cfg, workspace),
             Some((reference, frame)),
         )
     };

@@ -86,7 +86,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let parts = RunParts {
         config: config.clone(),
         reader: Arc::new(FitsReader::from_config(&config)),
-        aligner: Arc::new(EngineAligner::from_config(&config)),
+        aligner: Arc::new(EngineAligner::from_config(&config).sharing(super::workspace())),
         sink: Box::new(sink),
         history,
         progress: progress_tx,

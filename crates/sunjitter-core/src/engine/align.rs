@@ -469,21 +469,54 @@ impl<'a> Stages<'a> {
             |settings| {
                 self.matched
                     .self_test
-                    .get_or_init(|| {
-                        refine::self_test_floor(
-                            self.reference(),
-                            prepared,
-                            &work.mask,
-                            cfg.sample,
-                            settings,
-                            work.structure_px,
-                            self.matched.handed_on(work),
-                        )
-                    })
+                    .get_or_init(|| self.self_test(prepared, settings))
                     .as_ref()
                     .map(refine::SelfTestCases::floor)
             },
         )
+    }
+
+    /// The reference's self-test cases: from the cases handed on along a chain, or kept by
+    /// the caller's store from an earlier run on this same reference, or run afresh.
+    fn self_test(
+        &self,
+        prepared: &refine::RefineReference,
+        settings: &refine::RefineSettings,
+    ) -> Option<refine::SelfTestCases> {
+        let (work, cfg) = (self.pair.work, self.pair.cfg);
+        let run = || {
+            refine::self_test_floor(
+                self.reference(),
+                prepared,
+                &work.mask,
+                cfg.sample,
+                settings,
+                work.structure_px,
+                self.matched.handed_on(work),
+            )
+        };
+        // Cases handed on depend on the chain before this reference: not kept.
+        let store = self.pair.workspace.self_tests();
+        let Some(store) = store.filter(|_| self.matched.handed_on(work).is_none()) else {
+            return run();
+        };
+        let key = refine::SelfTestKey::new(
+            self.reference(),
+            &work.mask,
+            cfg.sample,
+            settings,
+            work.structure_px,
+            &format!("{cfg:?}"),
+        );
+        if let Some(kept) = store.load(&key).filter(refine::SelfTestCases::is_sound) {
+            tracing::debug!(key = key.hex(), "self-test cases kept from an earlier run");
+            return Some(kept);
+        }
+        let cases = run();
+        if let Some(cases) = &cases {
+            store.save(&key, cases);
+        }
+        cases
     }
 
     /// The refinement, retried from a full-resolution or longer flow when refused; what the

@@ -81,8 +81,20 @@ pub struct UsedGeometry {
 /// Align `frame` to `reference`: where reference content appears in the frame.
 /// To align several frames to one reference, prepare it once with [`PreparedReference`].
 pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> AlignOutcome {
+    align_images_in(reference, frame, cfg, Default::default())
+}
+
+/// [`align_images`] with `workspace` (one that keeps self-tests between runs, say).
+pub fn align_images_in(
+    reference: &Image,
+    frame: &Image,
+    cfg: &EngineConfig,
+    workspace: std::sync::Arc<Workspace>,
+) -> AlignOutcome {
     let started = Instant::now();
-    let mut outcome = PreparedReference::new(reference, cfg).align(frame);
+    let mut outcome = PreparedReference::new(reference, cfg)
+        .sharing(workspace)
+        .align(frame);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }
@@ -91,8 +103,18 @@ pub fn align_images(reference: &Image, frame: &Image, cfg: &EngineConfig) -> Ali
 /// once its cleaned copy exists, so a large pair holds two frames fewer at its peak. The
 /// numbers are the same.
 pub fn align_images_owned(reference: Image, frame: Image, cfg: &EngineConfig) -> AlignOutcome {
+    align_images_owned_in(reference, frame, cfg, Default::default())
+}
+
+/// [`align_images_owned`] with `workspace`.
+pub fn align_images_owned_in(
+    reference: Image,
+    frame: Image,
+    cfg: &EngineConfig,
+    workspace: std::sync::Arc<Workspace>,
+) -> AlignOutcome {
     let started = Instant::now();
-    let prepared = PreparedReference::new(&reference, cfg);
+    let prepared = PreparedReference::new(&reference, cfg).sharing(workspace);
     drop(reference);
     let mut outcome = prepared.align_owned(frame);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;

@@ -100,6 +100,13 @@ impl EngineAligner {
         }
     }
 
+    /// Align in `workspace` (one that keeps self-tests between runs, say) instead of one of
+    /// its own.
+    pub fn sharing(mut self, workspace: Workspace) -> EngineAligner {
+        self.workspace = Arc::new(workspace);
+        self
+    }
+
     /// The whole configuration's engine, with each channel's own solar rotation profile.
     pub fn from_config(config: &crate::config::Config) -> EngineAligner {
         EngineAligner {

@@ -40,7 +40,10 @@ mod window;
 pub use apply::{apply, FlowAnswer, RefineInputs};
 pub use pixels::{inlier_cell_pixels, CellGrid};
 pub use reference::RefineReference;
-pub use self_test::{self_test_floor, HandedOn, SelfTest, SelfTestCases, SELF_TEST_QUARTERS};
+pub use self_test::{
+    self_test_floor, HandedOn, SelfTest, SelfTestCases, SelfTestKey, SelfTestStore,
+    SELF_TEST_QUARTERS,
+};
 pub use solve::refine;
 pub use window::FrameWindow;
 
@@ -63,7 +66,7 @@ pub enum RefineMode {
 }
 
 /// Settings of one refinement.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RefineSettings {
     /// Gaussian σ applied to both images before matching, px (0: none).
     pub smoothing_px: f64,

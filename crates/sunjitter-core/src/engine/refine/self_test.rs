@@ -9,6 +9,7 @@ use crate::geometry::Similarity;
 use crate::resample::{HighOrderSpline, SplineImage};
 use ndarray::{s, Array2, ArrayView2};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 /// What the self-test measured on a reference.
 #[derive(Debug, Clone, Copy)]
@@ -21,7 +22,7 @@ pub struct SelfTest {
 }
 
 /// One self-test case: the error it made, and the (cluster-robust) variance it reported.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub(super) struct SelfTestCase {
     pub(super) bias: [f64; 4],
     pub(super) variance: [f64; 4],
@@ -34,7 +35,7 @@ pub(super) struct SelfTestCase {
 /// next one runs only a quarter of the transforms afresh and keeps the others, as long as its
 /// pixels, lever arm, settings and structure length match. No case is then older than three
 /// references (docs/validation.md#self-test-along-a-chain).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SelfTestCases {
     key: CaseKey,
     /// One result per transform, in the transforms' order.
@@ -66,14 +67,29 @@ fn quarter(cases: usize, quarter: usize) -> std::ops::Range<usize> {
 
 /// What a self-test case's error depends on, besides the reference's content near the
 /// Nyquist frequency (which the structure length stands in for).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 struct CaseKey {
     shape: (usize, usize),
     tiles: usize,
     pixels: usize,
     lever: f64,
+    /// NaN when the reference has none (kept as `null`).
+    #[serde(with = "finite_or_null")]
     structure_px: f64,
     settings: RefineSettings,
+}
+
+/// An `f64` that may be NaN, as JSON has no NaN: `null` for it.
+mod finite_or_null {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        v.is_finite().then_some(*v).serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+    }
 }
 
 impl CaseKey {
@@ -114,6 +130,80 @@ impl SelfTestCases {
                 .then(|| (flat.iter().map(|s| s * s).sum::<f64>() / flat.len() as f64).sqrt()),
         }
     }
+}
+
+impl SelfTestCases {
+    /// Whether these cases could have come from [`self_test_floor`]: between 4 and 16 of
+    /// them, every figure finite. What a store hands back is checked against this first.
+    pub fn is_sound(&self) -> bool {
+        (4..=16).contains(&self.cases.len())
+            && self.next_quarter < SELF_TEST_QUARTERS
+            && self.cases.iter().all(|c| {
+                c.bias.iter().chain(&c.variance).all(|v| v.is_finite())
+                    && c.variance.iter().all(|&v| v >= 0.0)
+                    && c.flat_sigma.is_none_or(|s| s.is_finite() && s >= 0.0)
+            })
+    }
+}
+
+/// A fingerprint of everything a reference's self-test cases depend on: the code that
+/// computes them, the reference as the refinement reads it, its mask, the sampling step, the
+/// refinement's settings, the structure length and the engine's configuration. Equal keys
+/// give equal cases, so a [`SelfTestStore`] may hand back the cases it kept under a key
+/// instead of their being run again (128 bits of XXH3: no two references meet by chance).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct SelfTestKey(u128);
+
+impl SelfTestKey {
+    /// `config` describes the engine's configuration (any text that changes with it).
+    pub fn new(
+        reference: ArrayView2<f32>,
+        mask: &Array2<bool>,
+        sample: usize,
+        settings: &RefineSettings,
+        structure_px: Option<f64>,
+        config: &str,
+    ) -> SelfTestKey {
+        let mut digest = xxhash_rust::xxh3::Xxh3::new();
+        let mut text = |t: &str| {
+            digest.update(&(t.len() as u64).to_le_bytes());
+            digest.update(t.as_bytes());
+        };
+        text(env!("SUNJITTER_CORE_CODE"));
+        text(&format!(
+            "{:?} {:?} {sample} {settings:?} {:?}",
+            reference.dim(),
+            mask.dim(),
+            structure_px.map(f64::to_bits)
+        ));
+        text(config);
+        for row in reference.rows() {
+            match row.as_slice() {
+                Some(values) => digest.update(bytemuck::cast_slice(values)),
+                None => row.iter().for_each(|v| digest.update(&v.to_le_bytes())),
+            }
+        }
+        let mut bytes = Vec::with_capacity(mask.ncols());
+        for row in mask.rows() {
+            bytes.clear();
+            bytes.extend(row.iter().map(|&m| m as u8));
+            digest.update(&bytes);
+        }
+        SelfTestKey(digest.digest128())
+    }
+
+    /// The key as 32 hexadecimal digits (a file name).
+    pub fn hex(&self) -> String {
+        format!("{:032x}", self.0)
+    }
+}
+
+/// Where a caller keeps references' self-test cases between runs (the engine does no I/O):
+/// a reference whose key was seen before skips its self-test. `load` returns what `save`
+/// stored under the same key, or nothing; neither may fail the alignment.
+pub trait SelfTestStore: Send + Sync {
+    fn load(&self, key: &SelfTestKey) -> Option<SelfTestCases>;
+    fn save(&self, key: &SelfTestKey, cases: &SelfTestCases);
 }
 
 /// The method's systematic floor for a reference ([`SelfTestCases::floor`]): per parameter,
@@ -422,6 +512,79 @@ mod tests {
         let mask = Array2::from_elem(image.dim(), true);
         let settings = super::super::settings(&crate::engine::EngineConfig::default(), 0.0);
         (image, mask, settings)
+    }
+
+    /// The key tells apart every input the cases depend on: one pixel's last bit, one mask
+    /// pixel, the sampling step, a setting, the structure length, the configuration; and is
+    /// the same for equal inputs (a copy, not the same array).
+    #[test]
+    fn the_self_test_key_changes_with_every_input_it_stands_for() {
+        let (image, mask, settings) = aia();
+        let key = |image: &Array2<f32>, mask: &Array2<bool>, sample, settings, structure, cfg| {
+            SelfTestKey::new(image.view(), mask, sample, settings, structure, cfg)
+        };
+        let base = key(&image, &mask, 4, &settings, Some(3.5), "cfg");
+        assert_eq!(
+            key(
+                &image.clone(),
+                &mask.clone(),
+                4,
+                &settings,
+                Some(3.5),
+                "cfg"
+            ),
+            base
+        );
+        let mut pixel = image.clone();
+        pixel[[64, 64]] = f32::from_bits(pixel[[64, 64]].to_bits() ^ 1);
+        let mut masked = mask.clone();
+        masked[[0, 127]] = false;
+        let smoother = RefineSettings {
+            smoothing_px: settings.smoothing_px + 0.1,
+            ..settings
+        };
+        let others = [
+            key(&pixel, &mask, 4, &settings, Some(3.5), "cfg"),
+            key(&image, &masked, 4, &settings, Some(3.5), "cfg"),
+            key(&image, &mask, 5, &settings, Some(3.5), "cfg"),
+            key(&image, &mask, 4, &smoother, Some(3.5), "cfg"),
+            key(&image, &mask, 4, &settings, Some(3.6), "cfg"),
+            key(&image, &mask, 4, &settings, None, "cfg"),
+            key(&image, &mask, 4, &settings, Some(3.5), "cfg2"),
+            // The same pixels in another shape.
+            key(
+                &image.clone().into_shape_with_order((64, 256)).unwrap(),
+                &mask.clone().into_shape_with_order((64, 256)).unwrap(),
+                4,
+                &settings,
+                Some(3.5),
+                "cfg",
+            ),
+        ];
+        for (i, other) in others.iter().enumerate() {
+            assert_ne!(*other, base, "input {i}");
+        }
+    }
+
+    /// Cases run on a real reference survive a JSON round trip bit for bit (NaN structure
+    /// length included) and are sound; cases with a non-finite figure are not.
+    #[test]
+    fn self_test_cases_round_trip_and_are_checked_for_soundness() {
+        let (image, mask, settings) = aia();
+        let prepared = RefineReference::new(image.view(), &settings);
+        let cases = self_test_floor(image.view(), &prepared, &mask, 4, &settings, None, None)
+            .expect("self-test on AIA 171");
+        assert!(cases.is_sound());
+        let text = serde_json::to_string(&cases).unwrap();
+        let back: SelfTestCases = serde_json::from_str(&text).unwrap();
+        assert_eq!(format!("{back:?}"), format!("{cases:?}"));
+        assert!(back.key.structure_px.is_nan());
+        let mut bad = back.clone();
+        bad.cases[1].variance[2] = f64::INFINITY;
+        assert!(!bad.is_sound());
+        let mut few = back;
+        few.cases.truncate(3);
+        assert!(!few.is_sound());
     }
 
     fn floor_of(
