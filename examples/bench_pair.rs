@@ -26,8 +26,8 @@
 //! CROSS.fits). Prints one JSON line per case with the wall and CPU seconds (all threads,
 //! /proc/self/stat) of every repeat.
 
-use std::time::Instant;
 use std::sync::Arc;
+use std::time::Instant;
 use sunjitter::engine::{
     align_images_owned, align_images_owned_in, EngineConfig, PreparedReference, Workspace,
 };

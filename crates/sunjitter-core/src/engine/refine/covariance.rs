@@ -150,7 +150,7 @@ pub(super) fn noise_covariance(
     let (used, gradients): (Vec<usize>, Vec<f64>) = (0..pixels.len())
         .into_par_iter()
         .filter(|&k| counts(k))
-        .map(|k| (k, pixels[k].gx.hypot(pixels[k].gy)))
+        .map(|k| (k, pixels[k].slope))
         .unzip();
     if used.len() < 64 {
         return None;
@@ -321,6 +321,7 @@ mod tests {
                     value: 0.0,
                     gx: 1.0 + i as f64,
                     gy: 0.0,
+                    slope: 1.0 + i as f64,
                     neighbours: 0.0,
                 });
                 let mut row = [0.0; 6];

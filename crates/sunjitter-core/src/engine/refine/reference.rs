@@ -97,6 +97,7 @@ impl RefineReference {
                     value,
                     gx,
                     gy,
+                    slope: gx.hypot(gy),
                     neighbours,
                 })
             })
@@ -120,6 +121,9 @@ pub(super) struct Pixel {
     pub(super) value: f64,
     pub(super) gx: f64,
     pub(super) gy: f64,
+    /// The gradient's length, which ranks the pixels by flatness (every refinement of the
+    /// same pixels, a self-test's cases, reads it).
+    pub(super) slope: f64,
     pub(super) neighbours: f64,
 }
 
