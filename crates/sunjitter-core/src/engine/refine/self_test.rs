@@ -147,8 +147,9 @@ impl SelfTestCases {
 }
 
 /// A fingerprint of everything a reference's self-test cases depend on: the code that
-/// computes them, the reference as the refinement reads it, its mask, the sampling step, the
-/// refinement's settings, the structure length and the engine's configuration. Equal keys
+/// computes them and the instruction set it runs on, the reference as the refinement reads
+/// it, its mask, the sampling step, the refinement's settings, the structure length and the
+/// engine's configuration. Equal keys
 /// give equal cases, so a [`SelfTestStore`] may hand back the cases it kept under a key
 /// instead of their being run again (128 bits of XXH3: no two references meet by chance).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -170,6 +171,12 @@ impl SelfTestKey {
             digest.update(t.as_bytes());
         };
         text(env!("SUNJITTER_CORE_CODE"));
+        // The instruction set the samplers pick at run time moves the last digits.
+        text(&format!(
+            "{} {}",
+            std::env::consts::ARCH,
+            crate::flow::simd::has_avx2_fma()
+        ));
         text(&format!(
             "{:?} {:?} {sample} {settings:?} {:?}",
             reference.dim(),
