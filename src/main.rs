@@ -20,7 +20,13 @@ Examples:
   sunjitter info data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits
   sunjitter replay data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits --out out/sji1400
   sunjitter inspect out/sji1400 --plot jitter.png
-Each command's --help has its own examples.";
+Each command's --help has its own examples.
+
+Environment:
+  SUNJITTER_LOG        what is logged to stderr (default info; e.g. warn, sunjitter_core=debug)
+  SUNJITTER_CACHE_DIR  where references' self-tests are kept between runs
+                       (default $XDG_CACHE_HOME/sunjitter or ~/.cache/sunjitter; empty: nowhere)
+  NO_COLOR             no colour in the log";
 
 #[derive(Debug, Subcommand)]
 enum Command {
