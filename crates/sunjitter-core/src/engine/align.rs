@@ -484,6 +484,7 @@ impl<'a> Stages<'a> {
         settings: &refine::RefineSettings,
     ) -> Option<refine::SelfTestCases> {
         let (work, cfg) = (self.pair.work, self.pair.cfg);
+        let handed_on = self.matched.handed_on(work);
         let run = || {
             refine::self_test_floor(
                 self.reference(),
@@ -492,12 +493,12 @@ impl<'a> Stages<'a> {
                 cfg.sample,
                 settings,
                 work.structure_px,
-                self.matched.handed_on(work),
+                handed_on,
             )
         };
         // Cases handed on depend on the chain before this reference: not kept.
         let store = self.pair.workspace.self_tests();
-        let Some(store) = store.filter(|_| self.matched.handed_on(work).is_none()) else {
+        let Some(store) = store.filter(|_| handed_on.is_none()) else {
             return run();
         };
         let key = refine::SelfTestKey::new(

@@ -149,9 +149,9 @@ impl SelfTestCases {
 /// A fingerprint of everything a reference's self-test cases depend on: the code that
 /// computes them and the instruction set it runs on, the reference as the refinement reads
 /// it, its mask, the sampling step, the refinement's settings, the structure length and the
-/// engine's configuration. Equal keys
-/// give equal cases, so a [`SelfTestStore`] may hand back the cases it kept under a key
-/// instead of their being run again (128 bits of XXH3: no two references meet by chance).
+/// engine's configuration. Equal keys give equal cases, so a [`SelfTestStore`] may hand back
+/// the cases it kept under a key instead of their being run again (128 bits of XXH3: no two
+/// references meet by chance).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct SelfTestKey(u128);
 
