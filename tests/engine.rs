@@ -214,6 +214,40 @@ fn between_channels_full_resolution_passes_from_a_binned_seed_recover_injected_s
     }
 }
 
+/// On larger frames still, the flow's final answer is measured on binned copies, from a seed
+/// on coarser ones. Forced on the 512² TRACE crop by lowering `final_extent_px` too (by
+/// default only masks of 2800 px or more): the answer, carried back to the full grid, must be
+/// the injected similarity within its σ.
+#[test]
+fn between_channels_an_answer_on_binned_copies_recovers_injected_similarities() {
+    let reference = crop(&real("trace_171_19980519T222143_1024.fits"), 512);
+    let cfg = EngineConfig {
+        seed_extent_px: 128,
+        final_extent_px: 256,
+        ..EngineConfig::default()
+    };
+    let prepared = sunjitter::engine::PreparedReference::new(&reference, &cfg);
+    let center = Similarity::array_center(512, 512);
+    for truth in &draw_truths(3, 6, &TrialRanges::default(), center) {
+        let mut frame = transformed(&reference, truth);
+        frame.meta.channel = format!("{}_OTHER", reference.meta.channel);
+        let out = prepared.align(&frame);
+        let r = &out.result;
+        assert_eq!(r.status, Status::Ok, "{}", r.message);
+        assert!(
+            r.message
+                .contains("passes on pyramid level 1 from a seed on level 2"),
+            "{}",
+            r.message
+        );
+        let (est, t) = (
+            contract_units(&out.transform.unwrap()),
+            contract_units(truth),
+        );
+        assert_within_sigmas(r, &est, &t, 3.0);
+    }
+}
+
 #[test]
 fn unrelated_or_flipped_frames_never_come_back_as_confident_answers() {
     let reference = crop(&real("trace_171_19980519T222143_1024.fits"), 384);

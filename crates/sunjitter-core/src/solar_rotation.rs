@@ -349,6 +349,14 @@ impl SurfaceMotion {
     }
 }
 
+/// Where a [`DisplacementGrid`] is read along one axis: its first node and the cubic
+/// convolution's four weights.
+#[derive(Debug, Clone, Copy)]
+pub struct GridTap {
+    first: usize,
+    weights: [f64; 4],
+}
+
 /// A displacement sampled on a regular grid and read by cubic convolution (Catmull–Rom):
 /// `map(p) − p` over an image, NaN where a point has no image (hidden behind the limb).
 #[derive(Debug, Clone)]
@@ -387,19 +395,54 @@ impl DisplacementGrid {
     /// The displacement at `p` (NaN when a node around is NaN or `p` lies outside the grid).
     #[inline]
     pub fn at(&self, p: [f64; 2]) -> [f64; 2] {
-        let (gx, gy) = (p[0] / self.step + 1.0, p[1] / self.step + 1.0);
-        if !(gx >= 1.0 && gy >= 1.0) {
-            return [f64::NAN; 2];
+        match (self.tap(p[0], self.nx), self.tap(p[1], self.ny)) {
+            (Some(x), Some(y)) => self.read(&x, &y),
+            _ => [f64::NAN; 2],
         }
-        let (ix, iy) = (gx.floor() as usize, gy.floor() as usize);
-        if ix + 2 >= self.nx || iy + 2 >= self.ny {
-            return [f64::NAN; 2];
+    }
+
+    /// Where [`DisplacementGrid::at`] reads along one axis of `n` nodes for coordinate `p`:
+    /// `None` outside the grid. The same for every point of a row or column, so a row's
+    /// points share the row's tap and each column's.
+    #[inline]
+    pub fn tap(&self, p: f64, n: usize) -> Option<GridTap> {
+        let g = p / self.step + 1.0;
+        if g.is_nan() || g < 1.0 {
+            return None;
         }
-        let (wx, wy) = (catmull_rom(gx - ix as f64), catmull_rom(gy - iy as f64));
+        let i = g.floor() as usize;
+        (i + 2 < n).then(|| GridTap {
+            first: i - 1,
+            weights: catmull_rom(g - i as f64),
+        })
+    }
+
+    /// Taps along x for [`DisplacementGrid::row`].
+    pub fn x_taps(&self, xs: impl Iterator<Item = f64>) -> Vec<Option<GridTap>> {
+        xs.map(|x| self.tap(x, self.nx)).collect()
+    }
+
+    /// [`DisplacementGrid::at`] at `(x, y)` for every x of `x_taps` (from
+    /// [`DisplacementGrid::x_taps`]), the same values, into `out` in order.
+    pub fn row(&self, x_taps: &[Option<GridTap>], y: f64, mut out: impl FnMut(usize, [f64; 2])) {
+        let ty = self.tap(y, self.ny);
+        for (k, tx) in x_taps.iter().enumerate() {
+            out(
+                k,
+                match (tx, &ty) {
+                    (Some(x), Some(y)) => self.read(x, y),
+                    _ => [f64::NAN; 2],
+                },
+            );
+        }
+    }
+
+    #[inline]
+    fn read(&self, x: &GridTap, y: &GridTap) -> [f64; 2] {
         let mut sum = [0.0; 2];
-        for (j, wyj) in wy.iter().enumerate() {
-            let row = &self.nodes[(iy + j - 1) * self.nx + ix - 1..][..4];
-            for (n, wxi) in row.iter().zip(&wx) {
+        for (j, wyj) in y.weights.iter().enumerate() {
+            let row = &self.nodes[(y.first + j) * self.nx + x.first..][..4];
+            for (n, wxi) in row.iter().zip(&x.weights) {
                 let w = wyj * wxi;
                 sum[0] += w * n[0];
                 sum[1] += w * n[1];
@@ -507,5 +550,29 @@ mod tests {
             );
         }
         assert!(g.at([-1.0, 3.0])[0].is_nan());
+    }
+
+    #[test]
+    fn a_cubic_grid_read_row_by_row_gives_the_quadratic_field_and_nothing_outside() {
+        let f = |p: [f64; 2]| [1e-4 * p[0] * p[0] - 0.3, 2.0 + 1e-4 * p[0] * p[1]];
+        let g = DisplacementGrid::sample(100, 60, 7, f);
+        // Columns from outside the grid on the left to beyond it on the right.
+        let xs: Vec<f64> = (0..30).map(|k| -2.5 + 4.1 * k as f64).collect();
+        let taps = g.x_taps(xs.iter().copied());
+        for y in [0.0, 17.25, 59.0, 61.0e3] {
+            let mut seen = 0;
+            g.row(&taps, y, |k, d| {
+                seen += 1;
+                let want = f([xs[k], y]);
+                let inside = xs[k] >= 0.0 && xs[k] <= 99.0 + 7.0 && y <= 59.0;
+                if inside {
+                    assert!((d[0] - want[0]).abs() < 1e-12, "{k} {y}");
+                    assert!((d[1] - want[1]).abs() < 1e-12, "{k} {y}");
+                } else if xs[k] < 0.0 || y > 100.0 {
+                    assert!(d[0].is_nan() && d[1].is_nan(), "{k} {y}");
+                }
+            });
+            assert_eq!(seen, xs.len());
+        }
     }
 }

@@ -9,7 +9,9 @@ use super::fine::{
     UNSETTLED_PASS_FACTOR,
 };
 use super::prepared::{FrameWork, Matched, ReferenceWork, Workspace};
-use super::seed::{seed_alignment, seed_level, seed_slack_px, Binned};
+use super::seed::{
+    binned_alignment, final_level, seed_level, seed_slack_px, Binned, BinnedRun, FINAL_ANTIALIAS,
+};
 use super::verdict::{verdict, Evidence, Refinement, Verdict};
 use super::{
     check_usable, cleaned_from, derotate, flow_check, geometry_check, photometry, quality,
@@ -363,32 +365,29 @@ impl<'a> Stages<'a> {
 
     /// On a large frame the flow starts on binned copies. When the refinement follows, that
     /// seed is all it needs (should the refinement not be taken, the flow runs at full
-    /// resolution after all). When the flow's answer is final, full-resolution passes carry
-    /// on from the seed, in place of a first pass with the whole pyramid over the full grid:
-    /// the seed costs less and the passes converge to the same answer
-    /// (docs/validation.md#between-channels-full-resolution-passes-from-a-seed).
+    /// resolution after all). When the flow's answer is final, passes carry on from the seed,
+    /// in place of a first pass with the whole pyramid over the full grid: the seed costs less
+    /// and the passes converge to the same answer
+    /// (docs/validation.md#between-channels-full-resolution-passes-from-a-seed). They run on
+    /// copies binned to the level where the mask still spans `final_extent_px`, full
+    /// resolution on smaller frames
+    /// (docs/validation.md#between-channels-the-answer-on-binned-copies).
     fn flow_or_seed(&self) -> Result<FineResult, String> {
         let (work, cfg) = (self.pair.work, self.pair.cfg);
         let seed_level = seed_level(work.mask_box, cfg);
         if seed_level == 0 {
             return self.full_flow();
         }
-        let binned = self
-            .matched
-            .binned
-            .get_or_init(|| Binned::new(self.reference(), &work.mask, seed_level, work.trend_px()));
-        let seed = seed_alignment(
-            binned,
-            work.cleaned.dim(),
-            self.pair.frame_data,
-            self.coarse,
-            self.limb,
-            work.winsize,
-            self.sig_frame,
-            self.carried,
-            cfg,
-            self.pair.workspace,
-        );
+        let binned = self.matched.binned.get_or_init(|| {
+            Binned::new(
+                self.reference(),
+                &work.mask,
+                seed_level,
+                work.trend_px(),
+                0.0,
+            )
+        });
+        let seed = self.on_binned(binned, BinnedRun::Seed(self.coarse));
         // Binned copies can lack what the full frame has (too few vectors, say).
         let Ok(seed) = seed else {
             return self.full_flow();
@@ -396,7 +395,25 @@ impl<'a> Stages<'a> {
         if self.refining {
             return Ok(seed);
         }
-        let mut fine = self.flow_from(PassStart::Seed(seed.transform), cfg.max_passes)?;
+        let final_level = final_level(work.mask_box, cfg).min(seed_level - 1);
+        let mut fine = if final_level == 0 {
+            self.flow_from(PassStart::Seed(seed.transform), cfg.max_passes)?
+        } else {
+            let binned = self.matched.binned_final.get_or_init(|| {
+                let antialias_px = FINAL_ANTIALIAS * (1usize << final_level) as f64;
+                Binned::new(
+                    self.reference(),
+                    &work.mask,
+                    final_level,
+                    work.trend_px(),
+                    antialias_px,
+                )
+            });
+            match self.on_binned(binned, BinnedRun::Final(seed.transform)) {
+                Ok(fine) => fine,
+                Err(_) => return self.full_flow(),
+            }
+        };
         // A seed that the passes moved further than a seed on its level can be off misled
         // them (binned copies can, on weak structure): the whole pyramid from the coarse start
         // after all. Passes that only wander, as they would from any start, are kept.
@@ -407,6 +424,23 @@ impl<'a> Stages<'a> {
         } else {
             self.full_flow()
         }
+    }
+
+    /// The flow on `binned` copies of the reference and the frame.
+    fn on_binned(&self, binned: &Binned, run: BinnedRun) -> Result<FineResult, String> {
+        let pair = self.pair;
+        binned_alignment(
+            binned,
+            pair.work.cleaned.dim(),
+            pair.frame_data,
+            run,
+            self.limb,
+            pair.work.winsize,
+            self.sig_frame,
+            self.carried,
+            pair.cfg,
+            pair.workspace,
+        )
     }
 
     /// The blur difference between the reference and the frame around the mask's centre.
@@ -581,16 +615,27 @@ impl<'a> Stages<'a> {
         })
     }
 
-    /// Widens the flow's σ by its interpolation check; the note says by how much.
+    /// Widens the flow's σ by its interpolation check; the note says by how much. An answer
+    /// measured on binned copies is checked on them.
     fn flow_interpolation_check(&self, fine: &mut FineResult) -> String {
         let checked = Instant::now();
+        let (work, cfg) = (self.pair.work, self.pair.cfg);
+        let binned = fine
+            .seed_level
+            .filter(|&level| level > 0)
+            .and_then(|level| self.matched.binned_at(level));
+        let region = match binned {
+            Some(binned) => binned.region(self.limb, work.winsize, cfg),
+            None => self.region(),
+        };
         let term = flow_check::flow_interpolation_check(
             self.reference(),
-            self.region(),
+            binned,
+            region,
             &fine.transform,
             &self.coarse,
-            self.pair.work.winsize,
-            self.pair.cfg,
+            work.winsize,
+            cfg,
             self.pair.workspace,
         );
         let note = match term {
@@ -616,8 +661,11 @@ impl<'a> Stages<'a> {
     /// (the refinement moves the seed's answer by a small fraction of a binned pixel).
     fn quality(&self, fine: &FineResult) -> (Option<f64>, Option<f64>) {
         let work = self.pair.work;
-        match (fine.seed_level, self.matched.binned.get()) {
-            (Some(_), Some(binned)) => quality_of(
+        match fine
+            .seed_level
+            .and_then(|level| self.matched.binned_at(level))
+        {
+            Some(binned) => quality_of(
                 &QualityGrid {
                     reference: binned.reference.view(),
                     mask: &binned.mask,

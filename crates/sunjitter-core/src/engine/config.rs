@@ -1,7 +1,7 @@
 //! The engine's settings (the configuration file's `[engine]` table).
 
 use super::refine::RefineMode;
-use super::seed::SEED_EXTENT_PX;
+use super::seed::{FINAL_EXTENT_PX, SEED_EXTENT_PX};
 use super::sigma::SigmaMethod;
 use serde::{Deserialize, Serialize};
 
@@ -66,6 +66,10 @@ pub struct EngineConfig {
     /// When the refinement follows, the flow seeds it on copies binned to the pyramid level
     /// where the mask spans at least this many pixels (full resolution below twice that).
     pub seed_extent_px: usize,
+    /// When the flow's answer is final (between channels, or with the refinement off), it is
+    /// measured on copies binned to the pyramid level where the mask spans at least this many
+    /// pixels, from a seed on a coarser level; 0 measures at full resolution.
+    pub final_extent_px: usize,
     /// The Sun's differential rotation taken out between the reference's and the frame's
     /// times (`howard`, `snodgrass`, `allen`, or `none` to keep it in the answer).
     pub solar_rotation: crate::solar_rotation::Profile,
@@ -99,6 +103,7 @@ impl Default for EngineConfig {
             refine_smoothing_px: 0.7,
             refine_gradient_smoothing_px: 0.0,
             seed_extent_px: SEED_EXTENT_PX,
+            final_extent_px: FINAL_EXTENT_PX,
             solar_rotation: crate::solar_rotation::Profile::default(),
         }
     }

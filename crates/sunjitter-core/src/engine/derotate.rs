@@ -241,29 +241,47 @@ impl Carried {
         use ndarray::Axis;
         use rayon::prelude::*;
         let mut out = Array2::from_elem((height, width), [0.0f32; 2]);
+        let taps = self.x_taps(x0, width);
         out.axis_iter_mut(Axis(0))
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
-                for (x, v) in row.iter_mut().enumerate() {
-                    *v = self.shift_at(x + x0, y + y0);
-                }
+                let row = row
+                    .as_slice_mut()
+                    .expect("a new array's rows are contiguous");
+                self.row_with(&taps, x0, y + y0, row);
             });
         out
     }
 
     /// `S(p) − p` along row `y` from column `x0`, one value per element of `out`.
     pub fn shifts_row(&self, x0: usize, y: usize, out: &mut [[f32; 2]]) {
-        for (x, v) in out.iter_mut().enumerate() {
-            *v = self.shift_at(x + x0, y);
-        }
+        let taps = self.x_taps(x0, out.len());
+        self.row_with(&taps, x0, y, out);
     }
 
-    #[inline]
-    fn shift_at(&self, x: usize, y: usize) -> [f32; 2] {
-        let (x, y) = (x as f64, y as f64);
-        let (sx, sy) = self.at(x, y);
-        [(sx - x) as f32, (sy - y) as f32]
+    /// Where the grid is read for columns `x0 … x0 + width − 1`: the same for every row.
+    fn x_taps(&self, x0: usize, width: usize) -> Vec<Option<crate::solar_rotation::GridTap>> {
+        let b = self.factor;
+        self.grid
+            .x_taps((x0..x0 + width).map(|x| b * (x as f64 + 0.5) - 0.5))
+    }
+
+    /// `S(p) − p` along row `y`, as [`Carried::at`] gives it point by point.
+    fn row_with(
+        &self,
+        taps: &[Option<crate::solar_rotation::GridTap>],
+        x0: usize,
+        y: usize,
+        out: &mut [[f32; 2]],
+    ) {
+        let b = self.factor;
+        let yf = y as f64;
+        self.grid.row(taps, b * (yf + 0.5) - 0.5, |k, d| {
+            let x = (x0 + k) as f64;
+            let (sx, sy) = (x + d[0] / b, yf + d[1] / b);
+            out[k] = [(sx - x) as f32, (sy - yf) as f32];
+        });
     }
 
     /// `T∘S` as a coordinate map.

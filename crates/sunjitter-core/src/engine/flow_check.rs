@@ -17,6 +17,7 @@
 use super::config::EngineConfig;
 use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, PassStart, FLOW_TAPER_PX};
 use super::prepared::Workspace;
+use super::seed::Binned;
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
 use ndarray::{s, Array2, ArrayView2, Zip};
@@ -30,9 +31,14 @@ const CHECK_SIDE_PX: usize = 512;
 /// Per parameter (scale, rotation rad, dx, dy), the error beyond the check's own σ (quadratic
 /// excess) of the flow on a cubic-spline copy of `reference` moved by `transform`, started
 /// where `start` (the pair's own start) was relative to it. Both about the reference array's
-/// centre. `None` when the check cannot run.
+/// centre. With `binned`, the answer was measured on those binned copies, and so is the
+/// check: the copy is moved at full resolution and then binned, as the pair's frame was
+/// (binning a moved image is not moving a binned one); the term is in full-grid pixels.
+/// `None` when the check cannot run.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn flow_interpolation_check(
     reference: ArrayView2<f32>,
+    binned: Option<&Binned>,
     region: FlowRegion,
     transform: &Similarity,
     start: &Similarity,
@@ -40,13 +46,20 @@ pub(super) fn flow_interpolation_check(
     cfg: &EngineConfig,
     workspace: &Workspace,
 ) -> Option<[f64; 4]> {
-    let (h, w) = reference.dim();
-    // Same sub-pixel positions, and the copy stays inside the reference.
-    let local = Similarity {
-        dx: transform.dx - transform.dx.round(),
-        dy: transform.dy - transform.dy.round(),
+    let factor = binned.map_or(1, |b| 1usize << b.level());
+    let on_grid = |t: &Similarity| binned.map_or(*t, |b| b.to_binned(t));
+    // The grid the flow measures on: the reference's, or its binned copy.
+    let grid = binned.map_or(reference, |b| b.reference.view());
+    let (h, w) = grid.dim();
+    // Same sub-pixel positions (on the full grid too), and the copy stays inside the
+    // reference.
+    let f = factor as f64;
+    let local_full = Similarity {
+        dx: transform.dx - f * (transform.dx / f).round(),
+        dy: transform.dy - f * (transform.dy / f).round(),
         ..*transform
     };
+    let local = on_grid(&local_full);
     // The square sampled: the centre of the mask's box.
     let roi = mask_roi(region.mask);
     let (side_x, side_y) = (roi.width.min(CHECK_SIDE_PX), roi.height.min(CHECK_SIDE_PX));
@@ -56,52 +69,33 @@ pub(super) fn flow_interpolation_check(
         side_x,
         side_y,
     );
-    // The sub-image around it holds the flow's whole reach from every sampled point.
+    // The sub-image around it holds the flow's whole reach from every sampled point (and,
+    // binned, whole blocks of the full grid).
     let reach = flow_reach_px(winsize, cfg.poly_n).ceil() as usize + FLOW_TAPER_PX + 2;
     let grow = |lo: usize, len: usize, by: usize, n: usize| {
         (lo.saturating_sub(by), (lo + len + by).min(n))
     };
-    let (sx0, sx1) = grow(inner.0, inner.2, reach, w);
-    let (sy0, sy1) = grow(inner.1, inner.3, reach, h);
-    // Where the copy's pixels come from: the sub-image moved back by the transform.
-    let inverse = local.inverse();
-    let corners = [
-        [sx0 as f64, sy0 as f64],
-        [sx1 as f64 - 1.0, sy0 as f64],
-        [sx0 as f64, sy1 as f64 - 1.0],
-        [sx1 as f64 - 1.0, sy1 as f64 - 1.0],
-    ];
-    let motion = corners
-        .iter()
-        .map(|p| {
-            let q = inverse.apply(*p);
-            (q[0] - p[0]).abs().max((q[1] - p[1]).abs())
-        })
-        .fold(0.0f64, f64::max);
-    if !motion.is_finite() {
-        return None;
-    }
-    // The cubic spline's support and its prefilter's border transient.
-    let source_margin = motion.ceil() as usize + 8;
-    let (ux0, ux1) = grow(sx0, sx1 - sx0, source_margin, w);
-    let (uy0, uy1) = grow(sy0, sy1 - sy0, source_margin, h);
-
+    let (full_h, full_w) = reference.dim();
+    let (sx0, sx1) = grow(inner.0, inner.2, reach, w.min(full_w / factor));
+    let (sy0, sy1) = grow(inner.1, inner.3, reach, h.min(full_h / factor));
     let (sw, sh) = (sx1 - sx0, sy1 - sy0);
+    let copy = moved_copy(
+        reference,
+        &local_full,
+        (factor * sx0, factor * sy0),
+        (factor * sw, factor * sh),
+    )?;
+    let copy = match binned {
+        Some(binned) => binned.bin(copy.view()),
+        None => copy,
+    };
     let offset = [sx0 as f64, sy0 as f64];
     let in_sub = |t: &Similarity| Similarity {
         center: [t.center[0] - offset[0], t.center[1] - offset[1]],
         ..*t
     };
-    // Sub-image pixel q is reference pixel q + offset; its copy's value is the reference at
-    // inverse(q + offset), read from the source window.
-    let to_source = Similarity {
-        dx: inverse.dx + (sx0 as f64 - ux0 as f64),
-        dy: inverse.dy + (sy0 as f64 - uy0 as f64),
-        center: [inverse.center[0] - offset[0], inverse.center[1] - offset[1]],
-        ..inverse
-    };
-    let source = reference.slice(s![uy0..uy1, ux0..ux1]);
-    let copy = SplineImage::new(source).warp_similarity(&to_source, sw, sh);
+    let (transform, start) = (on_grid(transform), on_grid(start));
+    let reference = grid;
 
     let sub_reference = reference.slice(s![sy0..sy1, sx0..sx1]);
     let mut sub_mask: Array2<bool> = region.mask.slice(s![sy0..sy1, sx0..sx1]).to_owned();
@@ -143,6 +137,56 @@ pub(super) fn flow_interpolation_check(
         let bias = got[k] - truth[k];
         (bias * bias - measured.covariance[k][k]).max(0.0).sqrt()
     });
-    tracing::debug!(?term, bias = ?std::array::from_fn::<f64, 4, _>(|k| got[k] - truth[k]), "flow interpolation check");
+    tracing::debug!(?term, bias = ?std::array::from_fn::<f64, 4, _>(|k| got[k] - truth[k]), factor, "flow interpolation check");
+    let term = [term[0], term[1], term[2] * f, term[3] * f];
     term.iter().all(|v| v.is_finite()).then_some(term)
+}
+
+/// `reference` moved by `local` (about the reference's centre) by a cubic spline, on the
+/// `size` (width, height) sub-image at `origin` (x, y): sub-image pixel q is the reference at
+/// `local⁻¹(q + origin)`, read from a window around it. `None` for a non-finite motion.
+fn moved_copy(
+    reference: ArrayView2<f32>,
+    local: &Similarity,
+    (sx0, sy0): (usize, usize),
+    (sw, sh): (usize, usize),
+) -> Option<Array2<f32>> {
+    let (h, w) = reference.dim();
+    let (sx1, sy1) = (sx0 + sw, sy0 + sh);
+    let grow = |lo: usize, len: usize, by: usize, n: usize| {
+        (lo.saturating_sub(by), (lo + len + by).min(n))
+    };
+    // Where the copy's pixels come from: the sub-image moved back by the transform.
+    let inverse = local.inverse();
+    let corners = [
+        [sx0 as f64, sy0 as f64],
+        [sx1 as f64 - 1.0, sy0 as f64],
+        [sx0 as f64, sy1 as f64 - 1.0],
+        [sx1 as f64 - 1.0, sy1 as f64 - 1.0],
+    ];
+    let motion = corners
+        .iter()
+        .map(|p| {
+            let q = inverse.apply(*p);
+            (q[0] - p[0]).abs().max((q[1] - p[1]).abs())
+        })
+        .fold(0.0f64, f64::max);
+    if !motion.is_finite() {
+        return None;
+    }
+    // The cubic spline's support and its prefilter's border transient.
+    let source_margin = motion.ceil() as usize + 8;
+    let (ux0, ux1) = grow(sx0, sw, source_margin, w);
+    let (uy0, uy1) = grow(sy0, sh, source_margin, h);
+    let to_source = Similarity {
+        dx: inverse.dx + (sx0 as f64 - ux0 as f64),
+        dy: inverse.dy + (sy0 as f64 - uy0 as f64),
+        center: [
+            inverse.center[0] - sx0 as f64,
+            inverse.center[1] - sy0 as f64,
+        ],
+        ..inverse
+    };
+    let source = reference.slice(s![uy0..uy1, ux0..ux1]);
+    Some(SplineImage::new(source).warp_similarity(&to_source, sw, sh))
 }

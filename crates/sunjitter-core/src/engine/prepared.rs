@@ -116,6 +116,8 @@ pub(super) struct Matched {
     pub(super) self_test: std::sync::OnceLock<Option<refine::SelfTestCases>>,
     /// Binned copies for seed flows on large frames (made on first use).
     pub(super) binned: std::sync::OnceLock<Binned>,
+    /// Binned copies on which a final flow answer is measured on large frames (first use).
+    pub(super) binned_final: std::sync::OnceLock<Binned>,
     /// The reference as the refinement reads it (made on the first refinement).
     pub(super) refine_reference: std::sync::OnceLock<refine::RefineReference>,
     /// Radial power spectrum at the mask's centre, for the blur difference (first use).
@@ -369,6 +371,7 @@ impl ReferenceWork {
             high_pass: std::sync::OnceLock::new(),
             self_test: std::sync::OnceLock::new(),
             binned: std::sync::OnceLock::new(),
+            binned_final: std::sync::OnceLock::new(),
             refine_reference: std::sync::OnceLock::new(),
             spectrum: std::sync::OnceLock::new(),
         });
@@ -402,6 +405,13 @@ impl Matched {
             let crop = self.view(work).slice_move(s![rows.clone(), cols.clone()]);
             (quality::high_pass(crop, trend_px), Crop { rows, cols })
         })
+    }
+
+    /// The binned copies at `level`, if made.
+    pub(super) fn binned_at(&self, level: usize) -> Option<&Binned> {
+        [&self.binned, &self.binned_final]
+            .into_iter()
+            .find_map(|b| b.get().filter(|b| b.level() == level))
     }
 
     /// The self-test cases handed on to this version of the reference, if any.

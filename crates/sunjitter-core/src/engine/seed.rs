@@ -29,21 +29,52 @@ pub(super) fn seed_slack_px(level: usize) -> f64 {
     0.05 * ((1usize << level.min(16)) - 1) as f64
 }
 
+/// Default mask extent, px, at the pyramid level where a final flow answer is measured
+/// (between channels, or with the refinement off). Twice the seed's: the flow's own σ there are
+/// far below its interpolation term, and the cost stays that of a 2048² frame on larger ones
+/// (docs/validation.md#between-channels-the-answer-on-binned-copies).
+pub(super) const FINAL_EXTENT_PX: usize = 1400;
+
+/// Gaussian σ, in units of the binning factor, both images are smoothed by before they are
+/// binned for a final answer. A 2×2 mean alone passes 38 % of the amplitude at 3/8 cycles per
+/// pixel, which aliases on the binned grid and moves band-limited structure differently from
+/// the true shift; with this σ first, 2.4 %
+/// (docs/validation.md#between-channels-the-answer-on-binned-copies).
+pub(super) const FINAL_ANTIALIAS: f64 = 0.5;
+
 /// The pyramid level a seed flow works on: where the mask spans at least
 /// `cfg.seed_extent_px` (64 at the least), within the pyramid the flow would build.
 pub(super) fn seed_level(roi: Roi, cfg: &EngineConfig) -> usize {
+    level_spanning(roi, cfg, cfg.seed_extent_px.max(64))
+}
+
+/// The pyramid level a final flow answer is measured on: where the mask spans at least
+/// `cfg.final_extent_px` (64 at the least); 0 keeps full resolution.
+pub(super) fn final_level(roi: Roi, cfg: &EngineConfig) -> usize {
+    match cfg.final_extent_px {
+        0 => 0,
+        px => level_spanning(roi, cfg, px.max(64)),
+    }
+}
+
+/// The coarsest level, within the pyramid the flow would build, where the mask still spans
+/// `extent_px`.
+fn level_spanning(roi: Roi, cfg: &EngineConfig, extent_px: usize) -> usize {
     let extent = roi.width.min(roi.height);
     let levels = cfg.pyramid_levels.unwrap_or_else(|| auto_levels(extent));
     let mut level = 0;
-    while level < levels && (extent >> (level + 1)) >= cfg.seed_extent_px.max(64) {
+    while level < levels && (extent >> (level + 1)) >= extent_px {
         level += 1;
     }
     level
 }
 
-/// The reference and its mask binned `2^level`× for seed flows.
+/// The reference and its mask binned `2^level`× for flows on binned copies: seeds, and final
+/// answers on large frames.
 pub(super) struct Binned {
     level: usize,
+    /// Gaussian σ, full-grid px, both images are smoothed by before binning (0: none).
+    antialias_px: f64,
     pub(super) reference: Array2<f32>,
     pub(super) mask: Array2<bool>,
     pub(super) mask_box: Roi,
@@ -58,9 +89,10 @@ impl Binned {
         mask: &Array2<bool>,
         level: usize,
         trend_px: f64,
+        antialias_px: f64,
     ) -> Binned {
         let factor = 1usize << level;
-        let reference = preprocess::bin_mean(reference, factor);
+        let reference = bin(reference, factor, antialias_px);
         let mask = all_binned(mask, factor);
         let mask_box = mask_roi(&mask);
         let (h, w) = reference.dim();
@@ -69,12 +101,21 @@ impl Binned {
             quality::high_pass(reference.slice(s![rows.clone(), cols.clone()]), trend_px);
         Binned {
             level,
+            antialias_px,
             reference,
             mask,
             mask_box,
             high_pass,
             quality_crop: Crop { rows, cols },
         }
+    }
+}
+
+fn bin(img: ArrayView2<f32>, factor: usize, antialias_px: f64) -> Array2<f32> {
+    if antialias_px > 0.0 {
+        preprocess::smooth_bin(img, factor, antialias_px)
+    } else {
+        preprocess::bin_mean(img, factor)
     }
 }
 
@@ -99,16 +140,87 @@ fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
     out
 }
 
-/// The flow stage on `binned` copies, as a seed for the refinement or for full-resolution
-/// passes: the result in full-grid terms (transform, covariances, inliers, sampling mask),
-/// without a warped frame. Between channels `disk` is the reference's disk (centre, radius px,
-/// full grid), whose limb the flow's windows must stay clear of.
+/// What a run of the flow on binned copies is for.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum BinnedRun {
+    /// A seed, from the coarse alignment (full grid): the whole pyramid, then passes until
+    /// the update is a tenth of the seed's own slack.
+    Seed(Similarity),
+    /// The flow's final answer, from a seed on a coarser level (full grid): passes on this
+    /// level only, converged as at full resolution.
+    Final(Similarity),
+}
+
+impl Binned {
+    pub(super) fn level(&self) -> usize {
+        self.level
+    }
+
+    /// `img` (full grid) binned as the reference was.
+    pub(super) fn bin(&self, img: ArrayView2<f32>) -> Array2<f32> {
+        bin(img, 1 << self.level, self.antialias_px)
+    }
+
+    fn factor(&self) -> f64 {
+        (1usize << self.level) as f64
+    }
+
+    /// Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
+    fn to_full(&self, q: f64) -> f64 {
+        let b = self.factor();
+        b * (q + 0.5) - 0.5
+    }
+
+    /// `t` (full grid) as the same motion on the binned grid, about the binned array's centre:
+    /// a similarity about centre C with shift d is, there, the same scale and rotation about
+    /// the binned C with shift d/b.
+    pub(super) fn to_binned(&self, t: &Similarity) -> Similarity {
+        let b = self.factor();
+        let (sh, sw) = self.reference.dim();
+        let small_center = Similarity::array_center(sw, sh);
+        let about = [self.to_full(small_center[0]), self.to_full(small_center[1])];
+        let c = t.recentered(about);
+        Similarity {
+            dx: c.dx / b,
+            dy: c.dy / b,
+            center: small_center,
+            ..c
+        }
+    }
+
+    /// Where the flow measures on the binned grid. Between channels `disk` is the reference's
+    /// disk (centre, radius px, full grid), whose limb the flow's windows must stay clear of;
+    /// the flow's reach is in binned pixels here.
+    pub(super) fn region(
+        &self,
+        disk: Option<([f64; 2], f64)>,
+        winsize: usize,
+        cfg: &EngineConfig,
+    ) -> FlowRegion<'_> {
+        let b = self.factor();
+        FlowRegion {
+            mask: &self.mask,
+            sample_within: disk.map(|([cx, cy], r)| {
+                let to_binned = |v: f64| (v + 0.5) / b - 0.5;
+                (
+                    [to_binned(cx), to_binned(cy)],
+                    r / b - flow_reach_px(winsize, cfg.poly_n),
+                )
+            }),
+        }
+    }
+}
+
+/// The flow stage on `binned` copies, as a seed or as the flow's final answer (`run`): the
+/// result in full-grid terms (transform, covariances, inliers, sampling mask), its warped
+/// frame on the binned grid. Between channels `disk` is the reference's disk (centre, radius
+/// px, full grid), whose limb the flow's windows must stay clear of.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn seed_alignment(
+pub(super) fn binned_alignment(
     binned: &Binned,
     grid: (usize, usize),
     frame: &Array2<f32>,
-    coarse: Similarity,
+    run: BinnedRun,
     disk: Option<([f64; 2], f64)>,
     winsize: usize,
     frame_smoothing_px: f64,
@@ -120,49 +232,31 @@ pub(super) fn seed_alignment(
     let b = factor as f64;
     // The reference's grid (the frame may be of another size).
     let (h, w) = grid;
-    let (sh, sw) = binned.reference.dim();
-    // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
-    let to_full = |q: f64| b * (q + 0.5) - 0.5;
-    let small_center = Similarity::array_center(sw, sh);
     let full_center = Similarity::array_center(w, h);
-    // A similarity about centre C with shift d is, on the binned grid, the same scale and
-    // rotation about the binned C with shift d/b.
-    let about = [to_full(small_center[0]), to_full(small_center[1])];
-    let c = coarse.recentered(about);
-    let coarse_small = Similarity {
-        dx: c.dx / b,
-        dy: c.dy / b,
-        center: small_center,
-        ..c
-    };
-    let small_frame = preprocess::bin_mean(frame.view(), factor);
-    // Converged when the update is a tenth of the seed's own slack (in binned pixels).
-    let seed_cfg = EngineConfig {
-        convergence_px: cfg
-            .convergence_px
-            .max(0.1 * seed_slack_px(binned.level) / b),
-        ..cfg.clone()
+    let small_frame = binned.bin(frame.view());
+    let (start, run_cfg) = match run {
+        // Converged when the update is a tenth of the seed's own slack (in binned pixels).
+        BinnedRun::Seed(coarse) => (
+            PassStart::Coarse(binned.to_binned(&coarse)),
+            EngineConfig {
+                convergence_px: cfg
+                    .convergence_px
+                    .max(0.1 * seed_slack_px(binned.level) / b),
+                ..cfg.clone()
+            },
+        ),
+        BinnedRun::Final(seed) => (PassStart::Seed(binned.to_binned(&seed)), cfg.clone()),
     };
     let mut fine = fine_alignment(
         binned.reference.view(),
         &small_frame,
-        FlowRegion {
-            mask: &binned.mask,
-            // The flow's reach is in binned pixels here.
-            sample_within: disk.map(|([cx, cy], r)| {
-                let to_binned = |v: f64| (v + 0.5) / b - 0.5;
-                (
-                    [to_binned(cx), to_binned(cy)],
-                    r / b - flow_reach_px(winsize, cfg.poly_n),
-                )
-            }),
-        },
-        PassStart::Coarse(coarse_small),
+        binned.region(disk, winsize, cfg),
+        start,
         winsize,
         frame_smoothing_px / b,
-        seed_cfg.max_passes,
+        run_cfg.max_passes,
         carried.map(|c| c.binned(factor)).as_ref(),
-        &seed_cfg,
+        &run_cfg,
         workspace,
     )
     .map_err(|e| e.to_string())?;
@@ -170,7 +264,7 @@ pub(super) fn seed_alignment(
         let t_about = Similarity {
             dx: t.dx * b,
             dy: t.dy * b,
-            center: [to_full(t.center[0]), to_full(t.center[1])],
+            center: [binned.to_full(t.center[0]), binned.to_full(t.center[1])],
             ..*t
         };
         let d = [1.0, 1.0, b, b];
@@ -190,9 +284,10 @@ pub(super) fn seed_alignment(
     fine.covariance = covariance;
     fine.uabjm_covariance = uabjm_covariance;
     fine.fit.residual_rms_px *= b;
+    fine.unsettled_px = fine.unsettled_px.map(|px| px * b);
     for p in &mut fine.inliers {
-        p.x = to_full(p.x);
-        p.y = to_full(p.y);
+        p.x = binned.to_full(p.x);
+        p.y = binned.to_full(p.y);
         p.u *= b;
         p.v *= b;
     }

@@ -111,6 +111,10 @@ pub(super) fn verdict(
     }
     reasons.extend(notes);
     reasons.push(match (e.seed_level, e.seeded_from) {
+        (Some(level), Some(from)) if level > 0 => format!(
+            "window {} px, {} passes on pyramid level {level} from a seed on level {from}",
+            e.winsize, e.passes
+        ),
         (Some(level), _) if level > 0 => format!(
             "window {} px, {} passes finished on pyramid level {level}",
             e.winsize, e.passes
@@ -190,6 +194,26 @@ mod tests {
         let v = verdict(&settled(), vec!["a note".into()], &EngineConfig::default()).unwrap();
         assert_eq!(v.status, Status::Ok);
         assert_eq!(v.message, "a note; window 31 px, 2 passes");
+        // The level the passes ran on, and the seed's, as docs/method.md names them.
+        let binned = Evidence {
+            seed_level: Some(1),
+            seeded_from: Some(2),
+            ..settled()
+        };
+        let v = verdict(&binned, Vec::new(), &EngineConfig::default()).unwrap();
+        assert_eq!(
+            v.message,
+            "window 31 px, 2 passes on pyramid level 1 from a seed on level 2"
+        );
+        let full = Evidence {
+            seeded_from: Some(2),
+            ..settled()
+        };
+        let v = verdict(&full, Vec::new(), &EngineConfig::default()).unwrap();
+        assert_eq!(
+            v.message,
+            "window 31 px, 2 passes from a seed on pyramid level 2"
+        );
     }
 
     #[test]

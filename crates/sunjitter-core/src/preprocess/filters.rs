@@ -310,6 +310,83 @@ fn sum_rows_body(rows: &[(&[f32], f32)], out: &mut [f32]) {
     }
 }
 
+/// Block means by `bin` of the image smoothed by a Gaussian of σ px: what
+/// `bin_mean(&gaussian_smooth(img, σ), bin)` gives, in one pass over the image and without its
+/// two full-size intermediates. Each output is a weighted sum of the pixels its block's
+/// smoothed values read (the Gaussian convolved with the block, `2·round(4σ) + bin` taps per
+/// axis), with the same edge normalisation. Images with blanks take the two steps.
+pub fn smooth_bin(img: ArrayView2<f32>, bin: usize, sigma_px: f64) -> Array2<f32> {
+    if bin <= 1 || !(sigma_px > 0.0 && sigma_px.is_finite()) || !crate::stats::all_finite(img) {
+        return bin_mean(gaussian_smooth(img, sigma_px).view(), bin);
+    }
+    let radius = (4.0 * sigma_px + 0.5) as usize;
+    let kernel: Vec<f64> = (0..=2 * radius)
+        .map(|i| {
+            let d = i as f64 - radius as f64;
+            (-0.5 * d * d / (sigma_px * sigma_px)).exp()
+        })
+        .collect();
+    let total: f64 = kernel.iter().sum();
+    let kernel: Vec<f64> = kernel.iter().map(|k| k / total).collect();
+    // Per block along an axis of `n` pixels: its first source pixel and the weights of the
+    // pixels from there. A pixel's smoothed value is its kernel sum over the pixels inside,
+    // divided by the kernel's weight inside; a block's value is the mean of its pixels'.
+    let taps = |n: usize| -> Vec<(usize, Vec<f32>)> {
+        (0..n.div_ceil(bin))
+            .map(|b| {
+                let (x0, x1) = (b * bin, ((b + 1) * bin).min(n));
+                let lo = x0.saturating_sub(radius);
+                let hi = (x1 - 1 + radius).min(n - 1);
+                let mut weights = vec![0f64; hi - lo + 1];
+                for x in x0..x1 {
+                    let (a, z) = (x.saturating_sub(radius), (x + radius).min(n - 1));
+                    let inside: f64 = (a..=z).map(|u| kernel[u + radius - x]).sum();
+                    for u in a..=z {
+                        weights[u - lo] += kernel[u + radius - x] / inside / (x1 - x0) as f64;
+                    }
+                }
+                (lo, weights.iter().map(|&v| v as f32).collect())
+            })
+            .collect()
+    };
+    let (h, w) = img.dim();
+    let (xt, yt) = (taps(w), taps(h));
+    let (bh, bw) = (yt.len(), xt.len());
+    let mut out = Array2::<f32>::zeros((bh, bw));
+    // Per output row: the weighted sum of its source rows (whole rows, in vector lanes),
+    // then the weighted sums along it.
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(&yt)
+        .for_each_init(
+            || vec![0f32; w],
+            |column_sums, (mut orow, (lo, wts))| {
+                column_sums.iter_mut().for_each(|v| *v = 0.0);
+                for (i, &wt) in wts.iter().enumerate() {
+                    let row = img.row(lo + i);
+                    match row.as_slice() {
+                        Some(r) => column_sums
+                            .iter_mut()
+                            .zip(r)
+                            .for_each(|(o, &v)| *o += wt * v),
+                        None => column_sums
+                            .iter_mut()
+                            .zip(row.iter())
+                            .for_each(|(o, &v)| *o += wt * v),
+                    }
+                }
+                for (o, (lo, wts)) in orow.iter_mut().zip(&xt) {
+                    *o = wts
+                        .iter()
+                        .zip(&column_sums[*lo..])
+                        .map(|(&wt, &v)| wt * v)
+                        .sum();
+                }
+            },
+        );
+    out
+}
+
 /// NaN-aware block mean by an integer factor.
 /// Means of `bin × bin` blocks (the last ones partial), ignoring NaN; NaN for an all-NaN block.
 pub fn bin_mean(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {

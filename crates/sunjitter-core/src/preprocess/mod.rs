@@ -8,7 +8,7 @@ mod hot_pixels;
 
 pub use disk::{detect_disk, DiskFit, LimbFeature};
 pub(crate) use filters::gaussian_smooth_as;
-pub use filters::{bin_mean, gaussian_smooth, gaussian_trend};
+pub use filters::{bin_mean, gaussian_smooth, gaussian_trend, smooth_bin};
 pub use hot_pixels::{
     hot_pixels_removed, remove_hot_pixels, remove_hot_pixels_with, remove_spikes_from_scene,
     HOT_PIXEL_LONE_FACTOR, HOT_PIXEL_NOISE_SIGMAS,
@@ -277,6 +277,73 @@ mod tests {
         assert_eq!(img[[3, 3]], 15.0 / 8.0);
         let nothing = Array2::from_elem((4, 4), false);
         assert_eq!(normalize_by_mask_mean(&mut img, &nothing), None);
+    }
+
+    #[test]
+    fn block_means_skip_blanks_and_keep_partial_blocks() {
+        // 5 × 7 by 2: blocks of rows 0–1 | 2–3 | 4 and columns 0–1 | 2–3 | 4–5 | 6, values
+        // 10·y + x, so a block's mean is 10·(mean row) + (mean column).
+        let mut img = Array2::from_shape_fn((5, 7), |(y, x)| (10 * y + x) as f32);
+        let want = ndarray::arr2(&[
+            [5.5f32, 7.5, 9.5, 11.0],
+            [25.5, 27.5, 29.5, 31.0],
+            [40.5, 42.5, 44.5, 46.0],
+        ]);
+        assert_eq!(bin_mean(img.view(), 2), want);
+        // Blanks carry no weight; an all-blank block is blank. Rows 0–1, columns 2–3 keep only
+        // (0, 3) and (1, 3): mean 8. Columns 4–5 of rows 2–3 are all blank.
+        img[[0, 2]] = f32::NAN;
+        img[[1, 2]] = f32::NAN;
+        for (y, x) in [(2, 4), (2, 5), (3, 4), (3, 5)] {
+            img[[y, x]] = f32::INFINITY;
+        }
+        let got = bin_mean(img.view(), 2);
+        assert_eq!(got[[0, 1]], 8.0);
+        assert!(got[[1, 2]].is_nan());
+        assert_eq!(got[[0, 0]], 5.5);
+        // A view that is not contiguous (every other column) bins the same as its copy.
+        let strided = img.slice(s![.., ..;2]);
+        let copied = strided.to_owned();
+        let (a, b) = (bin_mean(strided, 2), bin_mean(copied.view(), 2));
+        assert!(a
+            .iter()
+            .zip(&b)
+            .all(|(p, q)| p == q || (p.is_nan() && q.is_nan())));
+        assert_eq!(a[[0, 0]], 5.0);
+    }
+
+    #[test]
+    fn smoothing_and_binning_in_one_pass_equals_the_two_steps() {
+        // On a real TRACE crop of odd size (partial blocks at two edges), with the edge
+        // normalisation: the two steps are checked against scipy and by hand above.
+        let img = read_real("trace_171_19980519T222143_1024.fits");
+        let crop = img.slice(s![301..438, 517..666]);
+        let range = crop.fold(f32::MIN, |a, &b| a.max(b)) - crop.fold(f32::MAX, |a, &b| a.min(b));
+        for (bin, sigma) in [(2, 1.0), (3, 1.5), (4, 2.0)] {
+            let two_steps = bin_mean(gaussian_smooth(crop, sigma).view(), bin);
+            let one_pass = smooth_bin(crop, bin, sigma);
+            assert_eq!(one_pass.dim(), two_steps.dim());
+            let worst = one_pass
+                .iter()
+                .zip(&two_steps)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            assert!(
+                worst <= 2e-6 * range,
+                "bin {bin}, σ {sigma}: {worst} of {range}"
+            );
+        }
+        // With a blank the two steps are taken.
+        let mut blank = crop.to_owned();
+        blank[[40, 50]] = f32::NAN;
+        let (a, b) = (
+            smooth_bin(blank.view(), 2, 1.0),
+            bin_mean(gaussian_smooth(blank.view(), 1.0).view(), 2),
+        );
+        assert!(a
+            .iter()
+            .zip(&b)
+            .all(|(p, q)| p == q || (p.is_nan() && q.is_nan())));
     }
 
     #[test]
