@@ -405,7 +405,7 @@ impl DisplacementGrid {
     /// `None` outside the grid. The same for every point of a row or column, so a row's
     /// points share the row's tap and each column's.
     #[inline]
-    pub fn tap(&self, p: f64, n: usize) -> Option<GridTap> {
+    fn tap(&self, p: f64, n: usize) -> Option<GridTap> {
         let g = p / self.step + 1.0;
         if g.is_nan() || g < 1.0 {
             return None;

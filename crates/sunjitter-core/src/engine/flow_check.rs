@@ -72,9 +72,6 @@ pub(super) fn flow_interpolation_check(
     // The sub-image around it holds the flow's whole reach from every sampled point (and,
     // binned, whole blocks of the full grid).
     let reach = flow_reach_px(winsize, cfg.poly_n).ceil() as usize + FLOW_TAPER_PX + 2;
-    let grow = |lo: usize, len: usize, by: usize, n: usize| {
-        (lo.saturating_sub(by), (lo + len + by).min(n))
-    };
     let (full_h, full_w) = reference.dim();
     let (sx0, sx1) = grow(inner.0, inner.2, reach, w.min(full_w / factor));
     let (sy0, sy1) = grow(inner.1, inner.3, reach, h.min(full_h / factor));
@@ -153,9 +150,6 @@ fn moved_copy(
 ) -> Option<Array2<f32>> {
     let (h, w) = reference.dim();
     let (sx1, sy1) = (sx0 + sw, sy0 + sh);
-    let grow = |lo: usize, len: usize, by: usize, n: usize| {
-        (lo.saturating_sub(by), (lo + len + by).min(n))
-    };
     // Where the copy's pixels come from: the sub-image moved back by the transform.
     let inverse = local.inverse();
     let corners = [
@@ -189,4 +183,9 @@ fn moved_copy(
     };
     let source = reference.slice(s![uy0..uy1, ux0..ux1]);
     Some(SplineImage::new(source).warp_similarity(&to_source, sw, sh))
+}
+
+/// The span `lo … lo + len` grown by `by` each side, within `0 … n`.
+fn grow(lo: usize, len: usize, by: usize, n: usize) -> (usize, usize) {
+    (lo.saturating_sub(by), (lo + len + by).min(n))
 }

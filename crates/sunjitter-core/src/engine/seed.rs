@@ -109,49 +109,7 @@ impl Binned {
             quality_crop: Crop { rows, cols },
         }
     }
-}
 
-fn bin(img: ArrayView2<f32>, factor: usize, antialias_px: f64) -> Array2<f32> {
-    if antialias_px > 0.0 {
-        preprocess::smooth_bin(img, factor, antialias_px)
-    } else {
-        preprocess::bin_mean(img, factor)
-    }
-}
-
-/// `mask` binned `factor`×, the last blocks partial: a binned pixel is in the mask when all
-/// its pixels are.
-fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
-    let (h, w) = mask.dim();
-    let (bh, bw) = (h.div_ceil(factor), w.div_ceil(factor));
-    let mut out = Array2::from_elem((bh, bw), true);
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(by, mut row)| {
-            for y in by * factor..((by + 1) * factor).min(h) {
-                for (x, &m) in mask.row(y).iter().enumerate() {
-                    if !m {
-                        row[x / factor] = false;
-                    }
-                }
-            }
-        });
-    out
-}
-
-/// What a run of the flow on binned copies is for.
-#[derive(Clone, Copy, Debug)]
-pub(super) enum BinnedRun {
-    /// A seed, from the coarse alignment (full grid): the whole pyramid, then passes until
-    /// the update is a tenth of the seed's own slack.
-    Seed(Similarity),
-    /// The flow's final answer, from a seed on a coarser level (full grid): passes on this
-    /// level only, converged as at full resolution.
-    Final(Similarity),
-}
-
-impl Binned {
     pub(super) fn level(&self) -> usize {
         self.level
     }
@@ -209,6 +167,46 @@ impl Binned {
             }),
         }
     }
+}
+
+fn bin(img: ArrayView2<f32>, factor: usize, antialias_px: f64) -> Array2<f32> {
+    if antialias_px > 0.0 {
+        preprocess::smooth_bin(img, factor, antialias_px)
+    } else {
+        preprocess::bin_mean(img, factor)
+    }
+}
+
+/// `mask` binned `factor`×, the last blocks partial: a binned pixel is in the mask when all
+/// its pixels are.
+fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
+    let (h, w) = mask.dim();
+    let (bh, bw) = (h.div_ceil(factor), w.div_ceil(factor));
+    let mut out = Array2::from_elem((bh, bw), true);
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(by, mut row)| {
+            for y in by * factor..((by + 1) * factor).min(h) {
+                for (x, &m) in mask.row(y).iter().enumerate() {
+                    if !m {
+                        row[x / factor] = false;
+                    }
+                }
+            }
+        });
+    out
+}
+
+/// What a run of the flow on binned copies is for.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum BinnedRun {
+    /// A seed, from the coarse alignment (full grid): the whole pyramid, then passes until
+    /// the update is a tenth of the seed's own slack.
+    Seed(Similarity),
+    /// The flow's final answer, from a seed on a coarser level (full grid): passes on this
+    /// level only, converged as at full resolution.
+    Final(Similarity),
 }
 
 /// The flow stage on `binned` copies, as a seed or as the flow's final answer (`run`): the
