@@ -128,16 +128,26 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
             item.obs_time_ns,
         )),
         Ok(image) => {
-            let checksum = sunjitter_core::record::pixel_checksum(image.data.view());
             let frame = LoadedFrame {
                 key: item.key.clone(),
                 spec: item.spec.clone(),
                 obs_time_ns: item.obs_time_ns,
                 image: Arc::new(image),
             };
-            let step = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                state.process(&frame, partner.as_ref(), ctx)
-            }));
+            // The checksum is one serial pass over the pixels: on a thread of its own while
+            // the engine runs, not before it (here, should no thread be had).
+            let checksum_of = || sunjitter_core::record::pixel_checksum(frame.image.data.view());
+            let (checksum, step) = std::thread::scope(|scope| {
+                let checksum = std::thread::Builder::new()
+                    .name("checksum".into())
+                    .spawn_scoped(scope, checksum_of)
+                    .ok();
+                let step = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    state.process(&frame, partner.as_ref(), ctx)
+                }));
+                (checksum.and_then(|c| c.join().ok()), step)
+            });
+            let checksum = checksum.unwrap_or_else(checksum_of);
             match step {
                 Ok(mut out) => {
                     // This frame's own message carries what was read (proves no torn reads).
