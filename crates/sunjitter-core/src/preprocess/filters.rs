@@ -23,25 +23,14 @@ pub(crate) fn gaussian_smooth_as(
     if sigma_px.is_nan() || sigma_px <= 0.0 || !sigma_px.is_finite() {
         return img.to_owned();
     }
-    let radius = (4.0 * sigma_px + 0.5) as usize;
-    let mut kernel: Vec<f32> = (0..=2 * radius)
-        .map(|i| {
-            let d = i as f64 - radius as f64;
-            (-0.5 * d * d / (sigma_px * sigma_px)).exp() as f32
-        })
-        .collect();
-    let total: f32 = kernel.iter().sum();
-    kernel.iter_mut().for_each(|k| *k /= total);
+    let (_, kernel) = gaussian_kernel(sigma_px);
     let (h, w) = img.dim();
-    // Blanks count as zeros here; their weight is divided out below.
-    let zero_blanks = |v: f32| if v.is_finite() { v } else { 0.0 };
     if has_nan {
         let mut out = convolve_columns(
             &convolve_rows(img, &kernel, zero_blanks),
             &kernel,
             |_, _| {},
         );
-        let weight = |v: f32| if v.is_finite() { 1.0f32 } else { 0.0 };
         let den = convolve_columns(&convolve_rows(img, &kernel, weight), &kernel, |_, _| {});
         Zip::from(&mut out)
             .and(&den)
@@ -57,16 +46,7 @@ pub(crate) fn gaussian_smooth_as(
     } else {
         // Without NaNs the weight plane is the outer product of the 1-D edge sums, divided out
         // as each row is made.
-        let edge_sum = |n: usize| -> Vec<f32> {
-            (0..n)
-                .map(|i| {
-                    let lo = radius.saturating_sub(i);
-                    let hi = (radius + n - 1 - i).min(2 * radius);
-                    kernel[lo..=hi].iter().sum()
-                })
-                .collect()
-        };
-        let (wx, wy) = (edge_sum(w), edge_sum(h));
+        let (wx, wy) = (edge_sums(&kernel, w), edge_sums(&kernel, h));
         convolve_columns(
             &convolve_rows(img, &kernel, zero_blanks),
             &kernel,
@@ -77,6 +57,115 @@ pub(crate) fn gaussian_smooth_as(
             },
         )
     }
+}
+
+/// Blanks count as zeros in the sums of a normalised convolution; their weight is divided out.
+fn zero_blanks(v: f32) -> f32 {
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
+/// The weight a pixel carries in a normalised convolution: none for a blank.
+fn weight(v: f32) -> f32 {
+    if v.is_finite() {
+        1.0
+    } else {
+        0.0
+    }
+}
+
+/// The normalised Gaussian kernel of σ px truncated at `round(4σ)` (scipy's), and that radius.
+fn gaussian_kernel(sigma_px: f64) -> (usize, Vec<f32>) {
+    let radius = (4.0 * sigma_px + 0.5) as usize;
+    let mut kernel: Vec<f32> = (0..=2 * radius)
+        .map(|i| {
+            let d = i as f64 - radius as f64;
+            (-0.5 * d * d / (sigma_px * sigma_px)).exp() as f32
+        })
+        .collect();
+    let total: f32 = kernel.iter().sum();
+    kernel.iter_mut().for_each(|k| *k /= total);
+    (radius, kernel)
+}
+
+/// The kernel's mass inside `0..n` about each index: a zero-padded convolution's weights.
+fn edge_sums(kernel: &[f32], n: usize) -> Vec<f32> {
+    let radius = kernel.len() / 2;
+    (0..n)
+        .map(|i| {
+            let lo = radius.saturating_sub(i);
+            let hi = (radius + n - 1 - i).min(2 * radius);
+            kernel[lo..=hi].iter().sum()
+        })
+        .collect()
+}
+
+/// [`gaussian_smooth`] at the rows `rows` of `img` only, one output row per entry in that
+/// order: each is the column convolution over the kernel's reach, then the row convolution,
+/// with the same normalisation. The same values up to rounding (the passes run in the other
+/// order), at the cost of the rows asked for.
+pub fn gaussian_smooth_rows(img: ArrayView2<f32>, sigma_px: f64, rows: &[usize]) -> Array2<f32> {
+    let (h, w) = img.dim();
+    if sigma_px.is_nan() || sigma_px <= 0.0 || !sigma_px.is_finite() {
+        return ndarray::stack(
+            Axis(0),
+            &rows.iter().map(|&y| img.row(y)).collect::<Vec<_>>(),
+        )
+        .unwrap_or_else(|_| Array2::zeros((0, w)));
+    }
+    let (radius, kernel) = gaussian_kernel(sigma_px);
+    let has_nan = !crate::stats::all_finite(img);
+    let (wx, wy) = (edge_sums(&kernel, w), edge_sums(&kernel, h));
+    let mut out = Array2::<f32>::zeros((rows.len(), w));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(rows.par_iter())
+        .for_each(|(mut o, &y)| {
+            // The column sums over the rows in reach, in row order; then along the row.
+            let reach = y.saturating_sub(radius)..=(y + radius).min(h - 1);
+            let column = |map: fn(f32) -> f32| {
+                let mut sums = vec![0f32; w];
+                let slices: Option<Vec<(&[f32], f32)>> = reach
+                    .clone()
+                    .map(|yy| Some((img.row(yy).to_slice()?, kernel[yy + radius - y])))
+                    .collect();
+                match slices.filter(|_| !has_nan) {
+                    // All finite: `map` is the identity.
+                    Some(rows) => sum_rows(&rows, &mut sums),
+                    None => {
+                        for yy in reach.clone() {
+                            let k = kernel[yy + radius - y];
+                            for (s, &v) in sums.iter_mut().zip(img.row(yy)) {
+                                *s += k * map(v);
+                            }
+                        }
+                    }
+                }
+                let mut along = vec![0f32; w];
+                convolve_row(&sums, &kernel, &mut along);
+                along
+            };
+            let num = column(zero_blanks);
+            let own = img.row(y);
+            if has_nan {
+                let den = column(weight);
+                for (x, o) in o.iter_mut().enumerate() {
+                    *o = if own[x].is_finite() && den[x] > 0.0 {
+                        num[x] / den[x]
+                    } else {
+                        f32::NAN
+                    };
+                }
+            } else {
+                for (x, o) in o.iter_mut().enumerate() {
+                    *o = num[x] / (wx[x] * wy[y]);
+                }
+            }
+        });
+    out
 }
 
 /// A wide Gaussian blur (the large-scale trend) at a fraction of [`gaussian_smooth`]'s cost:

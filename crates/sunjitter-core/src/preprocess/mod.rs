@@ -8,7 +8,7 @@ mod hot_pixels;
 
 pub use disk::{detect_disk, DiskFit, LimbFeature};
 pub(crate) use filters::gaussian_smooth_as;
-pub use filters::{bin_mean, gaussian_smooth, gaussian_trend, smooth_bin};
+pub use filters::{bin_mean, gaussian_smooth, gaussian_smooth_rows, gaussian_trend, smooth_bin};
 pub use hot_pixels::{
     hot_pixels_removed, remove_hot_pixels, remove_hot_pixels_with, remove_spikes_from_scene,
     HOT_PIXEL_LONE_FACTOR, HOT_PIXEL_NOISE_SIGMAS,
@@ -344,6 +344,31 @@ mod tests {
             .iter()
             .zip(&b)
             .all(|(p, q)| p == q || (p.is_nan() && q.is_nan())));
+    }
+
+    #[test]
+    fn smoothing_chosen_rows_gives_those_rows_of_the_whole_smoothing() {
+        // On a real TRACE crop, at rows by the edges and inside, with and without a blank:
+        // the whole smoothing is checked against scipy below.
+        let img = read_real("trace_171_19980519T222143_1024.fits");
+        let crop = img.slice(s![200..420, 300..517]);
+        let range = crop.fold(f32::MIN, |a, &b| a.max(b)) - crop.fold(f32::MAX, |a, &b| a.min(b));
+        let mut blank = crop.to_owned();
+        blank[[100, 60]] = f32::NAN;
+        let rows = [0, 1, 5, 99, 100, 101, 219, 218, 150];
+        for (image, sigma) in [(crop.to_owned(), 8.0), (crop.to_owned(), 1.5), (blank, 8.0)] {
+            let whole = gaussian_smooth(image.view(), sigma);
+            let some = gaussian_smooth_rows(image.view(), sigma, &rows);
+            assert_eq!(some.dim(), (rows.len(), image.ncols()));
+            for (i, &y) in rows.iter().enumerate() {
+                for (a, b) in some.row(i).iter().zip(whole.row(y)) {
+                    assert!(
+                        (a - b).abs() <= 1e-5 * range || (a.is_nan() && b.is_nan()),
+                        "σ {sigma}, row {y}: {a} vs {b}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
