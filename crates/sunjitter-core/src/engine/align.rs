@@ -27,19 +27,51 @@ use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// The frame's own preparation, which needs nothing of the reference: cleaned, and its disk
+/// checked against its header. A caller holding both images makes it while the reference is
+/// prepared.
+pub(super) struct FrameOwn {
+    cleaned: Array2<f32>,
+    check: geometry_check::Checked,
+    notes: Vec<String>,
+    cleaned_in: std::time::Duration,
+    checked_in: std::time::Duration,
+}
+
+impl FrameOwn {
+    pub(super) fn new(
+        frame: &FrameMeta,
+        data: Cow<'_, Array2<f32>>,
+        hot_pixel_fraction: f32,
+    ) -> Result<FrameOwn, String> {
+        check_usable("frame", &data)?;
+        let started = Instant::now();
+        let cleaned = cleaned_from(data, hot_pixel_fraction);
+        let cleaned_in = started.elapsed();
+        let mut notes = Vec::new();
+        let check = geometry_check::checked(frame, &cleaned, &mut notes);
+        Ok(FrameOwn {
+            cleaned,
+            check,
+            notes,
+            cleaned_in,
+            checked_in: started.elapsed(),
+        })
+    }
+}
+
 /// Align `frame` to the prepared reference `work`; with `keep`, also the work on the frame
 /// that preparing it as a reference would repeat.
 pub(super) fn align_frame(
     work: &ReferenceWork,
     frame: &FrameMeta,
-    data: Cow<'_, Array2<f32>>,
+    own: FrameOwn,
     cfg: &EngineConfig,
     keep: bool,
     workspace: &Workspace,
 ) -> Result<(AlignOutcome, Option<FrameWork>), String> {
-    check_usable("frame", &data)?;
     let started = Instant::now();
-    let side = prepare_frame(work, frame, data, cfg, keep, started)?;
+    let side = prepare_frame(work, frame, own, cfg, keep, started)?;
     let (h, w) = work.cleaned.dim();
     let partial = !derotate::holds_the_disk(work.reference_check.disk_px, w, h);
     let pair = Pair {
@@ -113,23 +145,26 @@ struct FrameSide {
     kept_cleaned: Option<Array2<f32>>,
 }
 
-/// Cleaning, the disk check, the coarse transform from the headers, the Sun's rotation and
-/// the intensity match: everything before the flow.
+/// From the frame's own preparation: the coarse transform from the headers (checked against
+/// the reference's), the Sun's rotation and the intensity match: everything before the flow.
 fn prepare_frame(
     work: &ReferenceWork,
     frame: &FrameMeta,
-    data: Cow<'_, Array2<f32>>,
+    own: FrameOwn,
     cfg: &EngineConfig,
     keep: bool,
     started: Instant,
 ) -> Result<FrameSide, String> {
     let mut notes: Vec<String> = work.notes.clone();
-    let mut frame_data = cleaned_from(data, cfg.hot_pixel_fraction);
-    let cleaned_at = started.elapsed();
+    let FrameOwn {
+        cleaned: mut frame_data,
+        check: own,
+        notes: own_notes,
+        cleaned_in,
+        checked_in,
+    } = own;
 
     // Coarse: headers, checked against the disks the images show.
-    let mut own_notes = Vec::new();
-    let own = geometry_check::checked(frame, &frame_data, &mut own_notes);
     let kept_check = keep.then(|| (own.clone(), own_notes.clone()));
     let frame_meta = geometry_check::frame_against_reference(
         frame,
@@ -139,7 +174,7 @@ fn prepare_frame(
         &work.reference_check,
         &mut notes,
     );
-    tracing::debug!(?cleaned_at, checked_at = ?started.elapsed(), "frame prepared");
+    tracing::debug!(?cleaned_in, ?checked_in, "frame prepared");
     let coarse = crate::coarse::coarse_transform(&work.reference_check.meta, &frame_meta)
         .map_err(|e| format!("coarse alignment: {e}"))?;
     if let Some(e) = &work.mask_error {

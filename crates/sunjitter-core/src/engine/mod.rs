@@ -114,9 +114,17 @@ pub fn align_images_owned_in(
     workspace: std::sync::Arc<Workspace>,
 ) -> AlignOutcome {
     let started = Instant::now();
-    let prepared = PreparedReference::new(&reference, cfg).sharing(workspace);
+    // The frame's cleaning and disk check need nothing of the reference: both images are
+    // prepared side by side, each filling the other's idle moments.
+    let Image { data, meta } = frame;
+    let (prepared, own) = rayon::join(
+        || PreparedReference::new(&reference, cfg),
+        || align::FrameOwn::new(&meta, std::borrow::Cow::Owned(data), cfg.hot_pixel_fraction),
+    );
     drop(reference);
-    let mut outcome = prepared.align_owned(frame);
+    let prepared = prepared.sharing(workspace);
+    let profile = cfg.solar_rotation;
+    let (mut outcome, _) = prepared.align_own(&meta, own, profile, false, started);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }

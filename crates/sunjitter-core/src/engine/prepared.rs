@@ -1,7 +1,7 @@
 //! The reference's share of an alignment, prepared once for every frame aligned to it, and
 //! the working memory alignments share.
 
-use super::align::align_frame;
+use super::align::{align_frame, FrameOwn};
 use super::config::EngineConfig;
 use super::fine::{grown, mask_roi, Crop};
 use super::seed::Binned;
@@ -235,6 +235,20 @@ impl PreparedReference {
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
+        let own = FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction);
+        self.align_own(frame_meta, own, profile, keep, started)
+    }
+
+    /// [`PreparedReference::align_inner`] from the frame's own preparation, made beforehand
+    /// (`Err`: the frame is unusable).
+    pub(super) fn align_own(
+        &self,
+        frame_meta: &FrameMeta,
+        own: Result<FrameOwn, String>,
+        profile: crate::solar_rotation::Profile,
+        keep: bool,
+        started: Instant,
+    ) -> (AlignOutcome, Option<FrameWork>) {
         let first = self
             .aligned
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
@@ -244,7 +258,9 @@ impl PreparedReference {
             ..self.cfg.clone()
         };
         let result = match &self.work {
-            Ok(work) => align_frame(work, frame_meta, frame_data, &cfg, keep, &self.workspace),
+            Ok(work) => {
+                own.and_then(|own| align_frame(work, frame_meta, own, &cfg, keep, &self.workspace))
+            }
             Err(reason) => Err(reason.clone()),
         };
         let (result, kept) = match result {
