@@ -92,11 +92,9 @@ pub fn align_images_in(
     workspace: std::sync::Arc<Workspace>,
 ) -> AlignOutcome {
     let started = Instant::now();
-    let mut outcome = PreparedReference::new(reference, cfg)
-        .sharing(workspace)
-        .align(frame);
-    outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
-    outcome
+    let data = std::borrow::Cow::Borrowed(&frame.data);
+    let (prepared, own) = prepared_side_by_side(reference, &frame.meta, data, cfg);
+    aligned_pair(prepared.sharing(workspace), &frame.meta, own, cfg, started)
 }
 
 /// [`align_images`] for a caller done with both images: each one's pixels as read are freed
@@ -114,17 +112,36 @@ pub fn align_images_owned_in(
     workspace: std::sync::Arc<Workspace>,
 ) -> AlignOutcome {
     let started = Instant::now();
-    // The frame's cleaning and disk check need nothing of the reference: both images are
-    // prepared side by side, each filling the other's idle moments.
     let Image { data, meta } = frame;
-    let (prepared, own) = rayon::join(
-        || PreparedReference::new(&reference, cfg),
-        || align::FrameOwn::new(&meta, std::borrow::Cow::Owned(data), cfg.hot_pixel_fraction),
-    );
+    let data = std::borrow::Cow::Owned(data);
+    let (prepared, own) = prepared_side_by_side(&reference, &meta, data, cfg);
     drop(reference);
-    let prepared = prepared.sharing(workspace);
-    let profile = cfg.solar_rotation;
-    let (mut outcome, _) = prepared.align_own(&meta, own, profile, false, started);
+    aligned_pair(prepared.sharing(workspace), &meta, own, cfg, started)
+}
+
+/// The reference prepared and the frame cleaned and disk-checked side by side: the frame's
+/// own preparation needs nothing of the reference, and each fills the other's idle moments.
+fn prepared_side_by_side(
+    reference: &Image,
+    frame: &FrameMeta,
+    data: std::borrow::Cow<'_, Array2<f32>>,
+    cfg: &EngineConfig,
+) -> (PreparedReference, Result<align::FrameOwn, String>) {
+    rayon::join(
+        || PreparedReference::new(reference, cfg),
+        || align::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
+    )
+}
+
+/// The frame aligned from its own preparation, timed from `started`.
+fn aligned_pair(
+    prepared: PreparedReference,
+    frame: &FrameMeta,
+    own: Result<align::FrameOwn, String>,
+    cfg: &EngineConfig,
+    started: Instant,
+) -> AlignOutcome {
+    let (mut outcome, _) = prepared.align_own(frame, own, cfg.solar_rotation, false, started);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }
