@@ -235,7 +235,12 @@ impl PreparedReference {
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
-        let own = FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction);
+        // Against an unusable reference the frame is not worth cleaning.
+        let own = self
+            .work
+            .as_ref()
+            .map_err(Clone::clone)
+            .and_then(|_| FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction));
         self.align_own(frame_meta, own, profile, keep, started)
     }
 
