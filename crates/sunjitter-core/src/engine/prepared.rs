@@ -199,14 +199,6 @@ impl PreparedReference {
         self.align_with(frame, self.cfg.solar_rotation)
     }
 
-    /// [`PreparedReference::align`] for a caller done with `frame`: its pixels as read are
-    /// freed once the cleaned copy exists.
-    pub fn align_owned(&self, frame: Image) -> AlignOutcome {
-        let Image { data, meta } = frame;
-        let profile = self.cfg.solar_rotation;
-        self.align_inner(&meta, Cow::Owned(data), profile, false).0
-    }
-
     /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
     pub fn align_with(
         &self,
