@@ -261,7 +261,64 @@ pub fn all_finite(img: ndarray::ArrayView2<f32>) -> bool {
     use rayon::prelude::*;
     img.axis_iter(ndarray::Axis(0))
         .into_par_iter()
-        .all(|row| row.iter().all(|v| v.is_finite()))
+        .all(|row| match row.as_slice() {
+            // Blocks without an early exit inside, which the compiler vectorises.
+            Some(row) => row
+                .chunks(LANES * 8)
+                .all(|block| block.iter().fold(true, |all, v| all & v.is_finite())),
+            None => row.iter().all(|v| v.is_finite()),
+        })
+}
+
+/// How many pixels are finite, and the least and greatest of them (±∞ when none is), row by
+/// row in parallel.
+pub fn finite_range(img: ndarray::ArrayView2<f32>) -> (usize, f32, f32) {
+    use rayon::prelude::*;
+    img.axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .map(|row| match row.as_slice() {
+            Some(row) => finite_range_of(row),
+            None => finite_range_of(&row.to_vec()),
+        })
+        .reduce(
+            || (0, f32::INFINITY, f32::NEG_INFINITY),
+            |a, b| (a.0 + b.0, a.1.min(b.1), a.2.max(b.2)),
+        )
+}
+
+/// Lanes of the vectorised loops over pixels: eight `f32`, one 256-bit register.
+const LANES: usize = 8;
+
+crate::flow::simd::multiversion!(fn finite_range_of(row: &[f32]) -> (usize, f32, f32) => finite_range_body);
+
+/// [`finite_range`] of one row, in [`LANES`] running counts, minima and maxima, over
+/// segments short enough for a lane's `u32` count.
+#[inline(always)]
+fn finite_range_body(row: &[f32]) -> (usize, f32, f32) {
+    let mut range = (0, f32::INFINITY, f32::NEG_INFINITY);
+    for segment in row.chunks(LANES << 24) {
+        let (mut n, mut lo, mut hi) = (
+            [0u32; LANES],
+            [f32::INFINITY; LANES],
+            [f32::NEG_INFINITY; LANES],
+        );
+        let blocks = segment.chunks_exact(LANES);
+        let rest = blocks.remainder();
+        for block in blocks {
+            for j in 0..LANES {
+                let (v, finite) = (block[j], block[j].is_finite());
+                n[j] += finite as u32;
+                lo[j] = if finite && v < lo[j] { v } else { lo[j] };
+                hi[j] = if finite && v > hi[j] { v } else { hi[j] };
+            }
+        }
+        let lanes = (0..LANES).map(|j| (n[j] as usize, lo[j], hi[j]));
+        let finite = rest.iter().filter(|v| v.is_finite()).map(|&v| (1, v, v));
+        range = lanes
+            .chain(finite)
+            .fold(range, |a, b| (a.0 + b.0, a.1.min(b.1), a.2.max(b.2)));
+    }
+    range
 }
 
 #[cfg(test)]
@@ -405,6 +462,37 @@ mod tests {
         assert_eq!(
             fraction_within(&[0.5, -1.5, 2.0, f64::NAN], &[1.0, 1.0, 1.0, 1.0], 1.0),
             Some(1.0 / 3.0)
+        );
+    }
+
+    #[test]
+    fn the_finite_range_and_all_finite_follow_their_definitions() {
+        // Truth: a plain pass over every pixel. Rows of 0 to 21 pixels (no, partial and whole
+        // blocks of eight lanes), NaN and both infinities in and out of the lanes, a row with
+        // no finite pixel, and the transposed view, whose rows are not contiguous.
+        let mut rng = SplitMix64::new(4);
+        for w in [1, 7, 8, 9, 16, 21] {
+            let mut img = ndarray::Array2::from_shape_fn((5, w), |_| match rng.below(9) {
+                0 => f32::NAN,
+                1 => f32::INFINITY,
+                2 => f32::NEG_INFINITY,
+                _ => rng.uniform(-50.0, 50.0) as f32,
+            });
+            img.row_mut(3).fill(f32::NAN);
+            for view in [img.view(), img.t()] {
+                let finite: Vec<f32> = view.iter().copied().filter(|v| v.is_finite()).collect();
+                let lo = finite.iter().copied().fold(f32::INFINITY, f32::min);
+                let hi = finite.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                assert_eq!(finite_range(view), (finite.len(), lo, hi), "width {w}");
+                assert_eq!(all_finite(view), finite.len() == view.len(), "width {w}");
+                let clean = view.mapv(|v| if v.is_finite() { v } else { 0.0 });
+                assert!(all_finite(clean.view()), "width {w}");
+            }
+        }
+        let empty = ndarray::Array2::<f32>::zeros((3, 0));
+        assert_eq!(
+            finite_range(empty.view()),
+            (0, f32::INFINITY, f32::NEG_INFINITY)
         );
     }
 }

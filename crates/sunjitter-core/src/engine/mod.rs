@@ -156,21 +156,7 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
     if h < 16 || w < 16 {
         return Err(format!("{which} image is {w}×{h} px; too small to align"));
     }
-    use rayon::prelude::*;
-    // Count and range of the finite pixels, row by row in parallel (no copy of the frame).
-    let (n_finite, lo, hi) = data
-        .axis_iter(ndarray::Axis(0))
-        .into_par_iter()
-        .map(|row| {
-            row.iter().filter(|v| v.is_finite()).fold(
-                (0usize, f32::INFINITY, f32::NEG_INFINITY),
-                |(n, a, b), &v| (n + 1, a.min(v), b.max(v)),
-            )
-        })
-        .reduce(
-            || (0, f32::INFINITY, f32::NEG_INFINITY),
-            |x, y| (x.0 + y.0, x.1.min(y.1), x.2.max(y.2)),
-        );
+    let (n_finite, lo, hi) = crate::stats::finite_range(data.view());
     if n_finite < (h * w) / 10 {
         return Err(format!(
             "{which} image has {n_finite} finite pixels of {}; nothing to align",

@@ -199,27 +199,32 @@ fn residual_noise(img: ArrayView2<f32>) -> f32 {
     let residuals: Vec<f32> = (0..h)
         .into_par_iter()
         .fold(
-            || (RowScratch::new(w), vec![0f32; w], Vec::new()),
-            |(mut scratch, mut medians, mut out), y| {
+            || {
+                (
+                    RowScratch::new(w),
+                    vec![0f32; w],
+                    Windows::default(),
+                    Vec::new(),
+                )
+            },
+            |(mut scratch, mut medians, mut windows, mut out), y| {
                 // The first pixel of row y on the stride's grid of the flattened image.
                 let x0 = (stride - (y * w) % stride) % stride;
                 if stride < 4 {
                     // Most of the row: its medians all at once.
                     median_row(&img, y, &mut scratch, &mut medians);
                 } else {
-                    for x in (x0..w).step_by(stride) {
-                        medians[x] = median3x3_of(&img, y, x);
-                    }
+                    sampled_medians(&img, y, (x0..w).step_by(stride), &mut windows, &mut medians);
                 }
                 let row = img.row(y);
                 out.extend((x0..w).step_by(stride).filter_map(|x| {
                     let (v, m) = (row[x], medians[x]);
                     (v.is_finite() && m.is_finite()).then(|| (v - m).abs())
                 }));
-                (scratch, medians, out)
+                (scratch, medians, windows, out)
             },
         )
-        .map(|(_, _, out)| out)
+        .map(|(_, _, _, out)| out)
         .reduce(Vec::new, |mut a, mut b| {
             a.append(&mut b);
             a
@@ -501,36 +506,132 @@ pub(super) fn median3x3_of(img: &ArrayView2<f32>, y: usize, x: usize) -> f32 {
     median3x3_at(img, y, x)
 }
 
-/// Median of nine values by the 19 exchanges of Paeth's network.
+/// The 19 exchanges of Paeth's median-of-nine network: after them, the fifth value is the
+/// median.
+const MEDIAN9_NETWORK: [(usize, usize); 19] = [
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 1),
+    (3, 4),
+    (6, 7),
+    (1, 2),
+    (4, 5),
+    (7, 8),
+    (0, 3),
+    (5, 8),
+    (4, 7),
+    (3, 6),
+    (1, 4),
+    (2, 5),
+    (4, 7),
+    (4, 2),
+    (6, 4),
+    (4, 2),
+];
+
+/// Median of nine values by [`MEDIAN9_NETWORK`].
 fn median9(mut p: [f32; 9]) -> f32 {
-    let mut sort = |a: usize, b: usize| {
+    for (a, b) in MEDIAN9_NETWORK {
         let (lo, hi) = (p[a].min(p[b]), p[a].max(p[b]));
         (p[a], p[b]) = (lo, hi);
-    };
-    for (a, b) in [
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 1),
-        (3, 4),
-        (6, 7),
-        (1, 2),
-        (4, 5),
-        (7, 8),
-        (0, 3),
-        (5, 8),
-        (4, 7),
-        (3, 6),
-        (1, 4),
-        (2, 5),
-        (4, 7),
-        (4, 2),
-        (6, 4),
-        (4, 2),
-    ] {
-        sort(a, b);
     }
     p[4]
+}
+
+/// Windows of nine finite values gathered from a row, value by value (`values[k][i]` is the
+/// `k`-th value of the `i`-th window, in [`median3x3_of`]'s order), and the columns they are
+/// centred on.
+#[derive(Default)]
+struct Windows {
+    values: [Vec<f32>; 9],
+    columns: Vec<usize>,
+}
+
+/// [`median3x3_of`] at the pixels `columns` of row `y`, into `medians` at those columns. The
+/// interior windows of nine finite values go through [`MEDIAN9_NETWORK`] eight at a time, one
+/// window per vector lane; the others as [`median3x3_of`] takes them.
+fn sampled_medians(
+    img: &ArrayView2<f32>,
+    y: usize,
+    columns: impl Iterator<Item = usize>,
+    windows: &mut Windows,
+    medians: &mut [f32],
+) {
+    let (h, w) = img.dim();
+    let rows = (y >= 1 && y + 1 < h).then(|| {
+        let row = |yy: usize| img.row(yy).to_slice();
+        (row(y - 1), row(y), row(y + 1))
+    });
+    let Some((Some(a), Some(b), Some(c))) = rows else {
+        columns.for_each(|x| medians[x] = median3x3_of(img, y, x));
+        return;
+    };
+    windows.values.iter_mut().for_each(Vec::clear);
+    windows.columns.clear();
+    for x in columns {
+        if x >= 1 && x + 1 < w {
+            let v = [
+                a[x - 1],
+                a[x],
+                a[x + 1],
+                b[x - 1],
+                b[x],
+                b[x + 1],
+                c[x - 1],
+                c[x],
+                c[x + 1],
+            ];
+            if v.iter().all(|v| v.is_finite()) {
+                for (k, &v) in v.iter().enumerate() {
+                    windows.values[k].push(v);
+                }
+                windows.columns.push(x);
+                continue;
+            }
+        }
+        medians[x] = median3x3_of(img, y, x);
+    }
+    medians9(&windows.values, &windows.columns, medians);
+}
+
+/// The medians [`sampled_medians`] makes at every `step`-th pixel of each row from `first`;
+/// NaN elsewhere.
+#[cfg(test)]
+pub(super) fn median3x3_sampled(img: &ArrayView2<f32>, first: usize, step: usize) -> Array2<f32> {
+    let (h, w) = img.dim();
+    let mut out = Array2::from_elem((h, w), f32::NAN);
+    let mut windows = Windows::default();
+    for y in 0..h {
+        let mut medians = vec![f32::NAN; w];
+        sampled_medians(img, y, (first..w).step_by(step), &mut windows, &mut medians);
+        out.row_mut(y).assign(&ndarray::ArrayView1::from(&medians));
+    }
+    out
+}
+
+crate::flow::simd::multiversion!(fn medians9(values: &[Vec<f32>; 9], columns: &[usize], medians: &mut [f32]) => medians9_body);
+
+/// `medians[columns[i]]` = [`median9`] of the `i`-th window of `values`, eight windows at a
+/// time.
+#[inline(always)]
+fn medians9_body(values: &[Vec<f32>; 9], columns: &[usize], medians: &mut [f32]) {
+    const LANES: usize = 8;
+    for (block, at) in columns.chunks(LANES).enumerate() {
+        let (start, n) = (block * LANES, at.len());
+        let mut p = [[0f32; LANES]; 9];
+        for (lanes, v) in p.iter_mut().zip(values) {
+            lanes[..n].copy_from_slice(&v[start..start + n]);
+        }
+        for (a, b) in MEDIAN9_NETWORK {
+            let (pa, pb) = (p[a], p[b]);
+            p[a] = std::array::from_fn(|l| pa[l].min(pb[l]));
+            p[b] = std::array::from_fn(|l| pa[l].max(pb[l]));
+        }
+        for (&x, &m) in at.iter().zip(&p[4]) {
+            medians[x] = m;
+        }
+    }
 }
 
 /// Median of the finite pixels of the 3×3 window at `(y, x)`, clipped at the borders.

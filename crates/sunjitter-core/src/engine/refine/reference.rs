@@ -70,40 +70,53 @@ impl RefineReference {
         let (sh, sw) = self.smoothed.dim();
         let reach_gain = gain_reach(self.smoothing_px);
         let (smoothed, weighting) = (self.smoothed.view(), self.weighting());
-        pixels
-            .par_iter()
-            .filter_map(|&(x, y, cell)| {
-                if x < reach_gain || y < reach_gain || x + reach_gain >= w || y + reach_gain >= h {
-                    return None;
-                }
-                // On the window's grid; a pixel whose reads leave the window is not the fit's.
-                let (lx, ly) = (x.checked_sub(ox)?, y.checked_sub(oy)?);
-                let d = reach_gain;
-                if lx < d || ly < d || lx + d >= sw || ly + d >= sh {
-                    return None;
-                }
-                let value = smoothed[[ly, lx]] as f64;
-                let (gx, gy) = gradient(&weighting, lx, ly);
-                let neighbours = (smoothed[[ly, lx - d]] as f64
-                    + smoothed[[ly, lx + d]] as f64
-                    + smoothed[[ly - d, lx]] as f64
-                    + smoothed[[ly + d, lx]] as f64)
-                    / 4.0;
-                let finite = [value, gx, gy, neighbours].iter().all(|v| v.is_finite());
-                finite.then_some(Pixel {
-                    x,
-                    y,
-                    cell,
-                    value,
-                    gx,
-                    gy,
-                    slope: gx.hypot(gy),
-                    neighbours,
-                })
+        let pixel = |&(x, y, cell): &(usize, usize, usize)| {
+            if x < reach_gain || y < reach_gain || x + reach_gain >= w || y + reach_gain >= h {
+                return None;
+            }
+            // On the window's grid; a pixel whose reads leave the window is not the fit's.
+            let (lx, ly) = (x.checked_sub(ox)?, y.checked_sub(oy)?);
+            let d = reach_gain;
+            if lx < d || ly < d || lx + d >= sw || ly + d >= sh {
+                return None;
+            }
+            let value = smoothed[[ly, lx]] as f64;
+            let (gx, gy) = gradient(&weighting, lx, ly);
+            let neighbours = (smoothed[[ly, lx - d]] as f64
+                + smoothed[[ly, lx + d]] as f64
+                + smoothed[[ly - d, lx]] as f64
+                + smoothed[[ly + d, lx]] as f64)
+                / 4.0;
+            let finite = [value, gx, gy, neighbours].iter().all(|v| v.is_finite());
+            finite.then_some(Pixel {
+                x,
+                y,
+                cell,
+                value,
+                gx,
+                gy,
+                slope: gx.hypot(gy),
+                neighbours,
             })
-            .collect()
+        };
+        // Blocks of pixels kept in buffers of their own size, put together once: collected
+        // straight, each thread's buffer would grow by doubling, copied at every step.
+        let blocks: Vec<Vec<Pixel>> = pixels
+            .par_chunks(FIT_PIXEL_BLOCK)
+            .map(|block| {
+                let mut kept = Vec::with_capacity(block.len());
+                kept.extend(block.iter().filter_map(pixel));
+                kept
+            })
+            .collect();
+        let mut kept = Vec::with_capacity(blocks.iter().map(Vec::len).sum());
+        blocks.into_iter().for_each(|block| kept.extend(block));
+        kept
     }
 }
+
+/// Pixels of [`RefineReference::fit_pixels`] made together.
+const FIT_PIXEL_BLOCK: usize = 4096;
 
 /// The gain's instrument reads the reference at four points this far from the pixel, far
 /// enough for the smoothed noise to be uncorrelated with the pixel's own
