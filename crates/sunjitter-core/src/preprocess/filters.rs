@@ -128,11 +128,13 @@ pub fn gaussian_smooth_rows(img: ArrayView2<f32>, sigma_px: f64, rows: &[usize])
             let reach = y.saturating_sub(radius)..=(y + radius).min(h - 1);
             let column = |map: fn(f32) -> f32| {
                 let mut sums = vec![0f32; w];
-                let slices: Option<Vec<(&[f32], f32)>> = reach
-                    .clone()
-                    .map(|yy| Some((img.row(yy).to_slice()?, kernel[yy + radius - y])))
-                    .collect();
-                match slices.filter(|_| !has_nan) {
+                let slices = (!has_nan).then(|| {
+                    reach
+                        .clone()
+                        .map(|yy| Some((img.row(yy).to_slice()?, kernel[yy + radius - y])))
+                        .collect::<Option<Vec<(&[f32], f32)>>>()
+                });
+                match slices.flatten() {
                     // All finite: `map` is the identity.
                     Some(rows) => sum_rows(&rows, &mut sums),
                     None => {
