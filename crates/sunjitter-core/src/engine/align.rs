@@ -24,6 +24,7 @@ use crate::preprocess;
 use crate::record::{AlignResult, SolarRotationFields, TransformFields};
 use ndarray::{s, Array2, ArrayView2};
 use std::borrow::Cow;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -258,11 +259,20 @@ struct Start<'a> {
 fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured, String> {
     let cfg = pair.cfg;
     let stage = Stages::new(pair, start.coarse, start.carried);
-    let mut fine = stage.flow_or_seed()?;
-    let refinement = if stage.refining {
-        stage.refine(&mut fine)?
-    } else {
-        Refinement::default()
+    let flow_and_refinement = || -> Result<(FineResult, Refinement), String> {
+        let mut fine = stage.flow_or_seed()?;
+        let refinement = if stage.refining {
+            stage.refine(&mut fine)?
+        } else {
+            Refinement::default()
+        };
+        Ok((fine, refinement))
+    };
+    // The reference's self-test needs nothing of the frame: it runs beside the flow and the
+    // refinement, on the cores their serial parts leave idle, instead of after them.
+    let (mut fine, refinement) = match stage.self_test_ahead {
+        true => rayon::join(flow_and_refinement, || stage.self_test_cases()).0?,
+        false => flow_and_refinement()?,
     };
     // The flow's answer is final: its σ must cover its own interpolation bias, which the
     // scatter of its vectors does not show (see `flow_check`).
@@ -296,9 +306,11 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured
     );
     // A frame that matched well hands the reference's self-test on, should it become the
     // next reference.
-    let self_test = (outcome.result.status == crate::record::Status::Ok)
-        .then(|| stage.matched.self_test_to_hand_on())
-        .flatten();
+    // Cases run ahead count only once the refinement has used them, as when run on demand.
+    let self_test = (outcome.result.status == crate::record::Status::Ok
+        && (!stage.self_test_ahead || stage.self_test_used.load(Ordering::Relaxed)))
+    .then(|| stage.matched.self_test_to_hand_on())
+    .flatten();
     Ok(Measured { outcome, self_test })
 }
 
@@ -321,6 +333,10 @@ struct Stages<'a> {
     refining: bool,
     coarse: Similarity,
     carried: Option<&'a derotate::Carried>,
+    /// The refinement's σ will need the reference's self-test, and it has not run yet.
+    self_test_ahead: bool,
+    /// The refinement has read the self-test's floor.
+    self_test_used: AtomicBool,
 }
 
 impl<'a> Stages<'a> {
@@ -349,6 +365,8 @@ impl<'a> Stages<'a> {
             .reference_check
             .disk_px
             .filter(|_| work.meta.channel != frame.channel);
+        let self_test_ahead =
+            refining && cfg.sigma == SigmaMethod::Calibrated && matched.self_test.get().is_none();
         Stages {
             pair,
             matched,
@@ -357,6 +375,8 @@ impl<'a> Stages<'a> {
             refining,
             coarse,
             carried,
+            self_test_ahead,
+            self_test_used: AtomicBool::new(false),
         }
     }
 
@@ -536,13 +556,35 @@ impl<'a> Stages<'a> {
                 cfg,
             },
             |settings| {
-                self.matched
-                    .self_test
-                    .get_or_init(|| self.self_test(prepared, settings))
-                    .as_ref()
-                    .map(refine::SelfTestCases::floor)
+                debug_assert_eq!(*settings, self.refine_settings());
+                self.self_test_used.store(true, Ordering::Relaxed);
+                self.self_test_cases().map(refine::SelfTestCases::floor)
             },
         )
+    }
+
+    /// The settings the refinement of this pair starts from (before any blur matching).
+    fn refine_settings(&self) -> refine::RefineSettings {
+        refine::settings(self.pair.cfg, self.sig_frame)
+    }
+
+    /// The reference as the refinement reads it (made on first use).
+    fn refine_reference(&self) -> &refine::RefineReference {
+        self.matched.refine_reference.get_or_init(|| {
+            // Every pixel the refinement, its self-test and its checks fit lies in the mask.
+            let m = self.pair.work.mask_box;
+            let bbox = (m.x, m.y, m.x + m.width - 1, m.y + m.height - 1);
+            let settings = refine::settings(self.pair.cfg, 0.0);
+            refine::RefineReference::within(self.reference(), &settings, bbox)
+        })
+    }
+
+    /// The reference's self-test cases (run on first use).
+    fn self_test_cases(&self) -> Option<&refine::SelfTestCases> {
+        self.matched
+            .self_test
+            .get_or_init(|| self.self_test(self.refine_reference(), &self.refine_settings()))
+            .as_ref()
     }
 
     /// The reference's self-test cases: from the cases handed on along a chain, or kept by
@@ -593,12 +635,7 @@ impl<'a> Stages<'a> {
     /// verdict needs to know of it.
     fn refine(&self, fine: &mut FineResult) -> Result<Refinement, String> {
         let cfg = self.pair.cfg;
-        let prepared = self.matched.refine_reference.get_or_init(|| {
-            // Every pixel the refinement, its self-test and its checks fit lies in the mask.
-            let m = self.pair.work.mask_box;
-            let bbox = (m.x, m.y, m.x + m.width - 1, m.y + m.height - 1);
-            refine::RefineReference::within(self.reference(), &refine::settings(cfg, 0.0), bbox)
-        });
+        let prepared = self.refine_reference();
         let mut outcome = self.try_refine(prepared, fine);
         if outcome.is_err() {
             if fine.seed_level.is_some() {
