@@ -56,7 +56,7 @@ pub struct Frame {
     /// Crop offset (x, y) in the source image.
     pub offset: (usize, usize),
     pub obs_time_ns: i64,
-    /// `fnv1a64:…` of the pixels, computed here from the values written.
+    /// `xxh3_64:…` of the pixels, computed here from the values written.
     pub checksum: String,
 }
 
@@ -108,26 +108,21 @@ pub fn crop(
         bytes,
         offset,
         obs_time_ns,
-        checksum: fnv1a64(size, size, view.iter().copied()),
+        checksum: xxh3_64(size, size, view.iter().copied()),
     }
 }
 
-/// 64-bit FNV-1a (Fowler–Noll–Vo; offset basis and prime from the reference definition) over
-/// width, height (u64 LE) and each f32's bits (LE): what `pixel_checksum` must say.
-pub fn fnv1a64(width: usize, height: usize, pixels: impl Iterator<Item = f32>) -> String {
-    let mut h: u64 = 0xcbf29ce484222325;
-    let mut eat = |bytes: &[u8]| {
-        for &b in bytes {
-            h ^= b as u64;
-            h = h.wrapping_mul(0x100000001b3);
-        }
-    };
-    eat(&(width as u64).to_le_bytes());
-    eat(&(height as u64).to_le_bytes());
+/// 64-bit XXH3 (the xxHash reference algorithm, seed 0) of one byte string: width, height
+/// (u64 LE) and each f32's bits (LE), gathered here value by value: what `pixel_checksum` must
+/// say.
+pub fn xxh3_64(width: usize, height: usize, pixels: impl Iterator<Item = f32>) -> String {
+    let mut bytes = Vec::new();
+    bytes.extend_from_slice(&(width as u64).to_le_bytes());
+    bytes.extend_from_slice(&(height as u64).to_le_bytes());
     for p in pixels {
-        eat(&p.to_bits().to_le_bytes());
+        bytes.extend_from_slice(&p.to_bits().to_le_bytes());
     }
-    format!("fnv1a64:{h:016x}")
+    format!("xxh3_64:{:016x}", xxhash_rust::xxh3::xxh3_64(&bytes))
 }
 
 /// `n` crops of `size` px at pseudo-random offsets, 12 s apart, named `{prefix}NNNN.fits`.

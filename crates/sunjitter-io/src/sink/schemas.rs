@@ -329,7 +329,7 @@ pub fn frame_alignment_schema() -> Value {
     properties.insert(
         "pixel_checksum".to_string(),
         json!({ "type": "string",
-                "description": "fnv1a64:HEX of the aligned pixels as read (width, height, f32 bits)" }),
+                "description": "xxh3_64:HEX of the aligned pixels as read (width, height, f32 bits)" }),
     );
     json!({
         "title": FRAME_ALIGNMENT_SCHEMA,
