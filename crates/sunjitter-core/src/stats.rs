@@ -133,6 +133,62 @@ pub fn par_select_by<T: Copy + Send + Sync>(
     *rest.select_nth_unstable_by(k, cmp).1
 }
 
+/// The `k`-th smallest (0-based, in the order of `f64::total_cmp`) of the values `value(i)`
+/// that are `Some` for `i` in `0..len`, all finite: what [`par_select`] finds on them
+/// collected, without collecting them. As in [`bracketed_select`], a strided sample brackets
+/// rank `k` (placed as if the `Some` were spread evenly) and one pass keeps the values inside
+/// the bracket; when it misses, they are collected after all. `None` when fewer than `k + 1`
+/// are `Some`.
+pub fn par_select_where(
+    len: usize,
+    k: usize,
+    value: impl Fn(usize) -> Option<f64> + Sync,
+) -> Option<f64> {
+    use rayon::prelude::*;
+    use std::cmp::Ordering::{Greater, Less};
+    const SAMPLE: usize = 8192;
+    const MARGIN: usize = 256;
+    let stride = len / SAMPLE;
+    if stride >= 2 {
+        let mut sample: Vec<f64> = (0..SAMPLE)
+            .filter_map(|i| value(i * stride + stride / 2))
+            .collect();
+        sample.sort_unstable_by(f64::total_cmp);
+        let m = sample.len();
+        let at = ((k as f64 / len as f64) * SAMPLE as f64) as usize;
+        if m > 2 * MARGIN && at < m {
+            let lo = at.checked_sub(MARGIN).map(|i| sample[i]);
+            let hi = (at + MARGIN < m).then(|| sample[at + MARGIN]);
+            let below_lo = |v: &f64| lo.is_some_and(|lo| v.total_cmp(&lo) == Less);
+            let above_hi = |v: &f64| hi.is_some_and(|hi| v.total_cmp(&hi) == Greater);
+            let chunk = len.div_ceil(4 * rayon::current_num_threads().max(1));
+            let parts: Vec<(usize, Vec<f64>)> = (0..len.div_ceil(chunk))
+                .into_par_iter()
+                .map(|c| {
+                    let (mut below, mut inside) = (0, Vec::with_capacity(chunk / 8));
+                    for v in (c * chunk..((c + 1) * chunk).min(len)).filter_map(&value) {
+                        if below_lo(&v) {
+                            below += 1;
+                        } else if !above_hi(&v) {
+                            inside.push(v);
+                        }
+                    }
+                    (below, inside)
+                })
+                .collect();
+            let below: usize = parts.iter().map(|p| p.0).sum();
+            let inside_len: usize = parts.iter().map(|p| p.1.len()).sum();
+            if (below..below + inside_len).contains(&k) {
+                let mut inside = Vec::with_capacity(inside_len);
+                parts.into_iter().for_each(|p| inside.extend(p.1));
+                return Some(*inside.select_nth_unstable_by(k - below, f64::total_cmp).1);
+            }
+        }
+    }
+    let all: Vec<f64> = (0..len).into_par_iter().filter_map(&value).collect();
+    (k < all.len()).then(|| par_select(&all, k))
+}
+
 /// [`par_select`] from a bracket: a strided sample of 8192 values, sorted, gives two
 /// values whose ranks lie well either side of `k` (for values in no order against the
 /// stride, the sample's place for rank `k` has a standard deviation of at most
@@ -402,6 +458,18 @@ mod tests {
                 assert_eq!(radix_select(values, k), sorted[k], "radix, k = {k}");
                 assert_eq!(par_select(values, k), sorted[k], "k = {k}");
             }
+        }
+        // Over the values kept by a filter (every fifth left out, and the far outliers the
+        // sample reads), without collecting them; a rank past the kept ones finds none.
+        for values in [&plain, &against] {
+            let kept = |i: usize| Some(values[i]).filter(|&v| !i.is_multiple_of(5) && v < 1e8);
+            let mut sorted: Vec<f64> = (0..n).filter_map(kept).collect();
+            sorted.sort_by(f64::total_cmp);
+            let m = sorted.len();
+            for k in [0, 5, m / 4, m / 2, m - 1] {
+                assert_eq!(par_select_where(n, k, kept), Some(sorted[k]), "k = {k}");
+            }
+            assert_eq!(par_select_where(n, m, kept), None);
         }
         let order = &f64::total_cmp;
         assert!(bracketed_select(&plain, n / 2, order).is_some());

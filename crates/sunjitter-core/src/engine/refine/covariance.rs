@@ -3,7 +3,7 @@
 
 use super::pixels::CellGrid;
 use super::reference::Pixel;
-use super::solve::{robust_sigma, sum_in_chunks, tukey_psi_slope};
+use super::solve::{robust_sigma_where, sum_in_chunks, tukey_psi_slope};
 use nalgebra::{Matrix6, Vector6};
 use ndarray::Array2;
 use rayon::prelude::*;
@@ -147,25 +147,25 @@ pub(super) fn noise_covariance(
 ) -> Option<(Option<Matrix6<f64>>, f64)> {
     let (jac, residuals, weights) = (fit.jac, fit.residuals, fit.weights);
     let counts = |k: usize| weights[k] > 0.0 && residuals[k].is_finite();
-    let (used, gradients): (Vec<usize>, Vec<f64>) = (0..pixels.len())
+    let counted = (0..pixels.len())
         .into_par_iter()
         .filter(|&k| counts(k))
-        .map(|k| (k, pixels[k].slope))
-        .unzip();
-    if used.len() < 64 {
+        .count();
+    if counted < 64 {
         return None;
     }
-    let flattest = crate::stats::par_select(&gradients, used.len() / 4);
-    let flat: Vec<f64> = used
-        .par_iter()
-        .zip(&gradients)
-        .filter(|&(_, &g)| g <= flattest)
-        .map(|(&k, _)| residuals[k])
-        .collect();
-    let flat_sigma = robust_sigma(&flat)?;
+    let slope_of = |k: usize| counts(k).then(|| pixels[k].slope);
+    let flattest = crate::stats::par_select_where(pixels.len(), counted / 4, slope_of)?;
+    let flat_sigma = robust_sigma_where(pixels.len(), |k| {
+        slope_of(k).filter(|&g| g <= flattest).map(|_| residuals[k])
+    })?;
     if !with_covariance {
         return Some((None, flat_sigma));
     }
+    let used: Vec<usize> = (0..pixels.len())
+        .into_par_iter()
+        .filter(|&k| counts(k))
+        .collect();
     // Each counted pixel's ψ′; its row `ψ′·J` is made where it is read, instead of a frame
     // of 6-vectors.
     let psi: Vec<f64> = (0..pixels.len())

@@ -543,18 +543,25 @@ pub(super) fn tukey_weight(r: f64, c: f64) -> f64 {
 
 /// 1.4826 × median absolute deviation about the median, over the finite values.
 pub(super) fn robust_sigma(values: &[f64]) -> Option<f64> {
-    let mut v: Vec<f64> = values
-        .par_iter()
-        .copied()
-        .filter(|x| x.is_finite())
-        .collect();
-    if v.is_empty() {
+    robust_sigma_where(values.len(), |i| Some(values[i]).filter(|v| v.is_finite()))
+}
+
+/// [`robust_sigma`] over the values `value(i)` that are `Some` (finite) for `i` in `0..len`,
+/// without collecting them.
+pub(super) fn robust_sigma_where(
+    len: usize,
+    value: impl Fn(usize) -> Option<f64> + Sync,
+) -> Option<f64> {
+    let n = (0..len)
+        .into_par_iter()
+        .filter(|&i| value(i).is_some())
+        .count();
+    if n == 0 {
         return None;
     }
-    let mid = v.len() / 2;
-    let median = crate::stats::par_select(&v, mid);
-    v.par_iter_mut().for_each(|x| *x = (*x - median).abs());
-    let mad = crate::stats::par_select(&v, mid);
+    let mid = n / 2;
+    let median = crate::stats::par_select_where(len, mid, &value)?;
+    let mad = crate::stats::par_select_where(len, mid, |i| value(i).map(|v| (v - median).abs()))?;
     Some(1.482_602_218_505_602 * mad)
 }
 
