@@ -156,8 +156,22 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
     if h < 16 || w < 16 {
         return Err(format!("{which} image is {w}×{h} px; too small to align"));
     }
-    let (n_finite, lo, hi) = crate::stats::finite_range(data.view());
-    if n_finite < (h * w) / 10 {
+    // Rows a sixteenth at a time: an image that can be aligned shows enough finite pixels
+    // and two different values within the first few, and is not read further. Only one
+    // that may fail is read whole, for the figures its message gives.
+    let need = (h * w) / 10;
+    let rows = h.div_ceil(USABLE_CHECK_PARTS);
+    let mut range = (0, f32::INFINITY, f32::NEG_INFINITY);
+    for top in (0..h).step_by(rows) {
+        let part =
+            crate::stats::finite_range(data.slice(ndarray::s![top..(top + rows).min(h), ..]));
+        range = (range.0 + part.0, range.1.min(part.1), range.2.max(part.2));
+        if range.0 >= need && range.2 > range.1 {
+            return Ok(());
+        }
+    }
+    let (n_finite, lo, hi) = range;
+    if n_finite < need {
         return Err(format!(
             "{which} image has {n_finite} finite pixels of {}; nothing to align",
             h * w
@@ -170,6 +184,9 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
     }
     Ok(())
 }
+
+/// Parts (of rows) that [`check_usable`] reads one after the other.
+const USABLE_CHECK_PARTS: usize = 16;
 
 /// [`cleaned`], freeing `data` when it is owned (or handing it on when nothing is cleaned).
 fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32) -> Array2<f32> {
@@ -279,5 +296,45 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
         uabjm_covariance: Some(zero),
         mask: None,
         reference_geometry: None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_usable;
+    use ndarray::Array2;
+
+    /// Pass or fail as the definition says, whatever part of the image holds what: 10 % of
+    /// the pixels finite at least, two different finite values; a failure's figures are
+    /// the whole image's.
+    #[test]
+    fn usability_follows_the_whole_image_wherever_its_pixels_lie() {
+        let (h, w) = (64, 40);
+        let image =
+            |f: &dyn Fn(usize, usize) -> f32| Array2::from_shape_fn((h, w), |(y, x)| f(y, x));
+        // Constant but for one pixel in the last row: usable.
+        assert_eq!(
+            check_usable(
+                "frame",
+                &image(&|y, x| if (y, x) == (63, 39) { 2.0 } else { 1.0 })
+            ),
+            Ok(())
+        );
+        // Blank but for the last 7 rows (10.9 % of the pixels), varying: usable.
+        let tail = |y: usize, x: usize| if y >= 57 { (x + y) as f32 } else { f32::NAN };
+        assert_eq!(check_usable("frame", &image(&tail)), Ok(()));
+        // One row fewer (9.4 %): 240 finite pixels of 2560.
+        let short = |y: usize, x: usize| if y >= 58 { (x + y) as f32 } else { f32::NAN };
+        assert_eq!(
+            check_usable("frame", &image(&short)),
+            Err("frame image has 240 finite pixels of 2560; nothing to align".to_string())
+        );
+        // Constant where finite, infinities at the start: constant.
+        let flat = |y: usize, _: usize| if y < 3 { f32::INFINITY } else { 5.5 };
+        assert_eq!(
+            check_usable("reference", &image(&flat)),
+            Err("reference image is constant (5.5); no structure to align".to_string())
+        );
+        assert!(check_usable("frame", &Array2::from_elem((15, 40), 1.0)).is_err());
     }
 }
