@@ -259,28 +259,36 @@ struct Start<'a> {
 fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured, String> {
     let cfg = pair.cfg;
     let stage = Stages::new(pair, start.coarse, start.carried);
-    let flow_and_refinement = || -> Result<(FineResult, Refinement), String> {
+    let flow_and_run = || -> Result<(FineResult, Option<FirstRun>), String> {
         let mut fine = stage.flow_or_seed()?;
-        let refinement = if stage.refining {
-            stage.refine(&mut fine)?
-        } else {
-            Refinement::default()
-        };
-        Ok((fine, refinement))
+        let run = stage.refining.then(|| stage.run_refinement(&mut fine));
+        Ok((fine, run))
     };
     // The reference's self-test needs nothing of the frame: it runs beside the flow and the
-    // refinement, on the cores their serial parts leave idle, instead of after them.
-    let (mut fine, refinement) = match stage.self_test_ahead {
-        true => rayon::join(flow_and_refinement, || stage.self_test_cases()).0?,
-        false => flow_and_refinement()?,
+    // refinement's run, on the cores their serial parts leave idle, and the refinement's σ
+    // that needs it comes after both.
+    let (mut fine, run) = match stage.self_test_ahead {
+        true => rayon::join(flow_and_run, || stage.self_test_cases()).0?,
+        false => flow_and_run()?,
+    };
+    let refinement = match run {
+        Some(run) => stage.refine(&mut fine, run)?,
+        None => Refinement::default(),
     };
     // The flow's answer is final: its σ must cover its own interpolation bias, which the
-    // scatter of its vectors does not show (see `flow_check`).
-    if !stage.refining && cfg.sigma == SigmaMethod::Calibrated {
-        notes.push(stage.flow_interpolation_check(&mut fine));
-    }
+    // scatter of its vectors does not show (see `flow_check`). The check and the quality
+    // checks read the same answer, side by side.
     let fine_at = pair.started.elapsed();
-    let (similarity, correlation) = stage.quality(&fine);
+    let (similarity, correlation) = if !stage.refining && cfg.sigma == SigmaMethod::Calibrated {
+        let (term, quality) = rayon::join(
+            || stage.flow_interpolation_term(&fine),
+            || stage.quality(&fine),
+        );
+        notes.push(widened_by_flow_check(term, &mut fine));
+        quality
+    } else {
+        stage.quality(&fine)
+    };
     tracing::debug!(?fine_at, quality_at = ?pair.started.elapsed(), "frame aligned");
     let evidence = Evidence {
         correlation,
@@ -312,6 +320,24 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured
     .then(|| stage.matched.self_test_to_hand_on())
     .flatten();
     Ok(Measured { outcome, self_test })
+}
+
+/// The refinement's first run from the flow's answer, before its σ, and the blur difference
+/// it matched.
+struct FirstRun {
+    blur: Option<crate::blur::BlurDifference>,
+    run: Result<refine::RefinementRun, refine::Rejected>,
+}
+
+/// The flow's answer as the refinement reads and replaces it.
+fn flow_answer(fine: &mut FineResult) -> refine::FlowAnswer<'_> {
+    refine::FlowAnswer {
+        transform: &mut fine.transform,
+        covariance: &mut fine.covariance,
+        sample_box: fine.sample_box,
+        inliers: &fine.inliers,
+        slack_px: fine.seed_level.map_or(0.0, seed_slack_px),
+    }
 }
 
 /// One measurement's outcome, and the reference's self-test cases it leaves to hand on.
@@ -442,19 +468,9 @@ impl<'a> Stages<'a> {
                 0.0,
             )
         });
-        let seed = self.on_binned(binned, BinnedRun::Seed(self.coarse));
-        // Binned copies can lack what the full frame has (too few vectors, say).
-        let Ok(seed) = seed else {
-            return self.full_flow();
-        };
-        if self.refining {
-            return Ok(seed);
-        }
         let final_level = final_level(work.mask_box, cfg).min(seed_level - 1);
-        let mut fine = if final_level == 0 {
-            self.flow_from(PassStart::Seed(seed.transform), cfg.max_passes)?
-        } else {
-            let binned = self.matched.binned_final.get_or_init(|| {
+        let binned_final = || {
+            self.matched.binned_final.get_or_init(|| {
                 let antialias_px = FINAL_ANTIALIAS * (1usize << final_level) as f64;
                 Binned::new(
                     self.reference(),
@@ -463,8 +479,25 @@ impl<'a> Stages<'a> {
                     work.trend_px(),
                     antialias_px,
                 )
-            });
-            match self.on_binned(binned, BinnedRun::Final(seed.transform)) {
+            })
+        };
+        let seeded = || self.on_binned(binned, BinnedRun::Seed(self.coarse));
+        // The reference's copies for the final passes need nothing of the seed: made beside it.
+        let seed = match !self.refining && final_level > 0 {
+            true => rayon::join(seeded, binned_final).0,
+            false => seeded(),
+        };
+        // Binned copies can lack what the full frame has (too few vectors, say).
+        let Ok(seed) = seed else {
+            return self.full_flow();
+        };
+        if self.refining {
+            return Ok(seed);
+        }
+        let mut fine = if final_level == 0 {
+            self.flow_from(PassStart::Seed(seed.transform), cfg.max_passes)?
+        } else {
+            match self.on_binned(binned_final(), BinnedRun::Final(seed.transform)) {
                 Ok(fine) => fine,
                 Err(_) => return self.full_flow(),
             }
@@ -527,40 +560,53 @@ impl<'a> Stages<'a> {
     }
 
     /// The intensity refinement from the flow's answer; it replaces that answer when taken.
-    fn try_refine(
-        &self,
-        prepared: &refine::RefineReference,
-        fine: &mut FineResult,
-    ) -> Result<String, refine::Rejected> {
-        let (work, cfg) = (self.pair.work, self.pair.cfg);
+    fn try_refine(&self, fine: &mut FineResult) -> Result<String, refine::Rejected> {
+        let run = self.run_refinement(fine);
+        self.settle_refinement(fine, run)
+    }
+
+    /// The refinement from the flow's answer up to its σ, with the blur difference it
+    /// matched: what needs nothing of the reference's self-test.
+    fn run_refinement(&self, fine: &mut FineResult) -> FirstRun {
         let measured = Instant::now();
         let blur = self.blur_of(fine);
         tracing::debug!(?blur, took = ?measured.elapsed(), "blur difference");
-        refine::apply(
-            refine::FlowAnswer {
-                transform: &mut fine.transform,
-                covariance: &mut fine.covariance,
-                sample_box: fine.sample_box,
-                inliers: &fine.inliers,
-                slack_px: fine.seed_level.map_or(0.0, seed_slack_px),
-            },
-            &refine::RefineInputs {
-                reference: self.reference(),
-                prepared,
-                frame: self.pair.frame_data.view(),
-                mask: &work.mask,
-                mask_box: work.mask_box,
-                frame_smoothing_px: self.sig_frame,
-                blur,
-                carried: self.carried,
-                cfg,
-            },
+        let run = refine::run_refinement(&flow_answer(fine), &self.refine_inputs(blur));
+        FirstRun { blur, run }
+    }
+
+    /// The refinement's σ, with the reference's self-test, and its answer taken or refused.
+    fn settle_refinement(
+        &self,
+        fine: &mut FineResult,
+        first: FirstRun,
+    ) -> Result<String, refine::Rejected> {
+        refine::settle(
+            first.run?,
+            flow_answer(fine),
+            &self.refine_inputs(first.blur),
             |settings| {
                 debug_assert_eq!(*settings, self.refine_settings());
                 self.self_test_used.store(true, Ordering::Relaxed);
                 self.self_test_cases().map(refine::SelfTestCases::floor)
             },
         )
+    }
+
+    /// The pair as the refinement reads it.
+    fn refine_inputs(&self, blur: Option<crate::blur::BlurDifference>) -> refine::RefineInputs<'_> {
+        let (work, cfg) = (self.pair.work, self.pair.cfg);
+        refine::RefineInputs {
+            reference: self.reference(),
+            prepared: self.refine_reference(),
+            frame: self.pair.frame_data.view(),
+            mask: &work.mask,
+            mask_box: work.mask_box,
+            frame_smoothing_px: self.sig_frame,
+            blur,
+            carried: self.carried,
+            cfg,
+        }
     }
 
     /// The settings the refinement of this pair starts from (before any blur matching).
@@ -631,12 +677,11 @@ impl<'a> Stages<'a> {
         cases
     }
 
-    /// The refinement, retried from a full-resolution or longer flow when refused; what the
-    /// verdict needs to know of it.
-    fn refine(&self, fine: &mut FineResult) -> Result<Refinement, String> {
+    /// The refinement from its first run, retried from a full-resolution or longer flow when
+    /// refused; what the verdict needs to know of it.
+    fn refine(&self, fine: &mut FineResult, first: FirstRun) -> Result<Refinement, String> {
         let cfg = self.pair.cfg;
-        let prepared = self.refine_reference();
-        let mut outcome = self.try_refine(prepared, fine);
+        let mut outcome = self.settle_refinement(fine, first);
         if outcome.is_err() {
             if fine.seed_level.is_some() {
                 *fine = self.full_flow()?;
@@ -654,7 +699,7 @@ impl<'a> Stages<'a> {
                 )?;
                 more.passes += fine.passes;
                 *fine = more;
-                outcome = self.try_refine(prepared, fine);
+                outcome = self.try_refine(fine);
             }
         }
         Ok(match outcome {
@@ -687,9 +732,9 @@ impl<'a> Stages<'a> {
         })
     }
 
-    /// Widens the flow's σ by its interpolation check; the note says by how much. An answer
-    /// measured on binned copies is checked on them.
-    fn flow_interpolation_check(&self, fine: &mut FineResult) -> String {
+    /// The flow's interpolation check: the σ its answer must cover beyond the scatter of its
+    /// vectors. An answer measured on binned copies is checked on them.
+    fn flow_interpolation_term(&self, fine: &FineResult) -> Option<[f64; 4]> {
         let checked = Instant::now();
         let (work, cfg) = (self.pair.work, self.pair.cfg);
         let binned = fine
@@ -710,23 +755,8 @@ impl<'a> Stages<'a> {
             cfg,
             self.pair.workspace,
         );
-        let note = match term {
-            Some(term) => {
-                for (k, t) in term.iter().enumerate() {
-                    fine.covariance[k][k] += t * t;
-                }
-                format!(
-                    "flow interpolation check {:.1e} / {:.3}″ / {:.1e} / {:.1e} px",
-                    term[0],
-                    term[1] * crate::geometry::ARCSEC_PER_RAD,
-                    term[2],
-                    term[3]
-                )
-            }
-            None => "flow interpolation check could not run".to_string(),
-        };
         tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
-        note
+        term
     }
 
     /// Quality of the final match: on the full grid, or for a seed on binned copies on theirs
@@ -764,6 +794,23 @@ impl<'a> Stages<'a> {
             }
         }
     }
+}
+
+/// Widens the flow's σ by its interpolation check `term`; the note says by how much.
+fn widened_by_flow_check(term: Option<[f64; 4]>, fine: &mut FineResult) -> String {
+    let Some(term) = term else {
+        return "flow interpolation check could not run".to_string();
+    };
+    for (k, t) in term.iter().enumerate() {
+        fine.covariance[k][k] += t * t;
+    }
+    format!(
+        "flow interpolation check {:.1e} / {:.3}″ / {:.1e} / {:.1e} px",
+        term[0],
+        term[1] * crate::geometry::ARCSEC_PER_RAD,
+        term[2],
+        term[3]
+    )
 }
 
 /// The engine's answer from the fine stage's result and the verdict on it.

@@ -47,6 +47,24 @@ pub struct RefineInputs<'a> {
     pub cfg: &'a EngineConfig,
 }
 
+/// A refinement run from the flow's answer, before its σ: [`settle`] makes the answer
+/// reported from it.
+pub struct RefinementRun {
+    setup: Setup,
+    refined: Refined,
+}
+
+/// The refinement from the flow stage's answer, up to its σ (which needs the reference's
+/// self-test: a caller may run that beside this); `Err` when the refinement is not possible.
+pub fn run_refinement(
+    flow: &FlowAnswer<'_>,
+    pair: &RefineInputs<'_>,
+) -> Result<RefinementRun, Rejected> {
+    let setup = Setup::new(flow, pair)?;
+    let refined = run(&setup, pair, flow)?;
+    Ok(RefinementRun { setup, refined })
+}
+
 /// Refine the flow stage's transform in place (and its covariance), or leave both as they
 /// are when the refinement is not possible or disagrees with the flow. `self_test` gives the
 /// method's systematic floor on this reference (measured once per reference by the caller).
@@ -57,8 +75,19 @@ pub fn apply(
     pair: &RefineInputs<'_>,
     self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
 ) -> Result<String, Rejected> {
-    let setup = Setup::new(&flow, pair)?;
-    let refined = run(&setup, pair, &flow)?;
+    let run = run_refinement(&flow, pair)?;
+    settle(run, flow, pair, self_test)
+}
+
+/// [`apply`] from a run made already by [`run_refinement`] on the same flow answer and pair:
+/// its σ, and the answer taken or refused.
+pub fn settle(
+    run: RefinementRun,
+    flow: FlowAnswer<'_>,
+    pair: &RefineInputs<'_>,
+    self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
+) -> Result<String, Rejected> {
+    let RefinementRun { setup, refined } = run;
     let sigma = match pair.cfg.sigma {
         SigmaMethod::Calibrated => calibrated_sigma(&setup, pair, &flow, &refined, self_test),
         SigmaMethod::Uabjm => Sigma {
