@@ -313,8 +313,7 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured
         verdict,
     );
     // A frame that matched well hands the reference's self-test on, should it become the
-    // next reference.
-    // Cases run ahead count only once the refinement has used them, as when run on demand.
+    // next reference: cases run ahead once the refinement has used them, as on demand.
     let self_test = (outcome.result.status == crate::record::Status::Ok
         && (!stage.self_test_ahead || stage.self_test_used.load(Ordering::Relaxed)))
     .then(|| stage.matched.self_test_to_hand_on())

@@ -65,22 +65,12 @@ pub fn run_refinement(
     Ok(RefinementRun { setup, refined })
 }
 
-/// Refine the flow stage's transform in place (and its covariance), or leave both as they
-/// are when the refinement is not possible or disagrees with the flow. `self_test` gives the
-/// method's systematic floor on this reference (measured once per reference by the caller).
-/// Returns a note for the result's message: `Ok` when the refinement's answer was taken, `Err`
-/// when the flow's stands.
-pub fn apply(
-    flow: FlowAnswer<'_>,
-    pair: &RefineInputs<'_>,
-    self_test: impl FnOnce(&RefineSettings) -> Option<SelfTest>,
-) -> Result<String, Rejected> {
-    let run = run_refinement(&flow, pair)?;
-    settle(run, flow, pair, self_test)
-}
-
-/// [`apply`] from a run made already by [`run_refinement`] on the same flow answer and pair:
-/// its σ, and the answer taken or refused.
+/// From a run made by [`run_refinement`] on the same flow answer and pair: refine the flow
+/// stage's transform in place (and its covariance), or leave both as they are when the
+/// refinement disagrees with the flow. `self_test` gives the method's systematic floor on
+/// this reference (measured once per reference by the caller). Returns a note for the
+/// result's message: `Ok` when the refinement's answer was taken, `Err` when the flow's
+/// stands.
 pub fn settle(
     run: RefinementRun,
     flow: FlowAnswer<'_>,

@@ -37,7 +37,7 @@ mod self_test;
 mod solve;
 mod window;
 
-pub use apply::{apply, run_refinement, settle, FlowAnswer, RefineInputs, RefinementRun};
+pub use apply::{run_refinement, settle, FlowAnswer, RefineInputs, RefinementRun};
 pub use pixels::{inlier_cell_pixels, CellGrid};
 pub use reference::RefineReference;
 pub use self_test::{
