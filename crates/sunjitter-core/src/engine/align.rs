@@ -8,7 +8,7 @@ use super::fine::{
     fine_alignment, flow_reach_px, grown, max_motion_px, Crop, FineResult, FlowRegion, PassStart,
     UNSETTLED_PASS_FACTOR,
 };
-use super::prepared::{FrameWork, Matched, ReferenceWork, Workspace};
+use super::prepared::{made_once, FrameWork, Matched, ReferenceWork, Workspace};
 use super::seed::{
     binned_alignment, final_level, seed_level, seed_slack_px, Binned, BinnedRun, FINAL_ANTIALIAS,
 };
@@ -458,7 +458,7 @@ impl<'a> Stages<'a> {
         if seed_level == 0 {
             return self.full_flow();
         }
-        let binned = self.matched.binned.get_or_init(|| {
+        let binned = made_once(&self.matched.binned, || {
             Binned::new(
                 self.reference(),
                 &work.mask,
@@ -469,7 +469,7 @@ impl<'a> Stages<'a> {
         });
         let final_level = final_level(work.mask_box, cfg).min(seed_level - 1);
         let binned_final = || {
-            self.matched.binned_final.get_or_init(|| {
+            made_once(&self.matched.binned_final, || {
                 let antialias_px = FINAL_ANTIALIAS * (1usize << final_level) as f64;
                 Binned::new(
                     self.reference(),
@@ -538,11 +538,10 @@ impl<'a> Stages<'a> {
             mask_box.y as f64 + (mask_box.height as f64 - 1.0) / 2.0,
         ];
         let side = mask_box.width.min(mask_box.height);
-        let reference = self
-            .matched
-            .spectrum
-            .get_or_init(|| crate::blur::RadialSpectrum::around(self.reference(), centre, side))
-            .as_ref()?;
+        let reference = made_once(&self.matched.spectrum, || {
+            crate::blur::RadialSpectrum::around(self.reference(), centre, side)
+        })
+        .as_ref()?;
         let at = match self.carried {
             Some(c) => {
                 let (x, y) = c.then(&fine.transform)(centre[0], centre[1]);
@@ -615,7 +614,7 @@ impl<'a> Stages<'a> {
 
     /// The reference as the refinement reads it (made on first use).
     fn refine_reference(&self) -> &refine::RefineReference {
-        self.matched.refine_reference.get_or_init(|| {
+        made_once(&self.matched.refine_reference, || {
             // Every pixel the refinement, its self-test and its checks fit lies in the mask.
             let m = self.pair.work.mask_box;
             let bbox = (m.x, m.y, m.x + m.width - 1, m.y + m.height - 1);
@@ -626,10 +625,10 @@ impl<'a> Stages<'a> {
 
     /// The reference's self-test cases (run on first use).
     fn self_test_cases(&self) -> Option<&refine::SelfTestCases> {
-        self.matched
-            .self_test
-            .get_or_init(|| self.self_test(self.refine_reference(), &self.refine_settings()))
-            .as_ref()
+        made_once(&self.matched.self_test, || {
+            self.self_test(self.refine_reference(), &self.refine_settings())
+        })
+        .as_ref()
     }
 
     /// The reference's self-test cases: from the cases handed on along a chain, or kept by

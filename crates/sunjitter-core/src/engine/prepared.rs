@@ -105,6 +105,8 @@ pub(super) struct ReferenceWork {
 }
 
 /// The reference smoothed to a frame's resolution, and its high-pass for the structure check.
+/// What it makes on first use is made by [`made_once`]: several frames may read one version
+/// at once (channels that follow one partner), each on rayon's threads.
 pub(super) struct Matched {
     sigma_px: f64,
     /// `None`: no smoothing (the cleaned reference itself).
@@ -402,6 +404,22 @@ impl ReferenceWork {
     }
 }
 
+/// `cell`'s value, made by `make` when it has none yet; never waiting for another thread to
+/// make it. A rayon thread that waits for its own work runs other jobs meanwhile, another
+/// frame's among them: had it waited on a cell, it could be the very thread making that
+/// cell further up its own stack, and never return. Two threads that find the cell empty
+/// make it both; the first value set stands, and the other is the same (the making is
+/// deterministic).
+pub(super) fn made_once<T>(cell: &std::sync::OnceLock<T>, make: impl FnOnce() -> T) -> &T {
+    if let Some(value) = cell.get() {
+        return value;
+    }
+    // Err: another thread set it first, with the same value.
+    let _ = cell.set(make());
+    cell.get()
+        .expect("set just above, or by another thread before")
+}
+
 impl Matched {
     pub(super) fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
         self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
@@ -409,7 +427,7 @@ impl Matched {
 
     /// The high-pass of this version on the mask's box and the trend's reach, and that crop.
     pub(super) fn high_pass(&self, work: &ReferenceWork) -> &(Array2<f32>, Crop) {
-        self.high_pass.get_or_init(|| {
+        made_once(&self.high_pass, || {
             // Structure only: the large-scale disk brightness correlates even for unrelated
             // images.
             let (h, w) = work.cleaned.dim();
@@ -558,6 +576,22 @@ fn structure_length_px(img: ArrayView2<f32>, mask: ArrayView2<bool>) -> Option<f
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A cell made while its maker, on the same thread, needs it again (as a rayon thread
+    /// that runs another frame's job while it waits does): the inner call makes it rather
+    /// than wait for the outer one, which would never finish, and every caller reads the
+    /// first value set. On a cell already made, nothing is made again.
+    #[test]
+    fn a_cell_needed_again_while_it_is_made_is_made_not_waited_for() {
+        let cell = std::sync::OnceLock::new();
+        let mut inner = None;
+        let outer = *made_once(&cell, || {
+            inner = Some(*made_once(&cell, || 2));
+            1
+        });
+        assert_eq!((inner, outer), (Some(2), 2));
+        assert_eq!(*made_once(&cell, || unreachable!("the cell is made")), 2);
+    }
 
     /// A plane wave `sin(kx·x + ky·y)` over `h × w` with a mask `margin` px inside its edges:
     /// its central differences have the mean square `(sin²kx + sin²ky)/2` of its variance, so
