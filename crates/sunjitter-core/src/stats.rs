@@ -135,101 +135,76 @@ pub fn par_select_by<T: Copy + Send + Sync>(
 
 /// The `k`-th smallest (0-based, in the order of `f64::total_cmp`) of the values `value(i)`
 /// that are `Some` for `i` in `0..len`, all finite: what [`par_select`] finds on them
-/// collected, without collecting them. As in [`bracketed_select`], a strided sample brackets
-/// rank `k` (placed as if the `Some` were spread evenly) and one pass keeps the values inside
-/// the bracket; when it misses, they are collected after all. `None` when fewer than `k + 1`
-/// are `Some`.
+/// collected, without collecting them: from a bracket ([`bracketed_select_where`]) when it
+/// holds rank `k`, else collected after all. `None` when fewer than `k + 1` are `Some`.
 pub fn par_select_where(
     len: usize,
     k: usize,
     value: impl Fn(usize) -> Option<f64> + Sync,
 ) -> Option<f64> {
     use rayon::prelude::*;
-    use std::cmp::Ordering::{Greater, Less};
-    const SAMPLE: usize = 8192;
-    const MARGIN: usize = 256;
-    let stride = len / SAMPLE;
-    if stride >= 2 {
-        let mut sample: Vec<f64> = (0..SAMPLE)
-            .filter_map(|i| value(i * stride + stride / 2))
-            .collect();
-        sample.sort_unstable_by(f64::total_cmp);
-        let m = sample.len();
-        let at = ((k as f64 / len as f64) * SAMPLE as f64) as usize;
-        if m > 2 * MARGIN && at < m {
-            let lo = at.checked_sub(MARGIN).map(|i| sample[i]);
-            let hi = (at + MARGIN < m).then(|| sample[at + MARGIN]);
-            let below_lo = |v: &f64| lo.is_some_and(|lo| v.total_cmp(&lo) == Less);
-            let above_hi = |v: &f64| hi.is_some_and(|hi| v.total_cmp(&hi) == Greater);
-            let chunk = len.div_ceil(4 * rayon::current_num_threads().max(1));
-            let parts: Vec<(usize, Vec<f64>)> = (0..len.div_ceil(chunk))
-                .into_par_iter()
-                .map(|c| {
-                    let (mut below, mut inside) = (0, Vec::with_capacity(chunk / 8));
-                    for v in (c * chunk..((c + 1) * chunk).min(len)).filter_map(&value) {
-                        if below_lo(&v) {
-                            below += 1;
-                        } else if !above_hi(&v) {
-                            inside.push(v);
-                        }
-                    }
-                    (below, inside)
-                })
-                .collect();
-            let below: usize = parts.iter().map(|p| p.0).sum();
-            let inside_len: usize = parts.iter().map(|p| p.1.len()).sum();
-            if (below..below + inside_len).contains(&k) {
-                let mut inside = Vec::with_capacity(inside_len);
-                parts.into_iter().for_each(|p| inside.extend(p.1));
-                return Some(*inside.select_nth_unstable_by(k - below, f64::total_cmp).1);
-            }
-        }
+    if let Some(v) = bracketed_select_where(len, k, &value, &f64::total_cmp) {
+        return Some(v);
     }
     let all: Vec<f64> = (0..len).into_par_iter().filter_map(&value).collect();
     (k < all.len()).then(|| par_select(&all, k))
 }
 
-/// [`par_select`] from a bracket: a strided sample of 8192 values, sorted, gives two
-/// values whose ranks lie well either side of `k` (for values in no order against the
-/// stride, the sample's place for rank `k` has a standard deviation of at most
-/// `√8192 / 2` ≈ 45; the bracket is 256 places either side). One parallel pass counts the
-/// values below the bracket and keeps those inside it, about 6 % of them; `None` when rank
-/// `k` falls outside.
+/// [`bracketed_select_where`] over every value of `values`.
 fn bracketed_select<T: Copy + Send + Sync>(
     values: &[T],
     k: usize,
+    cmp: &(impl Fn(&T, &T) -> std::cmp::Ordering + Sync),
+) -> Option<T> {
+    bracketed_select_where(values.len(), k, &|i| Some(values[i]), cmp)
+}
+
+/// The `k`-th smallest, in the order `cmp`, of the values `value(i)` that are `Some` for `i`
+/// in `0..len`, from a bracket: a strided sample of 8192 of them, sorted, gives two values
+/// whose ranks lie well either side of `k` (for values in no order against the stride, the
+/// sample's place for rank `k` has a standard deviation of at most `√8192 / 2` ≈ 45; the
+/// bracket is 256 places either side; rank `k` is placed as if the `Some` were spread
+/// evenly). One parallel pass counts the values below the bracket and keeps those inside
+/// it, about 6 % of them; `None` when rank `k` falls outside.
+fn bracketed_select_where<T: Copy + Send + Sync>(
+    len: usize,
+    k: usize,
+    value: &(impl Fn(usize) -> Option<T> + Sync),
     cmp: &(impl Fn(&T, &T) -> std::cmp::Ordering + Sync),
 ) -> Option<T> {
     use rayon::prelude::*;
     use std::cmp::Ordering::{Greater, Less};
     const SAMPLE: usize = 8192;
     const MARGIN: usize = 256;
-    let n = values.len();
-    let stride = n / SAMPLE;
+    let stride = len / SAMPLE;
     if stride < 2 {
         return None;
     }
     let mut sample: Vec<T> = (0..SAMPLE)
-        .map(|i| values[i * stride + stride / 2])
+        .filter_map(|i| value(i * stride + stride / 2))
         .collect();
     sample.sort_unstable_by(cmp);
-    let at = ((k as f64 / n as f64) * SAMPLE as f64) as usize;
+    let m = sample.len();
+    let at = ((k as f64 / len as f64) * SAMPLE as f64) as usize;
+    if m <= 2 * MARGIN || at >= m {
+        return None;
+    }
     // Open-ended where the bracket would pass the sample's ends.
     let lo = at.checked_sub(MARGIN).map(|i| sample[i]);
-    let hi = (at + MARGIN < SAMPLE).then(|| sample[at + MARGIN]);
+    let hi = (at + MARGIN < m).then(|| sample[at + MARGIN]);
     let below_lo = |v: &T| lo.as_ref().is_some_and(|lo| cmp(v, lo) == Less);
     let above_hi = |v: &T| hi.as_ref().is_some_and(|hi| cmp(v, hi) == Greater);
-    let chunk = n.div_ceil(4 * rayon::current_num_threads().max(1));
-    let parts: Vec<(usize, Vec<T>)> = values
-        .par_chunks(chunk)
+    let chunk = len.div_ceil(4 * rayon::current_num_threads().max(1));
+    let parts: Vec<(usize, Vec<T>)> = (0..len.div_ceil(chunk))
+        .into_par_iter()
         .map(|c| {
-            let mut below = 0;
-            let mut inside = Vec::with_capacity(c.len() / 8);
-            for v in c {
-                if below_lo(v) {
+            let range = c * chunk..((c + 1) * chunk).min(len);
+            let (mut below, mut inside) = (0, Vec::with_capacity(range.len() / 8));
+            for v in range.filter_map(value) {
+                if below_lo(&v) {
                     below += 1;
-                } else if !above_hi(v) {
-                    inside.push(*v);
+                } else if !above_hi(&v) {
+                    inside.push(v);
                 }
             }
             (below, inside)
