@@ -188,10 +188,15 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
 /// Parts (of rows) that [`check_usable`] reads one after the other.
 const USABLE_CHECK_PARTS: usize = 16;
 
-/// [`cleaned`], freeing `data` when it is owned (or handing it on when nothing is cleaned).
+/// [`cleaned`], in place when `data` is owned: no second frame-sized array is faulted in.
 fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32) -> Array2<f32> {
     match data {
-        std::borrow::Cow::Owned(d) if hot_pixel_fraction <= 0.0 && d.is_standard_layout() => d,
+        std::borrow::Cow::Owned(mut d) if d.is_standard_layout() => {
+            if hot_pixel_fraction > 0.0 {
+                preprocess::remove_hot_pixels(&mut d, hot_pixel_fraction);
+            }
+            d
+        }
         d => cleaned(&d, hot_pixel_fraction),
     }
 }
