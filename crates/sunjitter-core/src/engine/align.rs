@@ -20,7 +20,7 @@ use super::{refine, AlignOutcome, SigmaMethod};
 use crate::flow::Roi;
 use crate::geometry::{sigmas, Similarity};
 use crate::meta::FrameMeta;
-use crate::preprocess;
+use crate::preprocess::{self, BlockMeans};
 use crate::record::{AlignResult, SolarRotationFields, TransformFields};
 use ndarray::{s, Array2, ArrayView2};
 use std::borrow::Cow;
@@ -80,6 +80,7 @@ pub(super) fn align_frame(
         frame,
         frame_meta: &side.meta,
         frame_data: &side.data,
+        frame_means: side.block_means.as_deref(),
         cfg,
         workspace,
         started,
@@ -135,6 +136,8 @@ struct FrameSide {
     meta: FrameMeta,
     /// Cleaned, in the reference's intensity units.
     data: Array2<f32>,
+    /// `data` binned by its disk check, unless the intensity match changed it since.
+    block_means: Option<Arc<BlockMeans>>,
     coarse: Similarity,
     carried: Option<derotate::Carried>,
     solar_rotation: Option<SolarRotationFields>,
@@ -165,6 +168,7 @@ fn prepare_frame(
         checked_in,
     } = own;
 
+    let mut block_means = own.block_means.clone();
     // Coarse: headers, checked against the disks the images show.
     let kept_check = keep.then(|| (own.clone(), own_notes.clone()));
     let frame_meta = geometry_check::frame_against_reference(
@@ -222,11 +226,13 @@ fn prepare_frame(
             kept_cleaned = Some(frame_data.clone());
         }
         p.remove(&mut frame_data);
+        block_means = None;
     }
     tracing::debug!(?photometry, "frame intensities matched");
     Ok(FrameSide {
         meta: frame_meta,
         data: frame_data,
+        block_means,
         coarse,
         carried,
         solar_rotation,
@@ -243,6 +249,8 @@ struct Pair<'a> {
     frame: &'a FrameMeta,
     frame_meta: &'a FrameMeta,
     frame_data: &'a Array2<f32>,
+    /// `frame_data` binned already by some factor.
+    frame_means: Option<&'a BlockMeans>,
     cfg: &'a EngineConfig,
     workspace: &'a Workspace,
     started: Instant,
@@ -461,6 +469,7 @@ impl<'a> Stages<'a> {
         let binned = made_once(&self.matched.binned, || {
             Binned::new(
                 self.reference(),
+                self.matched.block_means(work),
                 &work.mask,
                 seed_level,
                 work.trend_px(),
@@ -473,6 +482,7 @@ impl<'a> Stages<'a> {
                 let antialias_px = FINAL_ANTIALIAS * (1usize << final_level) as f64;
                 Binned::new(
                     self.reference(),
+                    None,
                     &work.mask,
                     final_level,
                     work.trend_px(),
@@ -520,6 +530,7 @@ impl<'a> Stages<'a> {
             binned,
             pair.work.cleaned.dim(),
             pair.frame_data,
+            pair.frame_means,
             run,
             self.limb,
             pair.work.winsize,

@@ -83,7 +83,7 @@ pub(super) fn flow_interpolation_check(
         (factor * sw, factor * sh),
     )?;
     let copy = match binned {
-        Some(binned) => binned.bin(copy.view()),
+        Some(binned) => binned.bin(copy.view(), None),
         None => copy,
     };
     let offset = [sx0 as f64, sy0 as f64];

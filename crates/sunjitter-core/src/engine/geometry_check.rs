@@ -4,8 +4,9 @@
 
 use crate::coarse::{check_header, header_radius_px};
 use crate::meta::FrameMeta;
-use crate::preprocess::{detect_disk, DiskFit};
+use crate::preprocess::{detect_disk_keeping_copy, BlockMeans, DiskFit};
 use ndarray::Array2;
+use std::sync::Arc;
 
 /// A header radius off by more than this fraction of the measured one is wrong.
 const RADIUS_TOLERANCE: f64 = 0.1;
@@ -23,18 +24,23 @@ pub(super) struct Checked {
     pub seen: bool,
     /// Whether the header was corrected from it.
     pub corrected: bool,
+    /// The binned copy of the image the disk was measured on, if one was made.
+    pub block_means: Option<Arc<BlockMeans>>,
 }
 
 /// One image's header against its disk: the metadata to use, the disk for the mask.
 pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<String>) -> Checked {
     let header_radius = header_radius_px(meta);
     let header_disk = header_radius.map(|r| (meta.sun_center_px, r));
-    let Some(seen) = detect_disk(data.view()) else {
+    let (seen, block_means) = detect_disk_keeping_copy(data.view());
+    let block_means = block_means.map(Arc::new);
+    let Some(seen) = seen else {
         return Checked {
             meta: meta.clone(),
             disk_px: header_disk,
             seen: false,
             corrected: false,
+            block_means,
         };
     };
     let check = check_header(meta, &seen);
@@ -49,6 +55,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
             disk_px: header_disk,
             seen: true,
             corrected: false,
+            block_means,
         };
     }
     let mut fixed = meta.clone();
@@ -66,6 +73,7 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
         disk_px: Some((seen.center_px, seen.radius_px)),
         seen: true,
         corrected: true,
+        block_means,
     }
 }
 

@@ -9,7 +9,7 @@ use super::{check_usable, cleaned, geometry_check, quality, refine};
 use super::{AlignOutcome, Image, UsedGeometry};
 use crate::flow::{Farneback, Roi};
 use crate::meta::FrameMeta;
-use crate::preprocess;
+use crate::preprocess::{self, BlockMeans};
 use ndarray::{s, Array2, ArrayView2, Zip};
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -423,6 +423,14 @@ pub(super) fn made_once<T>(cell: &std::sync::OnceLock<T>, make: impl FnOnce() ->
 impl Matched {
     pub(super) fn view<'a>(&'a self, work: &'a ReferenceWork) -> ArrayView2<'a, f32> {
         self.data.as_ref().map_or(work.cleaned.view(), |d| d.view())
+    }
+
+    /// [`Self::view`] binned by the disk check, where this version is the cleaned reference.
+    pub(super) fn block_means<'a>(&self, work: &'a ReferenceWork) -> Option<&'a BlockMeans> {
+        match self.data {
+            None => work.reference_check.block_means.as_deref(),
+            Some(_) => None,
+        }
     }
 
     /// The high-pass of this version on the mask's box and the trend's reach, and that crop.

@@ -10,7 +10,7 @@ use super::prepared::Workspace;
 use super::{derotate, quality};
 use crate::flow::Roi;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
-use crate::preprocess;
+use crate::preprocess::{self, BlockMeans};
 use ndarray::{s, Array2, ArrayView2, Axis};
 use rayon::prelude::*;
 
@@ -84,15 +84,17 @@ pub(super) struct Binned {
 }
 
 impl Binned {
+    /// `known`: `reference` binned already by some factor, used when it is this one.
     pub(super) fn new(
         reference: ArrayView2<f32>,
+        known: Option<&BlockMeans>,
         mask: &Array2<bool>,
         level: usize,
         trend_px: f64,
         antialias_px: f64,
     ) -> Binned {
         let factor = 1usize << level;
-        let reference = bin(reference, factor, antialias_px);
+        let reference = bin(reference, known, factor, antialias_px);
         let mask = all_binned(mask, factor);
         let mask_box = mask_roi(&mask);
         let (h, w) = reference.dim();
@@ -114,9 +116,10 @@ impl Binned {
         self.level
     }
 
-    /// `img` (full grid) binned as the reference was.
-    pub(super) fn bin(&self, img: ArrayView2<f32>) -> Array2<f32> {
-        bin(img, 1 << self.level, self.antialias_px)
+    /// `img` (full grid) binned as the reference was; `known`: `img` binned already by some
+    /// factor, used when it is this one.
+    pub(super) fn bin(&self, img: ArrayView2<f32>, known: Option<&BlockMeans>) -> Array2<f32> {
+        bin(img, known, 1 << self.level, self.antialias_px)
     }
 
     fn factor(&self) -> f64 {
@@ -169,11 +172,16 @@ impl Binned {
     }
 }
 
-fn bin(img: ArrayView2<f32>, factor: usize, antialias_px: f64) -> Array2<f32> {
-    if antialias_px > 0.0 {
-        preprocess::smooth_bin(img, factor, antialias_px)
-    } else {
-        preprocess::bin_mean(img, factor)
+fn bin(
+    img: ArrayView2<f32>,
+    known: Option<&BlockMeans>,
+    factor: usize,
+    antialias_px: f64,
+) -> Array2<f32> {
+    match known {
+        _ if antialias_px > 0.0 => preprocess::smooth_bin(img, factor, antialias_px),
+        Some(known) if known.bin == factor => known.means.clone(),
+        _ => preprocess::bin_mean(img, factor),
     }
 }
 
@@ -218,6 +226,7 @@ pub(super) fn binned_alignment(
     binned: &Binned,
     grid: (usize, usize),
     frame: &Array2<f32>,
+    frame_means: Option<&BlockMeans>,
     run: BinnedRun,
     disk: Option<([f64; 2], f64)>,
     winsize: usize,
@@ -231,7 +240,7 @@ pub(super) fn binned_alignment(
     // The reference's grid (the frame may be of another size).
     let (h, w) = grid;
     let full_center = Similarity::array_center(w, h);
-    let small_frame = binned.bin(frame.view());
+    let small_frame = binned.bin(frame.view(), frame_means);
     let (start, run_cfg) = match run {
         // Converged when the update is a tenth of the seed's own slack (in binned pixels).
         BinnedRun::Seed(coarse) => (
@@ -318,5 +327,51 @@ mod tests {
         assert!(all_binned(&Array2::from_elem((7, 10), true), 4)
             .iter()
             .all(|&m| m));
+    }
+
+    /// A copy binned already stands in for the block means (bin × bin, from pixel 0, the last
+    /// blocks partial) only at its own factor and without anti-aliasing.
+    #[test]
+    fn a_copy_binned_already_serves_only_its_own_factor() {
+        let img = Array2::from_shape_fn((37, 45), |(y, x)| ((y * 45 + x) % 11) as f32);
+        let mean_of_block = |b: usize, (by, bx): (usize, usize)| {
+            let block = img.slice(s![
+                by * b..((by + 1) * b).min(37),
+                bx * b..((bx + 1) * b).min(45)
+            ]);
+            block.iter().map(|&v| f64::from(v)).sum::<f64>() / block.len() as f64
+        };
+        // A copy binned 4×, of some other image: what serves where it is used.
+        let known = BlockMeans {
+            bin: 4,
+            means: Array2::from_elem((10, 12), -1.0),
+        };
+        let mask = Array2::from_elem((37, 45), true);
+        for level in [1, 2, 3] {
+            let binned = Binned::new(img.view(), Some(&known), &mask, level, 2.0, 0.0);
+            let b = 1 << level;
+            for ((by, bx), &v) in binned.reference.indexed_iter() {
+                let want = if b == 4 {
+                    -1.0
+                } else {
+                    mean_of_block(b, (by, bx))
+                };
+                assert!(
+                    (f64::from(v) - want).abs() < 1e-5,
+                    "{b}×: ({bx}, {by}) {v} vs {want}"
+                );
+            }
+            assert_eq!(
+                binned.bin(img.view(), Some(&known)),
+                binned.reference,
+                "{b}×"
+            );
+            // Smoothed first: the copy is not what is asked for.
+            let smoothed = Binned::new(img.view(), Some(&known), &mask, level, 2.0, 1.0);
+            assert!(
+                smoothed.reference.iter().all(|&v| v >= 0.0),
+                "{b}× smoothed"
+            );
+        }
     }
 }

@@ -1,6 +1,6 @@
 //! The solar disk measured from the image itself: limb points, a robust circle, checks.
 
-use ndarray::{ArrayView2, Axis};
+use ndarray::{Array2, ArrayView2, Axis};
 use rayon::prelude::*;
 
 use super::filters::{bilinear, bin_mean};
@@ -67,20 +67,36 @@ const COARSE_SIZE_PX: usize = 512;
 /// limb is blurred), at a fraction of the full-resolution cost; every frame's disk is checked
 /// (docs/validation.md#disk-measured-on-a-binned-copy).
 pub fn detect_disk(img: ArrayView2<f32>) -> Option<DiskFit> {
+    detect_disk_keeping_copy(img).0
+}
+
+/// [`detect_disk`], and the binned copy it measured on (`None` when it measured on `img`):
+/// a caller that bins the image by the same factor later has it already.
+pub fn detect_disk_keeping_copy(img: ArrayView2<f32>) -> (Option<DiskFit>, Option<BlockMeans>) {
     let bin = disk_detection_bin(img.dim());
     if bin == 1 {
-        return detect_disk_at(img);
+        return (detect_disk_at(img), None);
     }
     let binned = bin_mean(img, bin);
-    let fit = detect_disk_at(binned.view())?;
-    // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
-    let b = bin as f64;
-    Some(DiskFit {
-        center_px: fit.center_px.map(|c| b * (c + 0.5) - 0.5),
-        radius_px: b * fit.radius_px,
-        rms_px: b * fit.rms_px,
-        ..fit
-    })
+    let fit = detect_disk_at(binned.view()).map(|fit| {
+        // Binned pixel q covers full pixels b·q … b·q + b − 1: its centre is b·(q + 0.5) − 0.5.
+        let b = bin as f64;
+        DiskFit {
+            center_px: fit.center_px.map(|c| b * (c + 0.5) - 0.5),
+            radius_px: b * fit.radius_px,
+            rms_px: b * fit.rms_px,
+            ..fit
+        }
+    });
+    let copy = BlockMeans { bin, means: binned };
+    (fit, Some(copy))
+}
+
+/// An image's [`bin_mean`] by `bin`.
+#[derive(Debug, Clone)]
+pub struct BlockMeans {
+    pub bin: usize,
+    pub means: Array2<f32>,
 }
 
 /// The power of two that bins an image to no less than 1024 px on its shorter side.

@@ -6,7 +6,7 @@ mod disk;
 mod filters;
 mod hot_pixels;
 
-pub use disk::{detect_disk, DiskFit, LimbFeature};
+pub use disk::{detect_disk, detect_disk_keeping_copy, BlockMeans, DiskFit, LimbFeature};
 pub(crate) use filters::gaussian_smooth_as;
 pub use filters::{bin_mean, gaussian_smooth, gaussian_smooth_rows, gaussian_trend, smooth_bin};
 pub use hot_pixels::{
