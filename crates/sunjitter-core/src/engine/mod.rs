@@ -93,13 +93,13 @@ pub fn align_images_in(
 ) -> AlignOutcome {
     let started = Instant::now();
     let data = std::borrow::Cow::Borrowed(&frame.data);
+    let reference = std::borrow::Cow::Borrowed(reference);
     let (prepared, own) = prepared_side_by_side(reference, &frame.meta, data, cfg);
     aligned_pair(prepared.sharing(workspace), &frame.meta, own, cfg, started)
 }
 
-/// [`align_images`] for a caller done with both images: each one's pixels as read are freed
-/// once its cleaned copy exists, so a large pair holds two frames fewer at its peak. The
-/// numbers are the same.
+/// [`align_images`] for a caller done with both images: each one's pixels are cleaned in
+/// place, so a large pair holds two frames fewer at its peak. The numbers are the same.
 pub fn align_images_owned(reference: Image, frame: Image, cfg: &EngineConfig) -> AlignOutcome {
     align_images_owned_in(reference, frame, cfg, Default::default())
 }
@@ -114,21 +114,24 @@ pub fn align_images_owned_in(
     let started = Instant::now();
     let Image { data, meta } = frame;
     let data = std::borrow::Cow::Owned(data);
-    let (prepared, own) = prepared_side_by_side(&reference, &meta, data, cfg);
-    drop(reference);
+    let reference = std::borrow::Cow::Owned(reference);
+    let (prepared, own) = prepared_side_by_side(reference, &meta, data, cfg);
     aligned_pair(prepared.sharing(workspace), &meta, own, cfg, started)
 }
 
 /// The reference prepared and the frame cleaned and disk-checked side by side: the frame's
 /// own preparation needs nothing of the reference, and each fills the other's idle moments.
 fn prepared_side_by_side(
-    reference: &Image,
+    reference: std::borrow::Cow<'_, Image>,
     frame: &FrameMeta,
     data: std::borrow::Cow<'_, Array2<f32>>,
     cfg: &EngineConfig,
 ) -> (PreparedReference, Result<align::FrameOwn, String>) {
     rayon::join(
-        || PreparedReference::new(reference, cfg),
+        || match reference {
+            std::borrow::Cow::Borrowed(reference) => PreparedReference::new(reference, cfg),
+            std::borrow::Cow::Owned(reference) => PreparedReference::from_image(reference, cfg),
+        },
         || align::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
     )
 }
@@ -188,7 +191,8 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
 /// Parts (of rows) that [`check_usable`] reads one after the other.
 const USABLE_CHECK_PARTS: usize = 16;
 
-/// [`cleaned`], in place when `data` is owned: no second frame-sized array is faulted in.
+/// `data` cleaned of hot pixels (a copy when nothing is to be cleaned), in place when it is
+/// owned: no second frame-sized array is faulted in.
 fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32) -> Array2<f32> {
     match data {
         std::borrow::Cow::Owned(mut d) if d.is_standard_layout() => {
@@ -197,16 +201,11 @@ fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32
             }
             d
         }
-        d => cleaned(&d, hot_pixel_fraction),
-    }
-}
-
-fn cleaned(data: &Array2<f32>, hot_pixel_fraction: f32) -> Array2<f32> {
-    if hot_pixel_fraction > 0.0 {
-        preprocess::hot_pixels_removed(data.view(), hot_pixel_fraction)
-    } else {
+        d if hot_pixel_fraction > 0.0 => {
+            preprocess::hot_pixels_removed(d.view(), hot_pixel_fraction)
+        }
         // Copied in parallel: a frame is tens of MB, faulted in page by page.
-        ndarray::Zip::from(data).par_map_collect(|&v| v)
+        d => ndarray::Zip::from(&*d).par_map_collect(|&v| v),
     }
 }
 

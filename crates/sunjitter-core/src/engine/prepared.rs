@@ -5,7 +5,7 @@ use super::align::{align_frame, FrameOwn};
 use super::config::EngineConfig;
 use super::fine::{grown, mask_roi, Crop};
 use super::seed::Binned;
-use super::{check_usable, cleaned, geometry_check, quality, refine};
+use super::{check_usable, cleaned_from, geometry_check, quality, refine};
 use super::{AlignOutcome, Image, UsedGeometry};
 use crate::flow::{Farneback, Roi};
 use crate::meta::FrameMeta;
@@ -143,7 +143,13 @@ pub struct FrameWork {
 
 impl PreparedReference {
     pub fn new(reference: &Image, cfg: &EngineConfig) -> PreparedReference {
-        PreparedReference::prepare(reference, cfg, None)
+        PreparedReference::of(Cow::Borrowed(reference), cfg, None)
+    }
+
+    /// [`PreparedReference::new`] for a caller done with the image: its pixels are cleaned in
+    /// place. The numbers are the same.
+    pub fn from_image(reference: Image, cfg: &EngineConfig) -> PreparedReference {
+        PreparedReference::of(Cow::Owned(reference), cfg, None)
     }
 
     /// As [`PreparedReference::new`], reusing the work done on `reference` when it was
@@ -153,11 +159,11 @@ impl PreparedReference {
         cfg: &EngineConfig,
         work: FrameWork,
     ) -> PreparedReference {
-        PreparedReference::prepare(reference, cfg, Some(work))
+        PreparedReference::of(Cow::Borrowed(reference), cfg, Some(work))
     }
 
-    fn prepare(
-        reference: &Image,
+    fn of(
+        reference: Cow<'_, Image>,
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> PreparedReference {
@@ -292,21 +298,25 @@ impl ReferenceWork {
     }
 
     fn new(
-        reference: &Image,
+        reference: Cow<'_, Image>,
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> Result<ReferenceWork, String> {
-        let (h, w) = reference.data.dim();
+        let (meta, data) = match reference {
+            Cow::Borrowed(image) => (Cow::Borrowed(&image.meta), Cow::Borrowed(&image.data)),
+            Cow::Owned(Image { meta, data }) => (Cow::Owned(meta), Cow::Owned(data)),
+        };
+        let (h, w) = data.dim();
         let started = Instant::now();
-        check_usable("reference", &reference.data)?;
+        check_usable("reference", &data)?;
         let (cleaned, reference_check, notes, handed_on) = match kept {
             Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
                 (k.cleaned, k.check, k.notes, k.self_test)
             }
             _ => {
-                let cleaned = cleaned(&reference.data, cfg.hot_pixel_fraction);
+                let cleaned = cleaned_from(data, cfg.hot_pixel_fraction);
                 let mut notes = Vec::new();
-                let check = geometry_check::checked(&reference.meta, &cleaned, &mut notes);
+                let check = geometry_check::checked(&meta, &cleaned, &mut notes);
                 (cleaned, check, notes, None)
             }
         };
@@ -350,7 +360,7 @@ impl ReferenceWork {
         let winsize = choose_window(cfg, plate, structure, disk_px.map(|d| d.1), w, h);
         tracing::debug!(?structure, winsize, plate, ?checked_at, ?masked_at, chosen_at = ?started.elapsed(), "window chosen");
         Ok(ReferenceWork {
-            meta: reference.meta.clone(),
+            meta: meta.into_owned(),
             reference_check,
             notes,
             cleaned,
