@@ -199,32 +199,25 @@ fn residual_noise(img: ArrayView2<f32>) -> f32 {
     let residuals: Vec<f32> = (0..h)
         .into_par_iter()
         .fold(
-            || {
-                (
-                    RowScratch::new(w),
-                    vec![0f32; w],
-                    Windows::default(),
-                    Vec::new(),
-                )
-            },
-            |(mut scratch, mut medians, mut windows, mut out), y| {
+            || (RowScratch::new(w), vec![0f32; w], Vec::new()),
+            |(mut scratch, mut medians, mut out), y| {
                 // The first pixel of row y on the stride's grid of the flattened image.
                 let x0 = (stride - (y * w) % stride) % stride;
                 if stride < 4 {
                     // Most of the row: its medians all at once.
                     median_row(&img, y, &mut scratch, &mut medians);
                 } else {
-                    sampled_medians(&img, y, (x0..w).step_by(stride), &mut windows, &mut medians);
+                    sampled_medians(&img, y, (x0..w).step_by(stride), &mut medians);
                 }
                 let row = img.row(y);
                 out.extend((x0..w).step_by(stride).filter_map(|x| {
                     let (v, m) = (row[x], medians[x]);
                     (v.is_finite() && m.is_finite()).then(|| (v - m).abs())
                 }));
-                (scratch, medians, windows, out)
+                (scratch, medians, out)
             },
         )
-        .map(|(_, _, _, out)| out)
+        .map(|(_, _, out)| out)
         .reduce(Vec::new, |mut a, mut b| {
             a.append(&mut b);
             a
@@ -539,23 +532,13 @@ fn median9(mut p: [f32; 9]) -> f32 {
     p[4]
 }
 
-/// Windows of nine finite values gathered from a row, value by value (`values[k][i]` is the
-/// `k`-th value of the `i`-th window, in [`median3x3_of`]'s order), and the columns they are
-/// centred on.
-#[derive(Default)]
-struct Windows {
-    values: [Vec<f32>; 9],
-    columns: Vec<usize>,
-}
-
 /// [`median3x3_of`] at the pixels `columns` of row `y`, into `medians` at those columns. The
-/// interior windows of nine finite values go through [`MEDIAN9_NETWORK`] eight at a time, one
-/// window per vector lane; the others as [`median3x3_of`] takes them.
+/// interior windows go through [`MEDIAN9_NETWORK`] eight at a time, one window per vector
+/// lane; those with a value not finite, and the border's, as [`median3x3_of`] takes them.
 fn sampled_medians(
     img: &ArrayView2<f32>,
     y: usize,
     columns: impl Iterator<Item = usize>,
-    windows: &mut Windows,
     medians: &mut [f32],
 ) {
     let (h, w) = img.dim();
@@ -567,33 +550,52 @@ fn sampled_medians(
         columns.for_each(|x| medians[x] = median3x3_of(img, y, x));
         return;
     };
-    windows.values.iter_mut().for_each(Vec::clear);
-    windows.columns.clear();
-    for x in columns {
-        if x >= 1 && x + 1 < w {
-            let v = [
-                a[x - 1],
-                a[x],
-                a[x + 1],
-                b[x - 1],
-                b[x],
-                b[x + 1],
-                c[x - 1],
-                c[x],
-                c[x + 1],
-            ];
-            if v.iter().all(|v| v.is_finite()) {
-                for (k, &v) in v.iter().enumerate() {
-                    windows.values[k].push(v);
+    let mut block = [0usize; LANES];
+    let mut n = 0;
+    let flush = |block: &[usize], medians: &mut [f32]| {
+        // Windows value by value: `p[k][l]` is the `k`-th value of lane `l`'s window.
+        let mut p = [[0f32; LANES]; 9];
+        let mut whole = [false; LANES];
+        for (l, &x) in block.iter().enumerate() {
+            if x >= 1 && x + 1 < w {
+                let v = [
+                    a[x - 1],
+                    a[x],
+                    a[x + 1],
+                    b[x - 1],
+                    b[x],
+                    b[x + 1],
+                    c[x - 1],
+                    c[x],
+                    c[x + 1],
+                ];
+                for (lanes, v) in p.iter_mut().zip(v) {
+                    lanes[l] = v;
                 }
-                windows.columns.push(x);
-                continue;
+                whole[l] = v.iter().all(|v| v.is_finite());
             }
         }
-        medians[x] = median3x3_of(img, y, x);
+        medians9(&mut p);
+        for (l, &x) in block.iter().enumerate() {
+            medians[x] = match whole[l] {
+                true => p[4][l],
+                false => median3x3_of(img, y, x),
+            };
+        }
+    };
+    for x in columns {
+        block[n] = x;
+        n += 1;
+        if n == LANES {
+            flush(&block, medians);
+            n = 0;
+        }
     }
-    medians9(&windows.values, &windows.columns, medians);
+    flush(&block[..n], medians);
 }
+
+/// Windows [`sampled_medians`] takes side by side, one per vector lane.
+const LANES: usize = 8;
 
 /// The medians [`sampled_medians`] makes at every `step`-th pixel of each row from `first`;
 /// NaN elsewhere.
@@ -601,36 +603,23 @@ fn sampled_medians(
 pub(super) fn median3x3_sampled(img: &ArrayView2<f32>, first: usize, step: usize) -> Array2<f32> {
     let (h, w) = img.dim();
     let mut out = Array2::from_elem((h, w), f32::NAN);
-    let mut windows = Windows::default();
     for y in 0..h {
         let mut medians = vec![f32::NAN; w];
-        sampled_medians(img, y, (first..w).step_by(step), &mut windows, &mut medians);
+        sampled_medians(img, y, (first..w).step_by(step), &mut medians);
         out.row_mut(y).assign(&ndarray::ArrayView1::from(&medians));
     }
     out
 }
 
-crate::flow::simd::multiversion!(fn medians9(values: &[Vec<f32>; 9], columns: &[usize], medians: &mut [f32]) => medians9_body);
+crate::flow::simd::multiversion!(fn medians9(p: &mut [[f32; LANES]; 9]) => medians9_body);
 
-/// `medians[columns[i]]` = [`median9`] of the `i`-th window of `values`, eight windows at a
-/// time.
+/// [`MEDIAN9_NETWORK`] on [`LANES`] windows at once: after it, `p[4]` holds their medians.
 #[inline(always)]
-fn medians9_body(values: &[Vec<f32>; 9], columns: &[usize], medians: &mut [f32]) {
-    const LANES: usize = 8;
-    for (block, at) in columns.chunks(LANES).enumerate() {
-        let (start, n) = (block * LANES, at.len());
-        let mut p = [[0f32; LANES]; 9];
-        for (lanes, v) in p.iter_mut().zip(values) {
-            lanes[..n].copy_from_slice(&v[start..start + n]);
-        }
-        for (a, b) in MEDIAN9_NETWORK {
-            let (pa, pb) = (p[a], p[b]);
-            p[a] = std::array::from_fn(|l| pa[l].min(pb[l]));
-            p[b] = std::array::from_fn(|l| pa[l].max(pb[l]));
-        }
-        for (&x, &m) in at.iter().zip(&p[4]) {
-            medians[x] = m;
-        }
+fn medians9_body(p: &mut [[f32; LANES]; 9]) {
+    for (a, b) in MEDIAN9_NETWORK {
+        let (pa, pb) = (p[a], p[b]);
+        p[a] = std::array::from_fn(|l| pa[l].min(pb[l]));
+        p[b] = std::array::from_fn(|l| pa[l].max(pb[l]));
     }
 }
 
