@@ -98,10 +98,13 @@ pub(crate) struct GridScratch {
     snaps: Vec<f64>,
     /// Vertical moment sums, channel-major (`nch` planes of `w`).
     vs: Vec<f64>,
-    /// Centred vertical moments at the current grid row.
-    cm: Vec<f64>,
-    /// Prefix sums along the row (`npre` planes of `w + 1`).
+    /// Prefix sums along the row at the window edges `stops` (`nh` channels each).
     pre: Vec<f64>,
+    /// The columns where a grid window starts or ends, ascending: where the prefix sums
+    /// are read.
+    stops: Vec<usize>,
+    /// Each grid column's window as indices into `stops` (start, end).
+    edges: Vec<(usize, usize)>,
     urow: Vec<f32>,
     vrow: Vec<f32>,
 }
@@ -323,8 +326,20 @@ fn grid_strip<const AFF: bool>(
     sc.cum.resize(nv * w, 0.0);
     sc.snaps.resize(pending * nv * w, 0.0);
     sc.vs.resize(nv * w, 0.0);
-    sc.cm.resize(nv * w, 0.0);
-    sc.pre.resize(nh * (w + 1), 0.0);
+    // Window edges along the row, the same for every grid row.
+    let span = |xc: usize| (xc.saturating_sub(m), (xc + m + 1).min(w));
+    sc.stops.clear();
+    sc.stops
+        .extend(grid.xs.iter().flat_map(|&xc| <[usize; 2]>::from(span(xc))));
+    sc.stops.sort_unstable();
+    sc.stops.dedup();
+    sc.edges.clear();
+    sc.edges.extend(grid.xs.iter().map(|&xc| {
+        let (l, r) = span(xc);
+        let at = |p: usize| sc.stops.partition_point(|&q| q < p);
+        (at(l), at(r))
+    }));
+    sc.pre.resize(nh * sc.stops.len(), 0.0);
 
     let norm = 1.0 / ((2 * m + 1) * (2 * m + 1)) as f64;
     let sig2 = (m * (m + 1)) as f64 / 3.0;
@@ -347,97 +362,105 @@ fn grid_strip<const AFF: bool>(
                     *d = c - p;
                 }
             }
-            let yc = grid.ys[i];
-            // Centre the vertical moments on yc, stored pixel-major (`cm[x·nv + k]`) so that the
-            // prefix pass below updates all channels of a pixel together (independent chains).
-            let c = yc as f64 - lo as f64;
-            for (k, &(_, ord)) in vch.iter().enumerate() {
-                let s0 = &sc.vs[k.saturating_sub(ord) * w..][..w];
-                match ord {
-                    0 => {
-                        for x in 0..w {
-                            sc.cm[x * nv + k] = s0[x];
-                        }
-                    }
-                    1 => {
-                        let s1 = &sc.vs[k * w..][..w];
-                        for x in 0..w {
-                            sc.cm[x * nv + k] = s1[x] - c * s0[x];
-                        }
-                    }
-                    _ => {
-                        let s1 = &sc.vs[(k - 1) * w..][..w];
-                        let s2 = &sc.vs[k * w..][..w];
-                        for x in 0..w {
-                            sc.cm[x * nv + k] = s2[x] - 2.0 * c * s1[x] + c * c * s0[x];
-                        }
-                    }
-                }
-            }
-            // Prefix sums along the row of cm·X^order, pixel-major (`pre[x·nh + k]`).
-            {
-                let mut acc = [0f64; 24];
-                let acc = &mut acc[..nh];
-                sc.pre[..nh].iter_mut().for_each(|p| *p = 0.0);
-                for x in 0..w {
-                    let xf = x as f64;
-                    let pw = [1.0, xf, xf * xf];
-                    let src = &sc.cm[x * nv..][..nv];
-                    let dst = &mut sc.pre[(x + 1) * nh..][..nh];
-                    if AFF {
-                        for (k, &(vk, ord)) in HCH_AFFINE.iter().enumerate() {
-                            acc[k] += src[vk] * pw[ord];
-                            dst[k] = acc[k];
-                        }
-                    } else {
-                        for (k, &(vk, ord)) in HCH_CONST.iter().enumerate() {
-                            acc[k] += src[vk] * pw[ord];
-                            dst[k] = acc[k];
-                        }
-                    }
-                }
+            // Centred on the grid row's yc, and summed along the row up to each window edge.
+            let c = grid.ys[i] as f64 - lo as f64;
+            if AFF {
+                centred_prefix(
+                    &sc.vs,
+                    w,
+                    c,
+                    &VCH_AFFINE,
+                    &HCH_AFFINE,
+                    &sc.stops,
+                    &mut sc.pre,
+                );
+            } else {
+                centred_prefix(&sc.vs, w, c, &VCH_CONST, &HCH_CONST, &sc.stops, &mut sc.pre);
             }
             // Solve at every grid column.
             let row = i - ia;
-            for (j, &xc) in grid.xs.iter().enumerate() {
-                let l = xc.saturating_sub(m);
-                let r = (xc + m + 1).min(w);
-                let xf = xc as f64;
-                // Window sum of prefix channel k, centred in ξ up to the channel's order.
-                let ws = |k: usize| sc.pre[r * nh + k] - sc.pre[l * nh + k];
-                let (uu, vv) = if AFF {
-                    // Per matrix channel: [ξ⁰η⁰, ξ¹η⁰, ξ²η⁰, ξ⁰η¹, ξ¹η¹, ξ⁰η²] (centred).
-                    let mom = |base: usize| -> [f64; 6] {
-                        let (a0, a1, a2) = (ws(base), ws(base + 1), ws(base + 2));
-                        let (b0, b1) = (ws(base + 3), ws(base + 4));
-                        let c0 = ws(base + 5);
-                        [
-                            a0,
-                            a1 - xf * a0,
-                            a2 - 2.0 * xf * a1 + xf * xf * a0,
-                            b0,
-                            b1 - xf * b0,
-                            c0,
-                        ]
-                    };
-                    let g11 = mom(0);
-                    let g12 = mom(6);
-                    let g22 = mom(12);
-                    let hm = |base: usize| -> [f64; 3] {
-                        let (a0, a1, b0) = (ws(base), ws(base + 1), ws(base + 2));
-                        [a0, a1 - xf * a0, b0]
-                    };
-                    let h1 = hm(18);
-                    let h2 = hm(21);
-                    solve_affine(lv, &g11, &g12, &g22, &h1, &h2, norm, sig2, last)
-                } else {
-                    let g = [ws(0), ws(1), ws(2), ws(3), ws(4)];
-                    solve_const(lv, &g, norm, last)
-                };
-                u_out[row * nx + j] = uu;
-                v_out[row * nx + j] = vv;
+            // Window sum of prefix channel k at column j, centred in ξ up to its order.
+            let ws = |j: usize, k: usize| {
+                let (l, r) = sc.edges[j];
+                sc.pre[r * nh + k] - sc.pre[l * nh + k]
+            };
+            if AFF {
+                // The columns' systems made one by one, solved SOLVE_LANES at a time.
+                for j0 in (0..nx).step_by(SOLVE_LANES) {
+                    let group = j0..(j0 + SOLVE_LANES).min(nx);
+                    let mut systems = Lanes::identity();
+                    let mut fallback = [None; SOLVE_LANES];
+                    for (lane, j) in group.clone().enumerate() {
+                        let m = affine_moments(|k| ws(j, k), grid.xs[j] as f64);
+                        if let Some((k, rhs)) = affine_system(lv, &m, norm, sig2) {
+                            systems.set(lane, &k, &rhs);
+                            fallback[lane] = Some(m.constant());
+                        }
+                    }
+                    let solved = cholesky_solve_lanes(&mut systems.a, &mut systems.b);
+                    for (lane, j) in group.enumerate() {
+                        let (uu, vv) = match fallback[lane] {
+                            None => empty_window(last),
+                            Some(_) if solved[lane] => {
+                                (systems.b[1][lane] as f32, systems.b[0][lane] as f32)
+                            }
+                            // Degenerate window for the affine model: the constant one.
+                            Some(g) => solve_const(lv, &g, norm, last),
+                        };
+                        u_out[row * nx + j] = uu;
+                        v_out[row * nx + j] = vv;
+                    }
+                }
+            } else {
+                for j in 0..nx {
+                    let g = [ws(j, 0), ws(j, 1), ws(j, 2), ws(j, 3), ws(j, 4)];
+                    let (uu, vv) = solve_const(lv, &g, norm, last);
+                    u_out[row * nx + j] = uu;
+                    v_out[row * nx + j] = vv;
+                }
             }
         }
+    }
+}
+
+/// The prefix sums along a row at each of `stops` (ascending, at most `w`) into `pre`
+/// (`NH` channels a stop): at stop `p`, over the pixels `x < p`, each horizontal channel
+/// `(vertical channel, ξ order)` of `hch` the vertical channel's moment centred on `c`,
+/// times `x^order`. The vertical moments `vs` are channel-major (`NV` planes of `w`), their
+/// orders in `vch`. Each pixel's centred moments are made as it is summed, and the sums are
+/// stored only where the windows read them; fixed sizes keep them in registers.
+#[inline(always)]
+fn centred_prefix<const NV: usize, const NH: usize>(
+    vs: &[f64],
+    w: usize,
+    c: f64,
+    vch: &[(usize, usize); NV],
+    hch: &[(usize, usize); NH],
+    stops: &[usize],
+    pre: &mut [f64],
+) {
+    let planes: [&[f64]; NV] = std::array::from_fn(|k| &vs[k * w..][..w]);
+    let mut acc = [0f64; NH];
+    let mut x = 0;
+    for (&stop, out) in stops.iter().zip(pre.chunks_exact_mut(NH)) {
+        while x < stop {
+            // The moment of order `ord` about `c` from the raw ones below it.
+            let mut cm = [0f64; NV];
+            for (k, (m, &(_, ord))) in cm.iter_mut().zip(vch).enumerate() {
+                *m = match ord {
+                    0 => planes[k][x],
+                    1 => planes[k][x] - c * planes[k - 1][x],
+                    _ => planes[k][x] - 2.0 * c * planes[k - 1][x] + c * c * planes[k - 2][x],
+                };
+            }
+            let xf = x as f64;
+            let pw = [1.0, xf, xf * xf];
+            for (a, &(vk, ord)) in acc.iter_mut().zip(hch) {
+                *a += cm[vk] * pw[ord];
+            }
+            x += 1;
+        }
+        out.copy_from_slice(&acc);
     }
 }
 
@@ -483,11 +506,7 @@ fn solve_const(lv: &Level, s: &[f64; 5], norm: f64, last: bool) -> (f32, f32) {
     );
     let tr = g11 + g22;
     if tr <= lv.empty_trace {
-        return if last {
-            (f32::NAN, f32::NAN)
-        } else {
-            (0.0, 0.0)
-        };
+        return empty_window(last);
     }
     let l = lv.reg_abs + lv.reg_rel * tr;
     let (a, c) = (g11 + l, g22 + l);
@@ -498,27 +517,81 @@ fn solve_const(lv: &Level, s: &[f64; 5], norm: f64, last: bool) -> (f32, f32) {
     )
 }
 
-/// Affine model: unknowns (d_y, d_x, ∂d_y/∂ξ, ∂d_x/∂ξ, ∂d_y/∂η, ∂d_x/∂η); returns (d_x, d_y).
-#[allow(clippy::too_many_arguments)]
+/// A window without structure: no flow on the last iteration, none added before it.
 #[inline(always)]
-fn solve_affine(
+fn empty_window(last: bool) -> (f32, f32) {
+    if last {
+        (f32::NAN, f32::NAN)
+    } else {
+        (0.0, 0.0)
+    }
+}
+
+/// A window's centred moments for the affine model: per matrix channel (G11, G12, G22)
+/// `[ξ⁰η⁰, ξ¹η⁰, ξ²η⁰, ξ⁰η¹, ξ¹η¹, ξ⁰η²]`, per right-hand side (h1, h2) `[ξ⁰η⁰, ξ¹η⁰, ξ⁰η¹]`.
+struct AffineMoments {
+    g11: [f64; 6],
+    g12: [f64; 6],
+    g22: [f64; 6],
+    h1: [f64; 3],
+    h2: [f64; 3],
+}
+
+impl AffineMoments {
+    /// The constant model's sums (G11, G12, G22, h1, h2).
+    fn constant(&self) -> [f64; 5] {
+        [
+            self.g11[0],
+            self.g12[0],
+            self.g22[0],
+            self.h1[0],
+            self.h2[0],
+        ]
+    }
+}
+
+/// [`AffineMoments`] of the window at column `xf` from its sums `ws(k)` of the horizontal
+/// prefix channels ([`HCH_AFFINE`]), centred in ξ up to each channel's order.
+#[inline(always)]
+fn affine_moments(ws: impl Fn(usize) -> f64, xf: f64) -> AffineMoments {
+    let mom = |base: usize| -> [f64; 6] {
+        let (a0, a1, a2) = (ws(base), ws(base + 1), ws(base + 2));
+        let (b0, b1) = (ws(base + 3), ws(base + 4));
+        let c0 = ws(base + 5);
+        [
+            a0,
+            a1 - xf * a0,
+            a2 - 2.0 * xf * a1 + xf * xf * a0,
+            b0,
+            b1 - xf * b0,
+            c0,
+        ]
+    };
+    let hm = |base: usize| -> [f64; 3] {
+        let (a0, a1, b0) = (ws(base), ws(base + 1), ws(base + 2));
+        [a0, a1 - xf * a0, b0]
+    };
+    AffineMoments {
+        g11: mom(0),
+        g12: mom(6),
+        g22: mom(12),
+        h1: hm(18),
+        h2: hm(21),
+    }
+}
+
+/// The affine model's regularised normal equations for one window, in the unknowns (d_y,
+/// d_x, ∂d_y/∂ξ, ∂d_x/∂ξ, ∂d_y/∂η, ∂d_x/∂η); `None` for a window without structure.
+#[inline(always)]
+fn affine_system(
     lv: &Level,
-    g11: &[f64; 6],
-    g12: &[f64; 6],
-    g22: &[f64; 6],
-    h1: &[f64; 3],
-    h2: &[f64; 3],
+    m: &AffineMoments,
     norm: f64,
     sig2: f64,
-    last: bool,
-) -> (f32, f32) {
-    let tr = (g11[0] + g22[0]) * norm;
+) -> Option<([[f64; 6]; 6], [f64; 6])> {
+    let tr = (m.g11[0] + m.g22[0]) * norm;
     if tr <= lv.empty_trace {
-        return if last {
-            (f32::NAN, f32::NAN)
-        } else {
-            (0.0, 0.0)
-        };
+        return None;
     }
     // Moment index of φ_i·φ_j for φ = (1, ξ, η): into [1, ξ, ξ², η, ξη, η²].
     const IDX: [[usize; 3]; 3] = [[0, 1, 3], [1, 2, 4], [3, 4, 5]];
@@ -527,66 +600,111 @@ fn solve_affine(
     for bi in 0..3 {
         for bj in 0..3 {
             let q = IDX[bi][bj];
-            k[2 * bi][2 * bj] = g11[q] * norm;
-            k[2 * bi][2 * bj + 1] = g12[q] * norm;
-            k[2 * bi + 1][2 * bj] = g12[q] * norm;
-            k[2 * bi + 1][2 * bj + 1] = g22[q] * norm;
+            k[2 * bi][2 * bj] = m.g11[q] * norm;
+            k[2 * bi][2 * bj + 1] = m.g12[q] * norm;
+            k[2 * bi + 1][2 * bj] = m.g12[q] * norm;
+            k[2 * bi + 1][2 * bj + 1] = m.g22[q] * norm;
         }
         let q = [0usize, 1, 2][bi];
-        rhs[2 * bi] = h1[q] * norm;
-        rhs[2 * bi + 1] = h2[q] * norm;
+        rhs[2 * bi] = m.h1[q] * norm;
+        rhs[2 * bi + 1] = m.h2[q] * norm;
     }
     let l = lv.reg_abs + lv.reg_rel * tr;
     for (i, row) in k.iter_mut().enumerate() {
         row[i] += if i < 2 { l } else { l * sig2 };
     }
-    match cholesky_solve(&mut k, &mut rhs) {
-        true => (rhs[1] as f32, rhs[0] as f32),
-        false => {
-            // Degenerate window for the affine model: fall back on the constant one.
-            let g = [g11[0], g12[0], g22[0], h1[0], h2[0]];
-            solve_const(lv, &g, norm, last)
+    Some((k, rhs))
+}
+
+/// Windows whose 6×6 systems are solved side by side, one per vector lane.
+const SOLVE_LANES: usize = 4;
+
+/// [`SOLVE_LANES`] systems, element by element across the lanes.
+struct Lanes {
+    a: [[[f64; SOLVE_LANES]; 6]; 6],
+    b: [[f64; SOLVE_LANES]; 6],
+}
+
+impl Lanes {
+    /// Identity systems: a lane left so solves trivially.
+    fn identity() -> Lanes {
+        let mut a = [[[0.0; SOLVE_LANES]; 6]; 6];
+        for (i, row) in a.iter_mut().enumerate() {
+            row[i] = [1.0; SOLVE_LANES];
+        }
+        Lanes {
+            a,
+            b: [[0.0; SOLVE_LANES]; 6],
+        }
+    }
+
+    fn set(&mut self, lane: usize, k: &[[f64; 6]; 6], rhs: &[f64; 6]) {
+        for ((row, krow), (b, &r)) in self.a.iter_mut().zip(k).zip(self.b.iter_mut().zip(rhs)) {
+            for (a, &v) in row.iter_mut().zip(krow) {
+                a[lane] = v;
+            }
+            b[lane] = r;
         }
     }
 }
 
-/// In-place Cholesky solve of a 6×6 SPD system; false if not positive definite.
+/// In-place Cholesky solves of [`SOLVE_LANES`] 6×6 SPD systems side by side; per lane,
+/// false if its matrix is not positive definite (its results are then meaningless). Each
+/// lane takes exactly the steps of a scalar solve, so the lanes' answers are its own.
 #[allow(clippy::needless_range_loop)]
 #[inline(always)]
-fn cholesky_solve(a: &mut [[f64; 6]; 6], b: &mut [f64; 6]) -> bool {
+fn cholesky_solve_lanes(
+    a: &mut [[[f64; SOLVE_LANES]; 6]; 6],
+    b: &mut [[f64; SOLVE_LANES]; 6],
+) -> [bool; SOLVE_LANES] {
+    let mut ok = [true; SOLVE_LANES];
     for j in 0..6 {
         let mut d = a[j][j];
         for k in 0..j {
-            d -= a[j][k] * a[j][k];
+            for l in 0..SOLVE_LANES {
+                d[l] -= a[j][k][l] * a[j][k][l];
+            }
         }
-        if d.is_nan() || d <= 0.0 {
-            return false;
+        for l in 0..SOLVE_LANES {
+            ok[l] &= d[l] > 0.0;
+            d[l] = d[l].sqrt();
         }
-        let d = d.sqrt();
         a[j][j] = d;
         for i in j + 1..6 {
             let mut s = a[i][j];
             for k in 0..j {
-                s -= a[i][k] * a[j][k];
+                for l in 0..SOLVE_LANES {
+                    s[l] -= a[i][k][l] * a[j][k][l];
+                }
             }
-            a[i][j] = s / d;
+            for l in 0..SOLVE_LANES {
+                a[i][j][l] = s[l] / d[l];
+            }
         }
     }
     for i in 0..6 {
         let mut s = b[i];
         for k in 0..i {
-            s -= a[i][k] * b[k];
+            for l in 0..SOLVE_LANES {
+                s[l] -= a[i][k][l] * b[k][l];
+            }
         }
-        b[i] = s / a[i][i];
+        for l in 0..SOLVE_LANES {
+            b[i][l] = s[l] / a[i][i][l];
+        }
     }
     for i in (0..6).rev() {
         let mut s = b[i];
         for k in i + 1..6 {
-            s -= a[k][i] * b[k];
+            for l in 0..SOLVE_LANES {
+                s[l] -= a[k][i][l] * b[k][l];
+            }
         }
-        b[i] = s / a[i][i];
+        for l in 0..SOLVE_LANES {
+            b[i][l] = s[l] / a[i][i][l];
+        }
     }
-    true
+    ok
 }
 
 #[cfg(test)]
@@ -618,9 +736,20 @@ mod tests {
         for i in 0..6 {
             b[i] = (0..6).map(|j| a[i][j] * x[j]).sum();
         }
-        assert!(cholesky_solve(&mut a, &mut b));
+        // Lane 0 holds the system, lane 1 its negative (not positive definite), lane 2 the
+        // system scaled by 4 (x/… unchanged: the same x), lane 3 the identity.
+        let mut lanes = Lanes::identity();
+        let neg = a.map(|row| row.map(|v| -v));
+        let four = a.map(|row| row.map(|v| 4.0 * v));
+        lanes.set(0, &a, &b);
+        lanes.set(1, &neg, &b);
+        lanes.set(2, &four, &b.map(|v| 4.0 * v));
+        let ok = cholesky_solve_lanes(&mut lanes.a, &mut lanes.b);
+        assert_eq!(ok, [true, false, true, true]);
         for i in 0..6 {
-            assert!((b[i] - x[i]).abs() < 1e-12);
+            assert!((lanes.b[i][0] - x[i]).abs() < 1e-12);
+            assert!((lanes.b[i][2] - x[i]).abs() < 1e-12);
+            assert_eq!(lanes.b[i][3], 0.0);
         }
     }
 }
