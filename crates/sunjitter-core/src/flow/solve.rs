@@ -97,14 +97,37 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
     let mut x = 0;
     while x < w {
         let n = LANES.min(w - x);
+        // The group's flow, expansion and taper, lane by lane; a group cut by the row's end
+        // repeats its last pixel. Whole groups are contiguous loads.
+        let mut du = [0f32; LANES];
+        let mut dv = [0f32; LANES];
+        let mut q8 = [[0f32; LANES]; 5];
+        let mut ct = [0f32; LANES];
+        if n == LANES {
+            du.copy_from_slice(&u[x..x + LANES]);
+            dv.copy_from_slice(&v[x..x + LANES]);
+            for (qc, src) in q8.iter_mut().zip(&q) {
+                qc.copy_from_slice(&src[x..x + LANES]);
+            }
+            ct.copy_from_slice(&lv.col_taper[x..x + LANES]);
+        } else {
+            for i in 0..LANES {
+                let j = (x + i).min(w - 1);
+                du[i] = u[j];
+                dv[i] = v[j];
+                for c in 0..5 {
+                    q8[c][i] = q[c][j];
+                }
+                ct[i] = lv.col_taper[j];
+            }
+        }
         let mut fx = [0f32; LANES];
         let mut fy = [0f32; LANES];
         let mut ixs = [0i32; LANES];
         let mut iys = [0i32; LANES];
         for i in 0..LANES {
-            let j = (x + i).min(w - 1);
-            let px = (x + i) as f32 + u[j];
-            let py = yf + v[j];
+            let px = (x + i) as f32 + du[i];
+            let py = yf + dv[i];
             let flx = floor_fast(px);
             let fly = floor_fast(py);
             fx[i] = px - flx;
@@ -151,19 +174,7 @@ pub(crate) fn matrices_row(lv: &Level, y: usize, u: &[f32], v: &[f32], out: &mut
             }
         }
         // Lane arithmetic on fixed-size arrays (vectorised), then store the valid lanes.
-        let mut q8 = [[0f32; LANES]; 5];
-        let mut du = [0f32; LANES];
-        let mut dv = [0f32; LANES];
-        let mut tp = [0f32; LANES];
-        for i in 0..LANES {
-            let j = (x + i).min(w - 1);
-            for c in 0..5 {
-                q8[c][i] = q[c][j];
-            }
-            du[i] = u[j];
-            dv[i] = v[j];
-            tp[i] = row_taper * lv.col_taper[j];
-        }
+        let tp = ct.map(|c| row_taper * c);
         let mut mo = [[0f32; LANES]; 5];
         for i in 0..LANES {
             let (dx, dy) = (du[i], dv[i]);
