@@ -721,6 +721,89 @@ mod tests {
         assert_eq!(t[9], (3, 3, 0.0));
     }
 
+    /// The textbook Cholesky solve, one system at a time: what each lane must reproduce.
+    #[allow(clippy::needless_range_loop)]
+    fn cholesky_one(a: &mut [[f64; 6]; 6], b: &mut [f64; 6]) -> bool {
+        for j in 0..6 {
+            let mut d = a[j][j];
+            for k in 0..j {
+                d -= a[j][k] * a[j][k];
+            }
+            if d.is_nan() || d <= 0.0 {
+                return false;
+            }
+            let d = d.sqrt();
+            a[j][j] = d;
+            for i in j + 1..6 {
+                let mut s = a[i][j];
+                for k in 0..j {
+                    s -= a[i][k] * a[j][k];
+                }
+                a[i][j] = s / d;
+            }
+        }
+        for i in 0..6 {
+            let mut s = b[i];
+            for k in 0..i {
+                s -= a[i][k] * b[k];
+            }
+            b[i] = s / a[i][i];
+        }
+        for i in (0..6).rev() {
+            let mut s = b[i];
+            for k in i + 1..6 {
+                s -= a[k][i] * b[k];
+            }
+            b[i] = s / a[i][i];
+        }
+        true
+    }
+
+    #[test]
+    fn lanes_solve_each_system_as_one_solve_does_bit_for_bit() {
+        // Random SPD systems (MᵀM + εI, ill-conditioned ones among them) and one that is not
+        // positive definite, four to a group.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let mut systems = Vec::new();
+        for n in 0..24 {
+            let m: [[f64; 6]; 6] = std::array::from_fn(|_| std::array::from_fn(|_| next()));
+            let eps = [1e-9, 1e-3, 1.0][n % 3];
+            let a: [[f64; 6]; 6] = std::array::from_fn(|i| {
+                std::array::from_fn(|j| {
+                    (0..6).map(|k| m[k][i] * m[k][j]).sum::<f64>() + if i == j { eps } else { 0.0 }
+                })
+            });
+            let b: [f64; 6] = std::array::from_fn(|_| 1e3 * next());
+            systems.push((a, b));
+        }
+        let (mut bad, b) = systems[5];
+        bad[3][3] = -1.0;
+        systems.insert(7, (bad, b));
+        for group in systems.chunks(SOLVE_LANES) {
+            let mut lanes = Lanes::identity();
+            for (lane, (a, b)) in group.iter().enumerate() {
+                lanes.set(lane, a, b);
+            }
+            let ok = cholesky_solve_lanes(&mut lanes.a, &mut lanes.b);
+            for (lane, (a, b)) in group.iter().enumerate() {
+                let (mut a, mut b) = (*a, *b);
+                let expected = cholesky_one(&mut a, &mut b);
+                assert_eq!(ok[lane], expected);
+                if expected {
+                    for i in 0..6 {
+                        assert_eq!(lanes.b[i][lane].to_bits(), b[i].to_bits());
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     #[allow(clippy::needless_range_loop)]
     fn cholesky_solves_spd() {
