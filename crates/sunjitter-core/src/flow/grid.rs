@@ -796,8 +796,8 @@ mod tests {
                 let expected = cholesky_one(&mut a, &mut b);
                 assert_eq!(ok[lane], expected);
                 if expected {
-                    for i in 0..6 {
-                        assert_eq!(lanes.b[i][lane].to_bits(), b[i].to_bits());
+                    for (got, want) in lanes.b.iter().zip(&b) {
+                        assert_eq!(got[lane].to_bits(), want.to_bits());
                     }
                 }
             }
