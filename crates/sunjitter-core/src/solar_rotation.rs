@@ -422,6 +422,20 @@ impl DisplacementGrid {
         xs.map(|x| self.tap(x, self.nx)).collect()
     }
 
+    /// Taps along y for [`DisplacementGrid::at_taps`].
+    pub fn y_taps(&self, ys: impl Iterator<Item = f64>) -> Vec<Option<GridTap>> {
+        ys.map(|y| self.tap(y, self.ny)).collect()
+    }
+
+    /// [`DisplacementGrid::at`] at the point whose column and row taps are `x` and `y`.
+    #[inline]
+    pub fn at_taps(&self, x: Option<&GridTap>, y: Option<&GridTap>) -> [f64; 2] {
+        match (x, y) {
+            (Some(x), Some(y)) => self.read(x, y),
+            _ => [f64::NAN; 2],
+        }
+    }
+
     /// [`DisplacementGrid::at`] at `(x, y)` for every x of `x_taps` (from
     /// [`DisplacementGrid::x_taps`]), the same values, into `out` in order.
     pub fn row(&self, x_taps: &[Option<GridTap>], y: f64, mut out: impl FnMut(usize, [f64; 2])) {

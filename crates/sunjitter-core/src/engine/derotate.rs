@@ -236,6 +236,28 @@ impl Carried {
         (x + d[0] / b, y + d[1] / b)
     }
 
+    /// [`Carried::at`] at each whole pixel `(x, y)` of `pixels`: each column's and each row's
+    /// interpolation weights are worked out once, not at every point (the same values).
+    pub fn at_pixels(&self, pixels: &[(usize, usize)]) -> Vec<(f64, f64)> {
+        use rayon::prelude::*;
+        let (w, h) = pixels
+            .iter()
+            .fold((0, 0), |(w, h), &(x, y)| (w.max(x + 1), h.max(y + 1)));
+        let b = self.factor;
+        let centre = |q: usize| b * (q as f64 + 0.5) - 0.5;
+        let (xt, yt) = (
+            self.grid.x_taps((0..w).map(centre)),
+            self.grid.y_taps((0..h).map(centre)),
+        );
+        pixels
+            .par_iter()
+            .map(|&(x, y)| {
+                let d = self.grid.at_taps(xt[x].as_ref(), yt[y].as_ref());
+                (x as f64 + d[0] / b, y as f64 + d[1] / b)
+            })
+            .collect()
+    }
+
     /// `S(p) − p` over the `width × height` window at column `x0`, row `y0` (NaN: hidden).
     pub fn shifts(&self, x0: usize, y0: usize, width: usize, height: usize) -> Array2<[f32; 2]> {
         use ndarray::Axis;
@@ -382,6 +404,42 @@ mod tests {
             Profile::Howard,
         );
         assert!(matches!(got, Rotation::Removed(_)));
+    }
+
+    #[test]
+    fn pixels_carried_together_land_where_each_alone_does() {
+        // `at_pixels` shares each row's and column's weights; every pixel must land exactly
+        // where `at` puts it alone, hidden ones (NaN) included, in any order.
+        let c = [127.5, 127.5];
+        let r = meta(0, 0.0, c);
+        let mask = Array2::from_elem((256, 256), true);
+        for dt_s in [3600, 6 * 3600] {
+            let f = meta(dt_s, 0.0, c);
+            let Rotation::Removed(d) = derotate(
+                &side(&r, &mask, Some((c, 100.0))),
+                &f,
+                Similarity::identity(c),
+                Profile::Howard,
+            ) else {
+                panic!("rotation removed after {dt_s} s")
+            };
+            let pixels: Vec<(usize, usize)> = (0..256)
+                .rev()
+                .flat_map(|y| (0..256).step_by(3).map(move |x| (x, y)))
+                .collect();
+            let together = d.carried.at_pixels(&pixels);
+            let mut hidden = 0;
+            for (&(x, y), &(sx, sy)) in pixels.iter().zip(&together) {
+                let (ax, ay) = d.carried.at(x as f64, y as f64);
+                hidden += usize::from(ax.is_nan());
+                assert_eq!(
+                    (sx.to_bits(), sy.to_bits()),
+                    (ax.to_bits(), ay.to_bits()),
+                    "({x}, {y})"
+                );
+            }
+            assert!(hidden < pixels.len(), "{dt_s} s: every pixel hidden");
+        }
     }
 
     #[test]

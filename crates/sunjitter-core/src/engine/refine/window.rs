@@ -79,12 +79,8 @@ impl FrameWindow {
     /// iteration.
     pub(super) fn carried_positions(&self, pixels: &[Pixel]) -> Option<Vec<(f64, f64)>> {
         let c = self.carried.as_ref()?;
-        Some(
-            pixels
-                .par_iter()
-                .map(|p| c.at(p.x as f64, p.y as f64))
-                .collect(),
-        )
+        let xy: Vec<(usize, usize)> = pixels.par_iter().map(|p| (p.x, p.y)).collect();
+        Some(c.at_pixels(&xy))
     }
 
     /// Whether no two tiles' interiors overlap (a self-test's tiles lie far apart).
