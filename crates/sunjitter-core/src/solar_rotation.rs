@@ -395,10 +395,10 @@ impl DisplacementGrid {
     /// The displacement at `p` (NaN when a node around is NaN or `p` lies outside the grid).
     #[inline]
     pub fn at(&self, p: [f64; 2]) -> [f64; 2] {
-        match (self.tap(p[0], self.nx), self.tap(p[1], self.ny)) {
-            (Some(x), Some(y)) => self.read(&x, &y),
-            _ => [f64::NAN; 2],
-        }
+        self.at_taps(
+            self.tap(p[0], self.nx).as_ref(),
+            self.tap(p[1], self.ny).as_ref(),
+        )
     }
 
     /// Where [`DisplacementGrid::at`] reads along one axis of `n` nodes for coordinate `p`:
@@ -441,13 +441,7 @@ impl DisplacementGrid {
     pub fn row(&self, x_taps: &[Option<GridTap>], y: f64, mut out: impl FnMut(usize, [f64; 2])) {
         let ty = self.tap(y, self.ny);
         for (k, tx) in x_taps.iter().enumerate() {
-            out(
-                k,
-                match (tx, &ty) {
-                    (Some(x), Some(y)) => self.read(x, y),
-                    _ => [f64::NAN; 2],
-                },
-            );
+            out(k, self.at_taps(tx.as_ref(), ty.as_ref()));
         }
     }
 

@@ -236,22 +236,27 @@ impl Carried {
         (x + d[0] / b, y + d[1] / b)
     }
 
-    /// [`Carried::at`] at each whole pixel `(x, y)` of `pixels`: each column's and each row's
-    /// interpolation weights are worked out once, not at every point (the same values).
-    pub fn at_pixels(&self, pixels: &[(usize, usize)]) -> Vec<(f64, f64)> {
+    /// [`Carried::at`] at the whole pixel `xy(p)` of each of `pixels`: each column's and each
+    /// row's interpolation weights are worked out once, not at every point (the same values).
+    pub fn at_pixels<P: Sync>(
+        &self,
+        pixels: &[P],
+        xy: impl Fn(&P) -> (usize, usize) + Sync,
+    ) -> Vec<(f64, f64)> {
         use rayon::prelude::*;
         let (w, h) = pixels
             .iter()
-            .fold((0, 0), |(w, h), &(x, y)| (w.max(x + 1), h.max(y + 1)));
+            .map(&xy)
+            .fold((0, 0), |(w, h), (x, y)| (w.max(x + 1), h.max(y + 1)));
         let b = self.factor;
-        let centre = |q: usize| b * (q as f64 + 0.5) - 0.5;
         let (xt, yt) = (
-            self.grid.x_taps((0..w).map(centre)),
-            self.grid.y_taps((0..h).map(centre)),
+            self.x_taps(0, w),
+            self.grid.y_taps((0..h).map(|y| b * (y as f64 + 0.5) - 0.5)),
         );
         pixels
             .par_iter()
-            .map(|&(x, y)| {
+            .map(|p| {
+                let (x, y) = xy(p);
                 let d = self.grid.at_taps(xt[x].as_ref(), yt[y].as_ref());
                 (x as f64 + d[0] / b, y as f64 + d[1] / b)
             })
@@ -427,7 +432,7 @@ mod tests {
                 .rev()
                 .flat_map(|y| (0..256).step_by(3).map(move |x| (x, y)))
                 .collect();
-            let together = d.carried.at_pixels(&pixels);
+            let together = d.carried.at_pixels(&pixels, |&p| p);
             let mut hidden = 0;
             for (&(x, y), &(sx, sy)) in pixels.iter().zip(&together) {
                 let (ax, ay) = d.carried.at(x as f64, y as f64);

@@ -79,8 +79,7 @@ impl FrameWindow {
     /// iteration.
     pub(super) fn carried_positions(&self, pixels: &[Pixel]) -> Option<Vec<(f64, f64)>> {
         let c = self.carried.as_ref()?;
-        let xy: Vec<(usize, usize)> = pixels.par_iter().map(|p| (p.x, p.y)).collect();
-        Some(c.at_pixels(&xy))
+        Some(c.at_pixels(pixels, |p| (p.x, p.y)))
     }
 
     /// Whether no two tiles' interiors overlap (a self-test's tiles lie far apart).
