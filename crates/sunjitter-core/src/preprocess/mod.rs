@@ -392,6 +392,44 @@ mod tests {
         assert_eq!(a[[0, 0]], 5.0);
     }
 
+    /// Block means are, bit for bit, the textbook mean: the block's finite pixels summed in
+    /// f64 row by row, left to right, from +0.0, over their count; on a real TRACE crop with
+    /// blanks and infinities sprinkled in (whole blocks of them too), bins 2 to 5, edges with
+    /// partial blocks.
+    #[test]
+    fn block_means_are_the_textbook_means_bit_for_bit() {
+        let img = read_real("trace_171_19980519T222143_1024.fits");
+        let mut crop = img.slice(s![100..219, 200..397]).to_owned();
+        let (h, w) = crop.dim();
+        for k in 0..h * w / 7 {
+            let (y, x) = ((k * 7919) % h, (k * 104_729) % w);
+            crop[[y, x]] = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY][k % 3];
+        }
+        crop.slice_mut(s![8..12, 16..24]).fill(f32::NAN);
+        for bin in 2..=5 {
+            let got = bin_mean(crop.view(), bin);
+            let (bh, bw) = (h.div_ceil(bin), w.div_ceil(bin));
+            assert_eq!(got.dim(), (bh, bw));
+            for ((by, bx), &g) in got.indexed_iter() {
+                let (mut sum, mut n) = (0.0f64, 0u32);
+                for y in by * bin..((by + 1) * bin).min(h) {
+                    for x in bx * bin..((bx + 1) * bin).min(w) {
+                        if crop[[y, x]].is_finite() {
+                            sum += crop[[y, x]] as f64;
+                            n += 1;
+                        }
+                    }
+                }
+                let want = if n > 0 {
+                    (sum / n as f64) as f32
+                } else {
+                    f32::NAN
+                };
+                assert_eq!(g.to_bits(), want.to_bits(), "bin {bin}, block ({by}, {bx})");
+            }
+        }
+    }
+
     #[test]
     fn smoothing_and_binning_in_one_pass_equals_the_two_steps() {
         // On a real TRACE crop of odd size (partial blocks at two edges), with the edge
