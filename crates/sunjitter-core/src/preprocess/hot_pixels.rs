@@ -146,15 +146,21 @@ impl HotPixelTest {
             let median = |yy: usize, xx: usize| at(yy)[xx];
             let (row, med_row) = (img.row(y), at(y));
             let sigma = self.noise_sigmas * self.sigma;
-            let suspect = |v: f32, m: f32| {
-                let dev = (v - m).abs();
-                dev > self.threshold_fraction * m.abs() && dev > sigma
-            };
+            let suspect = |v: f32, m: f32| is_suspect(v, m, self.threshold_fraction, sigma);
             hits.clear();
             // Cheap tests first, over the whole row (false for NaN): most pixels end here.
             // The local spread is needed only for the few suspects.
-            suspects_into(row, med_row, &mut flags, suspect);
-            for x in flags.iter().enumerate().filter(|(_, &f)| f).map(|(x, _)| x) {
+            match row.as_slice() {
+                Some(row) => {
+                    suspects_in_row(row, med_row, &mut flags, self.threshold_fraction, sigma)
+                }
+                None => {
+                    for ((f, &v), &m) in flags.iter_mut().zip(row).zip(med_row) {
+                        *f = suspect(v, m);
+                    }
+                }
+            }
+            for x in flagged(&flags) {
                 let (v, m) = (row[x], med_row[x]);
                 if (v - m).abs() > self.noise_sigmas * neighbour_spread(&img, y, x, m)
                     && stands_alone(&img, median, (y, x), self.lone_factor, |yy, xx| {
@@ -169,25 +175,49 @@ impl HotPixelTest {
     }
 }
 
-/// `flags[x] = suspect(row[x], medians[x])`.
-fn suspects_into(
-    row: ndarray::ArrayView1<f32>,
+crate::flow::simd::multiversion!(fn suspects_in_row(
+    row: &[f32],
     medians: &[f32],
     flags: &mut [bool],
-    suspect: impl Fn(f32, f32) -> bool,
+    threshold_fraction: f32,
+    sigma: f32,
+) => suspects_in_row_body);
+
+/// `flags[x]`: whether pixel `x` of a row is a suspect ([`is_suspect`]).
+#[inline(always)]
+fn suspects_in_row_body(
+    row: &[f32],
+    medians: &[f32],
+    flags: &mut [bool],
+    threshold_fraction: f32,
+    sigma: f32,
 ) {
-    match row.as_slice() {
-        Some(row) => {
-            for ((f, &v), &m) in flags.iter_mut().zip(row).zip(medians) {
-                *f = suspect(v, m);
-            }
-        }
-        None => {
-            for ((f, &v), &m) in flags.iter_mut().zip(row).zip(medians) {
-                *f = suspect(v, m);
-            }
-        }
+    for ((f, &v), &m) in flags.iter_mut().zip(row).zip(medians) {
+        *f = is_suspect(v, m, threshold_fraction, sigma);
     }
+}
+
+/// Whether `v` deviates from its median `m` by more than `threshold_fraction` of it and by
+/// more than `sigma` (false for NaN).
+#[inline(always)]
+fn is_suspect(v: f32, m: f32, threshold_fraction: f32, sigma: f32) -> bool {
+    let dev = (v - m).abs();
+    (dev > threshold_fraction * m.abs()) & (dev > sigma)
+}
+
+/// The indices of the set flags, in order, passing over eight clear flags at a time.
+fn flagged(flags: &[bool]) -> impl Iterator<Item = usize> + '_ {
+    flags
+        .chunks(8)
+        .enumerate()
+        .filter(|(_, chunk)| chunk.iter().fold(false, |a, &f| a | f))
+        .flat_map(|(k, chunk)| {
+            chunk
+                .iter()
+                .enumerate()
+                .filter(|&(_, &f)| f)
+                .map(move |(i, _)| 8 * k + i)
+        })
 }
 
 /// Image-wide robust noise of the residual from the 3×3 median: 1.4826 × median |v − m|,
