@@ -1,5 +1,6 @@
 //! Test-only reading of the bundled real images (`data/real`, plain primary HDUs), through
-//! fitsio for the pixels and this crate's own header parser for the metadata.
+//! fitsio for the pixels and this crate's own header parser for the metadata; and a seeded
+//! source of test values.
 use ndarray::Array2;
 
 use crate::header::{Header, BLOCK};
@@ -49,4 +50,16 @@ pub fn read_real_image(name: &str) -> (Array2<f32>, crate::meta::FrameMeta) {
     };
     let meta = meta::from_header(&header, place).expect("bundled header");
     (data, meta)
+}
+
+/// Uniform values in [0, 1) from `seed`: a 64-bit linear congruential generator (Knuth's
+/// MMIX constants), its top 53 bits. The same sequence on every machine.
+pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
 }

@@ -680,13 +680,7 @@ mod tests {
     #[test]
     fn rays_add_the_textbook_bilinear_samples_and_stop_at_the_edge() {
         let (h, w) = (37, 53);
-        let mut state = 11u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_data::uniform(11);
         let img = Array2::from_shape_fn((h, w), |_| (next() * 1000.0 - 200.0) as f32);
         let textbook = |x: f64, y: f64| -> Option<f64> {
             if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f64 && y <= (h - 1) as f64) {

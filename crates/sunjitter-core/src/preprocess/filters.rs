@@ -591,13 +591,7 @@ mod tests {
     /// infinities are skipped; rows of every length around the groups of four blocks.
     #[test]
     fn binned_rows_add_each_pixel_in_order() {
-        let mut state = 3u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_data::uniform(3);
         for bin in 1..=5usize {
             for len in [1, 7, 4 * bin - 1, 4 * bin, 4 * bin + 1, 37 * bin + 3] {
                 let blocks = len.div_ceil(bin);
