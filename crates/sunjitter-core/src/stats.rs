@@ -287,6 +287,15 @@ fn radix_select(values: &[f64], k: usize) -> f64 {
     *rest.select_nth_unstable_by(k, f64::total_cmp).1
 }
 
+/// How many pixels of `mask` are set, counted row by row in parallel.
+pub fn count_set(mask: ndarray::ArrayView2<bool>) -> usize {
+    use rayon::prelude::*;
+    mask.axis_iter(ndarray::Axis(0))
+        .into_par_iter()
+        .map(|row| row.iter().filter(|m| **m).count())
+        .sum()
+}
+
 /// Whether every pixel is finite, checked row by row in parallel.
 pub fn all_finite(img: ndarray::ArrayView2<f32>) -> bool {
     use rayon::prelude::*;

@@ -36,7 +36,7 @@ impl Photometry {
     ) -> Option<Photometry> {
         let (h, w) = reference.dim();
         let (fh, fw) = frame.dim();
-        let n_mask = mask.iter().filter(|m| **m).count();
+        let n_mask = crate::stats::count_set(mask.view());
         let stride = ((n_mask as f64 / SAMPLES as f64).sqrt().ceil() as usize).max(1);
         let mut ref_values = Vec::with_capacity(n_mask / (stride * stride) + 1);
         let mut frame_values = Vec::with_capacity(ref_values.capacity());

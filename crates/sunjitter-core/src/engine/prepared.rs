@@ -331,11 +331,7 @@ impl ReferenceWork {
         Zip::from(&mut mask)
             .and(&cleaned)
             .par_for_each(|m, v| *m = *m && v.is_finite());
-        let mask_pixels = mask
-            .axis_iter(ndarray::Axis(0))
-            .into_par_iter()
-            .map(|row| row.iter().filter(|m| **m).count())
-            .sum::<usize>();
+        let mask_pixels = crate::stats::count_set(mask.view());
         let mask_error = (mask_pixels < 64).then(|| {
             format!(
                 "the solar-disk mask holds {mask_pixels} usable pixels of the reference; nothing to align"

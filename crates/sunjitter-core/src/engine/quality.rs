@@ -183,7 +183,7 @@ const MAX_HISTOGRAM_VALUES: usize = 1 << 21;
 
 /// The finite values of `img` inside `mask`, every `k`-th of them so that at most `max`.
 fn masked_values(img: ArrayView2<f32>, mask: ArrayView2<bool>, max: usize) -> Vec<f64> {
-    let inside = mask.iter().filter(|m| **m).count();
+    let inside = crate::stats::count_set(mask);
     let stride = inside.div_ceil(max.max(1)).max(1);
     img.iter()
         .zip(mask.iter())

@@ -54,17 +54,28 @@ fn read_uncompressed(path: &Path, hdu: &Hdu, frame: usize) -> Result<Vec<f32>> {
     let start = hdu.data_offset + (frame * g.pixels_per_frame() * bpp) as u64;
     let file = open(path)?;
     let scaling = Scaling::of(&hdu.header, g.bitpix);
-    let mut out = vec![0f32; g.pixels_per_frame()];
-    out.par_chunks_mut(CHUNK).enumerate().try_for_each_init(
-        || vec![0u8; CHUNK * bpp],
-        |bytes, (i, out)| {
-            let bytes = &mut bytes[..out.len() * bpp];
-            file.read_exact_at(bytes, start + (i * CHUNK * bpp) as u64)
-                .map_err(|e| read_failure(path, e, "truncated while reading pixels"))?;
-            decode_into(bytes, g.bitpix, scaling, out);
-            Ok::<_, Error>(())
-        },
-    )?;
+    let n = g.pixels_per_frame();
+    // Each chunk is cleared by the thread that decodes into it, just before: a buffer the
+    // allocator hands back from an earlier frame would otherwise be cleared whole, serially.
+    let mut out: Vec<f32> = Vec::with_capacity(n);
+    out.spare_capacity_mut()[..n]
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .try_for_each_init(
+            || vec![0u8; CHUNK * bpp],
+            |bytes, (i, out)| {
+                out.fill(std::mem::MaybeUninit::new(0.0));
+                // SAFETY: every value of `out` was just initialised.
+                let out = unsafe { &mut *(out as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) };
+                let bytes = &mut bytes[..out.len() * bpp];
+                file.read_exact_at(bytes, start + (i * CHUNK * bpp) as u64)
+                    .map_err(|e| read_failure(path, e, "truncated while reading pixels"))?;
+                decode_into(bytes, g.bitpix, scaling, out);
+                Ok::<_, Error>(())
+            },
+        )?;
+    // SAFETY: every chunk of the first `n` values was initialised (an error returned above).
+    unsafe { out.set_len(n) };
     Ok(out)
 }
 
