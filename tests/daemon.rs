@@ -336,6 +336,10 @@ async fn replay_writes_what_the_daemon_wrote() {
             &frame("A", 10 * t).to_fits(),
             "x.tmp",
         );
+        // Each C frame arrives once its A frame is logged (and the C frame before it, which
+        // that A frame releases): otherwise, on a loaded machine, a C frame read before its A
+        // frame with the A channel quiet for `hold_s` is rightly left unmatched.
+        daemon.wait_finished(inputs + 1).await;
         write_renamed(
             dir.path(),
             &format!("c{t}.fits"),
