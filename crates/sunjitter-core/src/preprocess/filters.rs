@@ -523,7 +523,7 @@ pub fn bin_mean(img: ArrayView2<f32>, bin: usize) -> Array2<f32> {
 fn add_binned_row(row: &[f32], bin: usize, sum: &mut [f64], n: &mut [u32]) {
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
-    if crate::flow::simd::has_avx2_fma() && bin * row.len() < i32::MAX as usize {
+    if crate::flow::simd::has_avx2_fma() && row.len() < i32::MAX as usize {
         // SAFETY: the CPU has AVX2.
         done = unsafe { add_binned_row_x86(row, bin, sum, n) };
     }
@@ -540,7 +540,7 @@ fn add_binned_row(row: &[f32], bin: usize, sum: &mut [f64], n: &mut [u32]) {
 /// [`add_binned_row`] on the groups of four whole blocks; returns the blocks done.
 ///
 /// # Safety
-/// The CPU must have AVX2, and `bin × row.len()` must fit in an `i32`.
+/// The CPU must have AVX2, and `row.len()` must fit in an `i32` (the gathers' indices).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn add_binned_row_x86(row: &[f32], bin: usize, sum: &mut [f64], n: &mut [u32]) -> usize {
