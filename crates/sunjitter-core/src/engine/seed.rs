@@ -190,16 +190,17 @@ fn bin(
 fn all_binned(mask: &Array2<bool>, factor: usize) -> Array2<bool> {
     let (h, w) = mask.dim();
     let (bh, bw) = (h.div_ceil(factor), w.div_ceil(factor));
+    let mask = mask.as_standard_layout();
+    let pixels = mask.as_slice().expect("a standard layout is contiguous");
     let mut out = Array2::from_elem((bh, bw), true);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
         .for_each(|(by, mut row)| {
             for y in by * factor..((by + 1) * factor).min(h) {
-                for (x, &m) in mask.row(y).iter().enumerate() {
-                    if !m {
-                        row[x / factor] = false;
-                    }
+                let blocks = pixels[y * w..(y + 1) * w].chunks(factor);
+                for (o, block) in row.iter_mut().zip(blocks) {
+                    *o = *o && !block.contains(&false);
                 }
             }
         });

@@ -129,17 +129,17 @@ pub(super) fn lattice_pixels(
         4 * count_every(2)
     };
     let k = lattice_step(count, max);
-    (0..h)
+    let rows: Vec<Vec<_>> = (0..h)
         .into_par_iter()
         .step_by(k)
-        .flat_map_iter(|y| {
-            let take = &take;
+        .map(|y| {
             (0..w)
                 .step_by(k)
-                .filter_map(move |x| take(x, y).map(|c| (x, y, c)))
-                .collect::<Vec<_>>()
+                .filter_map(|x| take(x, y).map(|c| (x, y, c)))
+                .collect()
         })
-        .collect()
+        .collect();
+    crate::pages::concat(&rows)
 }
 
 /// Lattice step (every `k`-th row and column) that brings `count` pixels to at most about `max`.

@@ -99,8 +99,9 @@ impl RefineReference {
                 neighbours,
             })
         };
-        // Blocks of pixels kept in buffers of their own size, put together once: collected
-        // straight, each thread's buffer would grow by doubling, copied at every step.
+        // Blocks of pixels kept in buffers of their own size, put together once, in parallel:
+        // collected straight, each thread's buffer would grow by doubling, copied at every
+        // step.
         let blocks: Vec<Vec<Pixel>> = pixels
             .par_chunks(FIT_PIXEL_BLOCK)
             .map(|block| {
@@ -109,9 +110,7 @@ impl RefineReference {
                 kept
             })
             .collect();
-        let mut kept = Vec::with_capacity(blocks.iter().map(Vec::len).sum());
-        blocks.into_iter().for_each(|block| kept.extend(block));
-        kept
+        crate::pages::concat(&blocks)
     }
 }
 
@@ -127,6 +126,7 @@ fn gain_reach(smoothing_px: f64) -> usize {
 
 /// One pixel of the fit: position, cell, reference value, and the reference's weighting
 /// gradient and neighbour mean (the instruments of the geometric and gain equations).
+#[derive(Clone, Copy)]
 pub(super) struct Pixel {
     pub(super) x: usize,
     pub(super) y: usize,
