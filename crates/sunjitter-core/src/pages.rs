@@ -16,8 +16,8 @@ pub(crate) fn fill_vec(out: &mut Vec<f32>, n: usize, value: f32) {
     out.par_extend(rayon::iter::repeat_n(value, n));
 }
 
-/// `blocks` one after another, each copied in by a thread of its own: the pixels a parallel
-/// filter kept, block by block, put together without a serial copy of them all.
+/// `blocks` one after another, the blocks copied into place by all the pool's threads: what a
+/// parallel filter kept, block by block, put together without one thread copying it all.
 pub(crate) fn concat<T: Copy + Send + Sync>(blocks: &[Vec<T>]) -> Vec<T> {
     let total = blocks.iter().map(Vec::len).sum();
     let mut out = Vec::with_capacity(total);
@@ -49,7 +49,7 @@ pub(crate) fn filled(h: usize, w: usize, value: f32) -> Array2<f32> {
 mod tests {
     #[test]
     fn blocks_are_put_together_in_order() {
-        // Lengths around the pool's split points, empty blocks among them.
+        // Blocks of none, one and thousands of values, in an order no sort would give.
         let lengths = [0, 1, 4096, 0, 3, 5000, 17, 0, 1];
         let mut next = 0u64;
         let blocks: Vec<Vec<u64>> = lengths
