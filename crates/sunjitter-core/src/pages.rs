@@ -49,7 +49,7 @@ pub(crate) fn filled(h: usize, w: usize, value: f32) -> Array2<f32> {
 mod tests {
     #[test]
     fn blocks_are_put_together_in_order() {
-        // Blocks of none, one and thousands of values, in an order no sort would give.
+        // Blocks of none, one and thousands of values that together count up from 1.
         let lengths = [0, 1, 4096, 0, 3, 5000, 17, 0, 1];
         let mut next = 0u64;
         let blocks: Vec<Vec<u64>> = lengths
