@@ -131,18 +131,19 @@ fn detect_disk_at(img: ArrayView2<f32>) -> Option<DiskFit> {
     // The background level from at most about a million pixels (every k-th row and column:
     // plenty for a quantile; a 4096² frame's full sort costs more than the rest of the fit).
     let k = ((h * w) as f64 / (1 << 20) as f64).sqrt().ceil().max(1.0) as usize;
-    let sampled = (0..h.div_ceil(k))
-        .into_par_iter()
-        .map(|i| {
-            let row = img.row(i * k);
-            let taken = |v: &f32| v.is_finite().then_some(*v);
-            match row.as_slice() {
-                Some(r) => r.iter().step_by(k).filter_map(taken).collect(),
-                None => row.iter().step_by(k).filter_map(taken).collect(),
-            }
-        })
-        .collect::<Vec<Vec<f32>>>()
-        .concat();
+    let sampled = crate::pages::concat(
+        &(0..h.div_ceil(k))
+            .into_par_iter()
+            .map(|i| {
+                let row = img.row(i * k);
+                let taken = |v: &f32| v.is_finite().then_some(*v);
+                match row.as_slice() {
+                    Some(r) => r.iter().step_by(k).filter_map(taken).collect(),
+                    None => row.iter().step_by(k).filter_map(taken).collect(),
+                }
+            })
+            .collect::<Vec<Vec<f32>>>(),
+    );
     if sampled.is_empty() {
         return None;
     }
