@@ -15,6 +15,22 @@ pub(crate) fn has_avx2_fma() -> bool {
     }
 }
 
+/// `true` when AVX-512's foundation and vector-length extensions may be used besides AVX2
+/// and FMA: the same 256-bit vectors, but 32 vector registers instead of 16.
+#[inline]
+pub(crate) fn has_avx512vl() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        has_avx2_fma()
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512vl")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// `multiversion!(fn name(args) -> R => body_fn);` defines `name`, which calls the
 /// `#[inline(always)]` function `body_fn` compiled for AVX2+FMA when the CPU has them.
 macro_rules! multiversion {

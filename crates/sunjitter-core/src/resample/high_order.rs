@@ -420,9 +420,9 @@ impl HighOrderSpline {
 /// where the CPU has it and the spline is quintic (identical values).
 fn gradients_at(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
     #[cfg(target_arch = "x86_64")]
-    if sp.order == HighOrder::Quintic && crate::flow::simd::has_avx2_fma() {
-        // SAFETY: the CPU has AVX2 and the spline is quintic.
-        return unsafe { super::quintic_x86::gradients_at(sp, positions, out) };
+    if let (HighOrder::Quintic, Some(isa)) = (sp.order, super::quintic_x86::Isa::detect()) {
+        // SAFETY: the CPU has `isa`'s features and the spline is quintic.
+        return unsafe { super::quintic_x86::gradients_at(isa, sp, positions, out) };
     }
     for (&[x, y], o) in positions.iter().zip(out) {
         *o = sp.sample_with_gradient(x, y);

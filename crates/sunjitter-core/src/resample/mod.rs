@@ -374,9 +374,9 @@ fn high_order_shifted_row(
     out: &mut [f32],
 ) {
     #[cfg(target_arch = "x86_64")]
-    if sp.order() == HighOrder::Quintic && crate::flow::simd::has_avx2_fma() {
-        // SAFETY: the CPU has AVX2 and the spline is quintic.
-        return unsafe { quintic_x86::values_at(sp, |x| map.shifted(x, y, &shift[x]), out) };
+    if let (HighOrder::Quintic, Some(isa)) = (sp.order(), quintic_x86::Isa::detect()) {
+        // SAFETY: the CPU has `isa`'s features and the spline is quintic.
+        return unsafe { quintic_x86::values_at(isa, sp, |x| map.shifted(x, y, &shift[x]), out) };
     }
     shifted_row_portable(sp, map, y, shift, out)
 }
@@ -408,9 +408,9 @@ fn shifted_row_body(
 /// the spline is quintic (identical values).
 fn high_order_similarity_row(sp: &HighOrderSpline, map: &RowMap, y: f64, out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if sp.order() == HighOrder::Quintic && crate::flow::simd::has_avx2_fma() {
-        // SAFETY: the CPU has AVX2 and the spline is quintic.
-        return unsafe { quintic_x86::values_at(sp, |x| map.at(x, y), out) };
+    if let (HighOrder::Quintic, Some(isa)) = (sp.order(), quintic_x86::Isa::detect()) {
+        // SAFETY: the CPU has `isa`'s features and the spline is quintic.
+        return unsafe { quintic_x86::values_at(isa, sp, |x| map.at(x, y), out) };
     }
     similarity_row_portable(sp, map, y, out)
 }
@@ -725,6 +725,35 @@ mod tests {
                 bits(&q.sample_with_gradient(x, y)),
                 "at ({x}, {y})"
             );
+        }
+        // Each instruction set this CPU has, called directly (the dispatch above takes one):
+        // the quartic where it is reproduced, the one-at-a-time path bit for bit everywhere.
+        #[cfg(target_arch = "x86_64")]
+        for isa in quintic_x86::Isa::available() {
+            let q_plain = HighOrderSpline::new(
+                Array2::from_shape_fn((64, 72), |(y, x)| f(x as f64, y as f64) as f32).view(),
+                HighOrder::Quintic,
+            );
+            let mut got = vec![[0.0; 3]; inner.len()];
+            // SAFETY: the CPU has `isa`'s features; the spline is quintic.
+            unsafe { quintic_x86::gradients_at(isa, &q_plain, &inner, &mut got) };
+            for (&[x, y], &[v, gx, gy]) in inner.iter().zip(&got) {
+                let err = [v - f(x, y), gx - fx(x, y), gy - fy(x, y)];
+                assert!(err.iter().all(|e| e.abs() < 2e-4), "{isa:?} at ({x}, {y})");
+            }
+            let mut got = vec![[0.0; 3]; mixed.len()];
+            let mut values = vec![0.0f32; mixed.len()];
+            // SAFETY: as above.
+            unsafe {
+                quintic_x86::gradients_at(isa, &q, &mixed, &mut got);
+                quintic_x86::values_at(isa, &q, |k| (mixed[k][0], mixed[k][1]), &mut values);
+            }
+            for ((&[x, y], g), v) in mixed.iter().zip(&got).zip(&values) {
+                let one = q.sample_with_gradient(x, y);
+                assert_eq!(bits(g), bits(&one), "{isa:?} at ({x}, {y})");
+                let value = q.sample_at(x, y);
+                assert_eq!(v.to_bits(), value.to_bits(), "{isa:?} value at ({x}, {y})");
+            }
         }
         // Warps, row by row: the same values as sampling each pixel.
         let t = Similarity {

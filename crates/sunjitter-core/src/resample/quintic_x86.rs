@@ -1,7 +1,8 @@
 //! The quintic spline sampled at four positions at once with AVX2: the same operations as
 //! [`HighOrderSpline`]'s one-position path, lane by lane and in the same order (no FMA), so
 //! the values are identical bit for bit. The refinement, its self-test and the warps spend
-//! most of their time here.
+//! most of their time here. Compiled twice ([`Isa`]): where the CPU has AVX-512, its 32
+//! vector registers hold every weight of a block.
 
 use super::high_order::HighOrderSpline;
 use std::arch::x86_64::*;
@@ -154,16 +155,67 @@ unsafe fn row_taps(data: *const f32, start: &[usize; LANES], offset: usize) -> [
     [low(u0), low(u1), low(u2), low(u3), high(u0), high(u1)]
 }
 
+/// The instruction sets the kernels are compiled for; both perform the same operations in
+/// the same order, so they give the same values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Isa {
+    Avx2,
+    /// AVX2's 256-bit vectors with AVX-512's 32 vector registers (AVX512F and VL): the 24
+    /// weight vectors of a block of positions stay in registers instead of the stack.
+    Avx512Vl,
+}
+
+impl Isa {
+    /// The best this CPU runs; `None` without AVX2 and FMA.
+    pub(super) fn detect() -> Option<Isa> {
+        if crate::flow::simd::has_avx512vl() {
+            Some(Isa::Avx512Vl)
+        } else if crate::flow::simd::has_avx2_fma() {
+            Some(Isa::Avx2)
+        } else {
+            None
+        }
+    }
+
+    /// Every one this CPU runs.
+    #[cfg(test)]
+    pub(super) fn available() -> Vec<Isa> {
+        match Isa::detect() {
+            Some(Isa::Avx512Vl) => vec![Isa::Avx2, Isa::Avx512Vl],
+            Some(Isa::Avx2) => vec![Isa::Avx2],
+            None => vec![],
+        }
+    }
+}
+
 /// Value and gradient at each of `positions`, as `sample_with_gradient`.
 ///
 /// # Safety
-/// The CPU must have AVX2, and `sp` must be quintic.
-#[target_feature(enable = "avx2")]
+/// The CPU must have `isa`'s features, and `sp` must be quintic.
 pub(super) unsafe fn gradients_at(
+    isa: Isa,
     sp: &HighOrderSpline,
     positions: &[[f64; 2]],
     out: &mut [[f64; 3]],
 ) {
+    #[target_feature(enable = "avx2")]
+    unsafe fn with_avx2(sp: &HighOrderSpline, p: &[[f64; 2]], out: &mut [[f64; 3]]) {
+        gradients_in(sp, p, out)
+    }
+    #[target_feature(enable = "avx2,avx512f,avx512vl")]
+    unsafe fn with_avx512vl(sp: &HighOrderSpline, p: &[[f64; 2]], out: &mut [[f64; 3]]) {
+        gradients_in(sp, p, out)
+    }
+    // SAFETY (both arms): the CPU has `isa`'s features (this function's contract).
+    match isa {
+        Isa::Avx2 => unsafe { with_avx2(sp, positions, out) },
+        Isa::Avx512Vl => unsafe { with_avx512vl(sp, positions, out) },
+    }
+}
+
+/// [`gradients_at`]'s loop, compiled into each of its instantiations.
+#[inline(always)]
+unsafe fn gradients_in(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
     let (_, w) = sp.coeffs().dim();
     // Row-major and contiguous, as `HighOrderSpline::new` leaves them.
     debug_assert!(sp.coeffs().is_standard_layout());
@@ -213,10 +265,36 @@ pub(super) unsafe fn gradients_at(
 /// starts from the first, as `Iterator::sum` does from −0).
 ///
 /// # Safety
-/// The CPU must have AVX2, and `sp` must be quintic.
+/// The CPU must have `isa`'s features, and `sp` must be quintic.
 #[inline]
-#[target_feature(enable = "avx2")]
 pub(super) unsafe fn values_at(
+    isa: Isa,
+    sp: &HighOrderSpline,
+    positions: impl Fn(usize) -> (f64, f64),
+    out: &mut [f32],
+) {
+    #[target_feature(enable = "avx2")]
+    unsafe fn with_avx2(sp: &HighOrderSpline, p: impl Fn(usize) -> (f64, f64), out: &mut [f32]) {
+        values_in(sp, p, out)
+    }
+    #[target_feature(enable = "avx2,avx512f,avx512vl")]
+    unsafe fn with_avx512vl(
+        sp: &HighOrderSpline,
+        p: impl Fn(usize) -> (f64, f64),
+        out: &mut [f32],
+    ) {
+        values_in(sp, p, out)
+    }
+    // SAFETY (both arms): the CPU has `isa`'s features (this function's contract).
+    match isa {
+        Isa::Avx2 => unsafe { with_avx2(sp, positions, out) },
+        Isa::Avx512Vl => unsafe { with_avx512vl(sp, positions, out) },
+    }
+}
+
+/// [`values_at`]'s loop, compiled into each of its instantiations.
+#[inline(always)]
+unsafe fn values_in(
     sp: &HighOrderSpline,
     positions: impl Fn(usize) -> (f64, f64),
     out: &mut [f32],
