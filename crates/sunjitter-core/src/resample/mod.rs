@@ -729,11 +729,12 @@ mod tests {
         // Each instruction set this CPU has, called directly (the dispatch above takes one):
         // the quartic where it is reproduced, the one-at-a-time path bit for bit everywhere.
         #[cfg(target_arch = "x86_64")]
+        let q_plain = HighOrderSpline::new(
+            Array2::from_shape_fn((64, 72), |(y, x)| f(x as f64, y as f64) as f32).view(),
+            HighOrder::Quintic,
+        );
+        #[cfg(target_arch = "x86_64")]
         for isa in quintic_x86::Isa::available() {
-            let q_plain = HighOrderSpline::new(
-                Array2::from_shape_fn((64, 72), |(y, x)| f(x as f64, y as f64) as f32).view(),
-                HighOrder::Quintic,
-            );
             let mut got = vec![[0.0; 3]; inner.len()];
             // SAFETY: the CPU has `isa`'s features; the spline is quintic.
             unsafe { quintic_x86::gradients_at(isa, &q_plain, &inner, &mut got) };
