@@ -3,10 +3,12 @@
 //! image itself (headers lie: rebinned EIT files claim a 372 px radius for a 46 px disk).
 
 mod disk;
+mod fill;
 mod filters;
 mod hot_pixels;
 
 pub use disk::{detect_disk, detect_disk_keeping_copy, BlockMeans, DiskFit, LimbFeature};
+pub use fill::{find_fill, Fill};
 pub(crate) use filters::gaussian_smooth_as;
 pub use filters::{bin_mean, gaussian_smooth, gaussian_smooth_rows, gaussian_trend, smooth_bin};
 pub use hot_pixels::{
