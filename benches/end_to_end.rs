@@ -106,7 +106,7 @@ fn cold(c: &mut Criterion) {
                 // hands its self-test cases on.
                 || {
                     PreparedReference::new(&frame, &cfg)
-                        .align_keeping(&reference, cfg.solar_rotation)
+                        .align_keeping(&reference, &cfg.channel_settings())
                         .1
                 },
                 |kept| {
@@ -114,7 +114,7 @@ fn cold(c: &mut Criterion) {
                         Some(work) => PreparedReference::from_frame_work(&reference, &cfg, work),
                         None => PreparedReference::new(&reference, &cfg),
                     };
-                    black_box(prepared.align_keeping(&frame, cfg.solar_rotation))
+                    black_box(prepared.align_keeping(&frame, &cfg.channel_settings()))
                 },
                 criterion::BatchSize::PerIteration,
             )

@@ -121,7 +121,7 @@ fn main() -> anyhow::Result<()> {
         for _ in 0..repeats {
             let kept = (case == "align_previous")
                 .then(before_prev)
-                .and_then(|p| p.align_keeping(&prev, cfg.solar_rotation).1);
+                .and_then(|p| p.align_keeping(&prev, &cfg.channel_settings()).1);
             // What `sunjitter align` hands the engine: images it has no further use for.
             let owned = match case {
                 "align" | "align_kept" => Some((prev.clone(), next.clone())),
@@ -174,7 +174,7 @@ fn main() -> anyhow::Result<()> {
                         Some(work) => PreparedReference::from_frame_work(&prev, &cfg, work),
                         None => PreparedReference::new(&prev, &cfg),
                     };
-                    std::hint::black_box(reference.align_keeping(&next, cfg.solar_rotation));
+                    std::hint::black_box(reference.align_keeping(&next, &cfg.channel_settings()));
                 }
                 other => anyhow::bail!("unknown case {other}"),
             }

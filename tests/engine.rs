@@ -135,6 +135,8 @@ fn eit_195_to_171_one_hour_apart_measures_the_telescope_not_the_suns_rotation() 
     // Left in, the rotation is what the fit measures.
     let kept = EngineConfig {
         solar_rotation: sunjitter::solar_rotation::Profile::None,
+        // The Sun's turn is what is measured here, not the telescope's roll.
+        model: sunjitter::engine::ModelChoice::Similarity,
         ..EngineConfig::default()
     };
     let r = align_images(&reference, &frame, &kept).result;
@@ -554,11 +556,11 @@ fn along_a_chain_each_reference_gives_the_fresh_answer_within_its_sigma_of_the_t
     let truths = draw_truths(6, 17, &TrialRanges::default(), center);
     let frames: Vec<Image> = truths.iter().map(|t| transformed(&base, t)).collect();
     let (_, mut kept) =
-        PreparedReference::new(&frames[0], &cfg).align_keeping(&frames[1], cfg.solar_rotation);
+        PreparedReference::new(&frames[0], &cfg).align_keeping(&frames[1], &cfg.channel_settings());
     for k in 1..frames.len() - 1 {
         let work = kept.expect("the frame aligned");
         let chained = PreparedReference::from_frame_work(&frames[k], &cfg, work);
-        let (out, next) = chained.align_keeping(&frames[k + 1], cfg.solar_rotation);
+        let (out, next) = chained.align_keeping(&frames[k + 1], &cfg.channel_settings());
         let fresh = PreparedReference::new(&frames[k], &cfg).align(&frames[k + 1]);
         assert_eq!(out.result.status, Status::Ok, "{}", out.result.message);
         assert_eq!(out.transform, fresh.transform, "step {k}");
@@ -585,7 +587,7 @@ fn a_keyframes_self_test_is_not_handed_on() {
     let frames: Vec<Image> = truths.iter().map(|t| transformed(&base, t)).collect();
     let keyframe = PreparedReference::new(&frames[0], &cfg);
     keyframe.align(&frames[1]);
-    let (out, kept) = keyframe.align_keeping(&frames[2], cfg.solar_rotation);
+    let (out, kept) = keyframe.align_keeping(&frames[2], &cfg.channel_settings());
     assert_eq!(out.result.status, Status::Ok, "{}", out.result.message);
     let promoted = PreparedReference::from_frame_work(&frames[2], &cfg, kept.expect("aligned"))
         .align(&frames[3]);

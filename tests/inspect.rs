@@ -63,6 +63,7 @@ fn record(
                 points: if ok { 400 } else { 0 },
                 inliers: if ok { 370 } else { 0 },
                 residual_rms_px: v(0.04),
+                model: None,
                 similarity: v(0.93),
                 status,
                 message: match status {

@@ -70,6 +70,7 @@ fn frame(channel: &str, i: u64, rng: &mut Rng) -> FrameAlignment {
         points: if failed { 0 } else { 400 },
         inliers: if failed { 0 } else { 380 - i as usize % 50 },
         residual_rms_px: v(0.1),
+        model: None,
         similarity: v(0.2).map(|d| 0.8 + d),
         status: if failed {
             Status::Failed
@@ -153,6 +154,8 @@ fn reference_change(i: u64) -> ReferenceChange {
         reference_kind: ReferenceKind::Keyframe,
         sequence: i,
         replaces: (i > 0).then(|| "/data/SJI_1400/f0000.fits".into()),
+        closure: None,
+        cross_covariance: None,
         chain: None,
     }
 }

@@ -13,8 +13,9 @@ origin gives it. Where the feature is seen is decided here without sunjitter's W
       chained transform (SJ_* cards, the log's chained_* values) puts an origin pixel, must
       give the coordinates sunpy's Map of the origin gives that pixel.
   --disk              (a refused plate scale, EUV): the limb's radius measured in each
-      product's pixels times its CDELT1 must be the header's solar radius within 5 %, and
-      the input's own CDELT1 must fail that test.
+      product's pixels times its CDELT1 must be the header's solar radius, with the EUV limb
+      between 3 % inside and 8 % above the photosphere, and the input's own CDELT1 must fail
+      that test.
 
 Prints one line per product and a closing 'N passed, N failed'; exit 1 on any failure.
 """
@@ -161,7 +162,9 @@ def limb_radius_px(data):
 def check_disk(args):
     """The plate scale a product states against the Sun it shows: the limb's radius in pixels
     times CDELT1 must be the solar radius the input's header gives (RSUN_OBS, or SOLAR_R in
-    its own pixels) within 5 %, and the input's own CDELT1 must fail that test."""
+    its own pixels), the limb brightening of an EUV image peaking up to 8 % above the
+    photosphere on a coarse grid (EIT 195 at 21″/px: 6 %), and the input's own CDELT1 must
+    fail that test."""
     passed = failed = 0
     own = fits.getheader(args.origin)
     rsun = own.get("RSUN_OBS") or own.get("RSUN_ARC") or own["SOLAR_R"] * abs(own["CDELT1"])
@@ -170,7 +173,7 @@ def check_disk(args):
         header = fits.getheader(path)
         r_px = limb_radius_px(fits.getdata(path))
         stated = r_px * abs(header["CDELT1"])
-        ok = abs(stated / rsun - 1) <= 0.05
+        ok = -0.03 <= stated / rsun - 1 <= 0.08
         if path == args.origin:
             ok = not ok
             what = "input header (must disagree)"

@@ -57,7 +57,9 @@ def main():
     ap.add_argument("--fourier", action="store_true")
     ap.add_argument("--limb-gain", type=float, default=0.0)
     ap.add_argument("--binary", default="target/release/sunjitter")
-    ap.add_argument("--config")
+    # Random similarities are what is measured: the similarity is always fitted.
+    ap.add_argument("--config", default=os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                                     "similarity.toml"))
     ap.add_argument("--keep")
     a = ap.parse_args()
 

@@ -59,7 +59,8 @@ def main():
                         hdr).writeto(rp, overwrite=True)
         fits.PrimaryHDU((frame + rng.normal(0, sigma, ref.shape)).astype(np.float32),
                         hdr).writeto(fp, overwrite=True)
-        p = subprocess.run([BIN, 'align', rp, fp, '--json'] + os.environ.get('XARGS', '').split(),
+        p = subprocess.run([BIN, 'align', rp, fp, '--json', '--config', os.path.join(os.path.dirname(os.path.abspath(__file__)), 'similarity.toml')]
+                           + os.environ.get('XARGS', '').split(),
                            capture_output=True, text=True,
                            env=dict(os.environ, SUNJITTER_LOG='sunjitter::engine::refine=debug'))
         doc = json.loads(p.stdout)

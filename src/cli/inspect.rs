@@ -85,10 +85,11 @@ pub fn run(args: &Args) -> Result<i32> {
         .collect();
     let inputs: Vec<&std::path::Path> = files.iter().map(PathBuf::as_path).collect();
     crate::outputs::check_outputs(&outputs, &inputs)?;
-    let (frames, log) = read_frames(&files)?;
+    let (frames, references, log) = read_frames(&files)?;
     let analyses = inspect::analyse(&frames, &InspectOptions::default());
     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
-    let report = inspect::report(&names, &analyses, log);
+    let mut report = inspect::report(&names, &analyses, log);
+    report.consistency = inspect::consistency::consistency(&frames, &references);
 
     if let Some(path) = &args.csv {
         let file = std::fs::File::create(path).map_err(|e| Error::unwritable(path, e))?;
@@ -137,10 +138,16 @@ pub fn log_files(args: &[PathBuf]) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// Every `/jitter/<channel>` message of `files`, with its `log_time`, and the `/log` tally;
-/// damaged or unfinished segments are read as far as they go, with a warning naming what was
-/// skipped.
-pub fn read_frames(files: &[PathBuf]) -> Result<(Vec<LoggedFrame>, LogSummary)> {
+/// Every `/jitter/<channel>` message of `files`, with its `log_time`, the `/reference`
+/// messages, and the `/log` tally; damaged or unfinished segments are read as far as they go,
+/// with a warning naming what was skipped.
+pub fn read_frames(
+    files: &[PathBuf],
+) -> Result<(
+    Vec<LoggedFrame>,
+    Vec<crate::sink::ReferenceChange>,
+    LogSummary,
+)> {
     let contents = crate::sink::read_logs(files)?;
     for note in contents.notes() {
         tracing::warn!("{note}");
@@ -161,5 +168,6 @@ pub fn read_frames(files: &[PathBuf]) -> Result<(Vec<LoggedFrame>, LogSummary)> 
         )
     });
     let log = inspect::summarise_log(entries, &frames);
-    Ok((frames, log))
+    let references = contents.references.into_iter().map(|r| r.change).collect();
+    Ok((frames, references, log))
 }

@@ -74,6 +74,11 @@ struct Report {
 
 pub fn run(args: &Args) -> Result<i32> {
     let mut cfg = args.config.load(&Default::default())?.engine;
+    // The trials' transforms are random similarities, not a telescope's: scale and roll are
+    // what is measured, whatever the instrument would hold them to.
+    if cfg.model == crate::engine::ModelChoice::Auto {
+        cfg.model = crate::engine::ModelChoice::Similarity;
+    }
     if args.window_px.is_some() {
         cfg.window_px = args.window_px;
     }

@@ -11,7 +11,7 @@ use std::collections::HashMap;
 use std::path::Path;
 
 /// `align --json`: the contract's fields plus the paper's plain-UABJM σ.
-pub const ALIGN_FIELDS: [&str; 27] = [
+pub const ALIGN_FIELDS: [&str; 28] = [
     "reference",
     "frame",
     "scale",
@@ -36,6 +36,7 @@ pub const ALIGN_FIELDS: [&str; 27] = [
     "inliers",
     "residual_rms_px",
     "similarity",
+    "model",
     "status",
     "message",
     "elapsed_ms",

@@ -31,7 +31,7 @@ for t in range(n):
     if noise_k > 0: r += noise_k*bg*rng.standard_normal(r.shape); fr += noise_k*bg*rng.standard_normal(fr.shape)
     fits.PrimaryHDU(r.astype(np.float32), hdu.header).writeto(RP, overwrite=True)
     fits.PrimaryHDU(fr.astype(np.float32), hdu.header).writeto(FP, overwrite=True)
-    js = json.loads(subprocess.run([os.environ.get('SUNJITTER', 'target/release/sunjitter'),'align',RP,FP,'--json'],capture_output=True,text=True).stdout)
+    js = json.loads(subprocess.run([os.environ.get('SUNJITTER', 'target/release/sunjitter'),'align',RP,FP,'--json','--config',os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'similarity.toml')],capture_output=True,text=True).stdout)
     if js.get('scale') is None: print('failed', js['message'][-100:]); continue
     tr = np.array([s, th*206264.806, dx, dy]); est = np.array([js['scale'], js['rotation_arcsec'], js['dx_px'], js['dy_px']])
     sg = np.array([js['sigma_scale'], js['sigma_rotation_arcsec'], js['sigma_dx_px'], js['sigma_dy_px']])

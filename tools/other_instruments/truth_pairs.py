@@ -104,7 +104,8 @@ def main():
                 os.replace(rp, f'{keep}/ref_{t:02d}.fits')
                 rp = f'{keep}/ref_{t:02d}.fits'
         t0 = time.time()
-        p = subprocess.run([BIN, 'align', rp, fp, '--json'], capture_output=True, text=True)
+        p = subprocess.run([BIN, 'align', rp, fp, '--json', '--config', os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'similarity.toml')],
+                           capture_output=True, text=True)
         wall = time.time() - t0
         rec = dict(trial=t, image=os.path.basename(img), noise_k=k, bg_sigma=bg, nan_outside=nan_out,
                    true=dict(scale=s, rotation_arcsec=th * ARCSEC, dx_px=dx, dy_px=dy),

@@ -21,7 +21,8 @@
 
 use crate::engine::AlignOutcome;
 use crate::geometry::{
-    compose_with_covariance, sigmas, Covariance4 as Cov4, Similarity, ARCSEC_PER_RAD,
+    add, composition_jacobians, sandwich, sigmas, Covariance4 as Cov4, Matrix4, Similarity,
+    ARCSEC_PER_RAD,
 };
 use crate::record::{FrameAlignment, Status};
 /// A chained transform (origin grid → this grid) and its covariance, if known.
@@ -53,21 +54,27 @@ impl Chain {
     /// `step ∘ self`, with first-order covariance propagation (see the module docs).
     /// The covariance is unknown when either factor's is.
     pub fn then(&self, step: &Similarity, step_cov: Option<&Cov4>) -> Chain {
-        match (step_cov, self.covariance.as_ref()) {
-            (Some(sc), Some(cc)) => {
-                let (transform, cov) = compose_with_covariance(step, sc, &self.transform, cc);
-                Chain {
-                    transform,
-                    covariance: Some(cov),
-                    plate_scale_arcsec: self.plate_scale_arcsec,
-                }
-            }
-            _ => Chain {
-                transform: step.after(&self.transform),
-                covariance: None,
-                plate_scale_arcsec: self.plate_scale_arcsec,
-            },
-        }
+        self.then_carrying(step, step_cov).0
+    }
+
+    /// [`Chain::then`], and the Jacobian of the result with respect to `self`'s parameters:
+    /// the result's error is `J · e_self` plus the step's, so its covariance with any other
+    /// chain's error `e` is `J · Cov(e_self, e)`.
+    pub fn then_carrying(&self, step: &Similarity, step_cov: Option<&Cov4>) -> (Chain, Matrix4) {
+        let (j_step, j_self) = composition_jacobians(step, &self.transform);
+        let covariance = match (step_cov, self.covariance.as_ref()) {
+            (Some(sc), Some(cc)) => Some(add(
+                &sandwich(&j_step, sc, &j_step),
+                &sandwich(&j_self, cc, &j_self),
+            )),
+            _ => None,
+        };
+        let chain = Chain {
+            transform: step.after(&self.transform),
+            covariance,
+            plate_scale_arcsec: self.plate_scale_arcsec,
+        };
+        (chain, j_self)
     }
 
     /// 1-σ of (scale, rotation_rad, dx, dy).
@@ -75,6 +82,114 @@ impl Chain {
         self.covariance.as_ref().map(sigmas)
     }
 }
+
+/// Two estimates of one keyframe's chain, combined: through the last keyframe and through
+/// the one before it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Combined {
+    pub chain: Chain,
+    /// `G`: the combination is `a + G (b − a)`, so its error is `e_a + G (e_b − e_a)`.
+    pub gain: Matrix4,
+    pub closure: Closure,
+}
+
+/// How far two estimates of one chain are apart (`b − a`, per parameter), and the σ of that
+/// difference: a closure that holds stays within a few σ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Closure {
+    pub difference: [f64; 4],
+    pub sigma: [f64; 4],
+}
+
+impl Closure {
+    /// `difference / sigma` per parameter (0 where a parameter's difference has no σ).
+    pub fn z(&self) -> [f64; 4] {
+        std::array::from_fn(|k| match self.sigma[k] > 0.0 {
+            true => self.difference[k] / self.sigma[k],
+            false => 0.0,
+        })
+    }
+}
+
+/// The best linear combination of two estimates `a` and `b` of one chain whose errors have
+/// covariance `cross = Cov(e_a, e_b)`: `a + (Σ_a − Σ_ab) D⁻¹ (b − a)`, with
+/// `D = Σ_a + Σ_b − Σ_ab − Σ_ba` the covariance of `b − a`, and the covariance
+/// `Σ_a − (Σ_a − Σ_ab) D⁻¹ (Σ_a − Σ_ba)`. A parameter both ways know exactly (no variance in
+/// `D`: nothing fitted it) keeps `a`'s value. `None` without both covariances, or when `D` is
+/// singular otherwise.
+pub fn combine(a: &Chain, b: &Chain, cross: &Cov4) -> Option<Combined> {
+    use nalgebra::Matrix4 as M;
+    let m = |c: &Cov4| M::from_fn(|r, s| c[r][s]);
+    let (sa, sb, sab) = (
+        m(a.covariance.as_ref()?),
+        m(b.covariance.as_ref()?),
+        m(cross),
+    );
+    let d = sa + sb - sab - sab.transpose();
+    // D⁻¹ on the parameters that vary; zero elsewhere.
+    let varies: [bool; 4] = std::array::from_fn(|k| d[(k, k)] > 0.0);
+    let mut reduced = d;
+    for k in 0..4 {
+        if !varies[k] {
+            for j in 0..4 {
+                reduced[(k, j)] = 0.0;
+                reduced[(j, k)] = 0.0;
+            }
+            reduced[(k, k)] = 1.0;
+        }
+    }
+    let mut d_inv = reduced.try_inverse()?;
+    for k in (0..4).filter(|&k| !varies[k]) {
+        d_inv[(k, k)] = 0.0;
+    }
+    let gain = (sa - sab) * d_inv;
+    let diff = nalgebra::Vector4::from(b.transform.params())
+        - nalgebra::Vector4::from(a.transform.params());
+    let p = nalgebra::Vector4::from(a.transform.params()) + gain * diff;
+    let cov = sa - gain * (sa - sab.transpose());
+    let cov = 0.5 * (cov + cov.transpose());
+    let arr =
+        |x: &M<f64>| -> Matrix4 { std::array::from_fn(|r| std::array::from_fn(|s| x[(r, s)])) };
+    if !(p.iter().all(|v| v.is_finite()) && cov.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    Some(Combined {
+        chain: Chain {
+            transform: Similarity::from_params(p.into(), a.transform.center),
+            covariance: Some(arr(&cov)),
+            plate_scale_arcsec: a.plate_scale_arcsec,
+        },
+        gain: arr(&gain),
+        closure: Closure {
+            difference: diff.into(),
+            sigma: std::array::from_fn(|k| d[(k, k)].max(0.0).sqrt()),
+        },
+    })
+}
+
+/// `Cov(e, x)` for an error `e = e_a + G (e_b − e_a)` of a combination, from the covariances
+/// of its two estimates' errors with `x`.
+pub fn combined_cross(gain: &Matrix4, cov_a_x: &Cov4, cov_b_x: &Cov4) -> Cov4 {
+    let one_minus: Matrix4 =
+        std::array::from_fn(|r| std::array::from_fn(|s| IDENTITY[r][s] - gain[r][s]));
+    add(
+        &sandwich(&one_minus, cov_a_x, &IDENTITY),
+        &sandwich(gain, cov_b_x, &IDENTITY),
+    )
+}
+
+/// `J · C · Kᵀ`: the covariance of two carried errors `J e` and `K x`, from `C = Cov(e, x)`.
+pub fn carried(j: &Matrix4, c: &Cov4, k: &Matrix4) -> Cov4 {
+    sandwich(j, c, k)
+}
+
+/// The identity, the Jacobian of an error carried unchanged.
+pub const IDENTITY: Matrix4 = [
+    [1.0, 0.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0, 0.0],
+    [0.0, 0.0, 1.0, 0.0],
+    [0.0, 0.0, 0.0, 1.0],
+];
 
 /// Write `chain` into a message's chained fields (`None`: no chain).
 pub fn set_chain(m: &mut FrameAlignment, chain: Option<&Chain>) {
@@ -102,15 +217,24 @@ pub fn set_chain(m: &mut FrameAlignment, chain: Option<&Chain>) {
 /// A chain restored from a log that does not give its origin's plate scale takes the one the
 /// alignment to its reference used (one instrument's series: the same, within the disk fit).
 pub fn chain_after(ref_chain: Option<&Chain>, outcome: &AlignOutcome) -> Option<Chain> {
+    chain_after_carrying(ref_chain, outcome).map(|(chain, _)| chain)
+}
+
+/// [`chain_after`], and the Jacobian of the chain with respect to `ref_chain`'s parameters
+/// ([`Chain::then_carrying`]).
+pub fn chain_after_carrying(
+    ref_chain: Option<&Chain>,
+    outcome: &AlignOutcome,
+) -> Option<(Chain, Matrix4)> {
     let step = outcome.transform.as_ref()?;
     if outcome.result.status == Status::Failed {
         return None;
     }
-    let mut chain = ref_chain?.then(step, outcome.covariance.as_ref());
+    let (mut chain, j) = ref_chain?.then_carrying(step, outcome.covariance.as_ref());
     if chain.plate_scale_arcsec.is_none() {
         chain.plate_scale_arcsec = outcome.reference_geometry.map(|g| g.plate_scale_arcsec);
     }
-    Some(chain)
+    Some((chain, j))
 }
 
 /// The chain a message carries (diagonal covariance only: messages hold σ, not correlations).

@@ -127,8 +127,7 @@ impl Similarity {
 }
 
 /// `outer ∘ inner` with first-order propagation of independent parameter covariances:
-/// `Cov = J_o Cov_o J_oᵀ + J_i Cov_i J_iᵀ`, Jacobians by central differences
-/// (the composition is smooth and cheap, so this avoids error-prone hand derivatives).
+/// `Cov = J_o Cov_o J_oᵀ + J_i Cov_i J_iᵀ` ([`composition_jacobians`]).
 pub fn compose_with_covariance(
     outer: &Similarity,
     outer_cov: &Covariance4,
@@ -136,7 +135,20 @@ pub fn compose_with_covariance(
     inner_cov: &Covariance4,
 ) -> (Similarity, Covariance4) {
     let composed = outer.after(inner);
-    let jac = |which_outer: bool| -> [[f64; 4]; 4] {
+    let (jo, ji) = composition_jacobians(outer, inner);
+    let co = sandwich(&jo, outer_cov, &jo);
+    let ci = sandwich(&ji, inner_cov, &ji);
+    (composed, add(&co, &ci))
+}
+
+/// A 4 × 4 matrix.
+pub type Matrix4 = [[f64; 4]; 4];
+
+/// The Jacobians of `outer ∘ inner`'s parameters with respect to `outer`'s and to `inner`'s,
+/// by central differences (the composition is smooth and cheap, so this avoids error-prone
+/// hand derivatives).
+pub fn composition_jacobians(outer: &Similarity, inner: &Similarity) -> (Matrix4, Matrix4) {
+    let jac = |which_outer: bool| -> Matrix4 {
         let base = if which_outer {
             outer.params()
         } else {
@@ -167,30 +179,34 @@ pub fn compose_with_covariance(
         }
         j
     };
-    let sandwich = |j: &[[f64; 4]; 4], c: &Covariance4| -> Covariance4 {
-        let mut out = [[0.0; 4]; 4];
-        for r in 0..4 {
-            for s in 0..4 {
-                let mut acc = 0.0;
-                for a in 0..4 {
-                    for b in 0..4 {
-                        acc += j[r][a] * c[a][b] * j[s][b];
-                    }
-                }
-                out[r][s] = acc;
-            }
-        }
-        out
-    };
-    let co = sandwich(&jac(true), outer_cov);
-    let ci = sandwich(&jac(false), inner_cov);
-    let mut cov = [[0.0; 4]; 4];
+    (jac(true), jac(false))
+}
+
+/// `A · C · Bᵀ`.
+pub fn sandwich(a: &Matrix4, c: &Matrix4, b: &Matrix4) -> Matrix4 {
+    let mut out = [[0.0; 4]; 4];
     for r in 0..4 {
         for s in 0..4 {
-            cov[r][s] = co[r][s] + ci[r][s];
+            let mut acc = 0.0;
+            for i in 0..4 {
+                for k in 0..4 {
+                    acc += a[r][i] * c[i][k] * b[s][k];
+                }
+            }
+            out[r][s] = acc;
         }
     }
-    (composed, cov)
+    out
+}
+
+/// `a + b`.
+pub fn add(a: &Matrix4, b: &Matrix4) -> Matrix4 {
+    std::array::from_fn(|r| std::array::from_fn(|s| a[r][s] + b[r][s]))
+}
+
+/// The transpose of `a`.
+pub fn transpose(a: &Matrix4) -> Matrix4 {
+    std::array::from_fn(|r| std::array::from_fn(|s| a[s][r]))
 }
 
 /// Standard errors (square roots of the diagonal).

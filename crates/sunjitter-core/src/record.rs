@@ -11,6 +11,28 @@ pub enum Status {
     Failed,
 }
 
+/// The transform a record's numbers come from (`model`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Model {
+    /// Scale, rotation and shift fitted.
+    Similarity,
+    /// Rotation and shift fitted; scale from the headers.
+    Rigid,
+    /// Shift fitted; scale and rotation from the headers.
+    Translation,
+}
+
+impl Model {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Model::Similarity => "similarity",
+            Model::Rigid => "rigid",
+            Model::Translation => "translation",
+        }
+    }
+}
+
 /// Which reference a frame was aligned to (`reference_kind`): itself, or what its channel's
 /// policy chose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
@@ -102,6 +124,10 @@ pub struct AlignResult {
     pub inliers: usize,
     pub residual_rms_px: Option<f64>,
     pub similarity: Option<f64>,
+    /// The transform fitted (`null` when nothing was: a failed frame, or one that starts a
+    /// reference).
+    #[serde(default)]
+    pub model: Option<Model>,
     pub status: Status,
     pub message: String,
     pub elapsed_ms: f64,

@@ -122,6 +122,10 @@ pub struct ChannelConfig {
     pub hold_s: Option<f64>,
     /// The Sun's rotation profile for this channel (else `[engine] solar_rotation`).
     pub solar_rotation: Option<sunjitter_core::solar_rotation::Profile>,
+    /// The model fitted and the instrument's stability for this channel (else `[engine]`'s).
+    pub model: Option<sunjitter_core::engine::ModelChoice>,
+    pub scale_stability: Option<f64>,
+    pub roll_stability_arcsec: Option<f64>,
 }
 
 /// Command-line settings that override the file.
@@ -246,13 +250,29 @@ impl Config {
         }
     }
 
-    /// The solar rotation profile of each channel that sets its own, by topic name.
-    pub fn channel_rotation(
+    /// The engine settings of each channel that sets any of its own, by topic name.
+    pub fn channel_settings(
         &self,
-    ) -> std::collections::BTreeMap<String, sunjitter_core::solar_rotation::Profile> {
+    ) -> std::collections::BTreeMap<String, sunjitter_core::engine::ChannelSettings> {
+        let base = self.engine.channel_settings();
         self.channels
             .iter()
-            .filter_map(|(name, c)| Some((name.clone(), c.solar_rotation?)))
+            .filter(|(_, c)| {
+                c.solar_rotation.is_some()
+                    || c.model.is_some()
+                    || c.scale_stability.is_some()
+                    || c.roll_stability_arcsec.is_some()
+            })
+            .map(|(name, c)| {
+                let mut s = base;
+                s.solar_rotation = c.solar_rotation.unwrap_or(s.solar_rotation);
+                s.model.model = c.model.unwrap_or(s.model.model);
+                s.model.scale_stability = c.scale_stability.unwrap_or(s.model.scale_stability);
+                s.model.roll_stability_arcsec = c
+                    .roll_stability_arcsec
+                    .unwrap_or(s.model.roll_stability_arcsec);
+                (name.clone(), s)
+            })
             .collect()
     }
 

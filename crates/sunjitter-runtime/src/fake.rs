@@ -282,6 +282,7 @@ pub fn outcome(
             inliers: 400,
             residual_rms_px: Some(0.0),
             similarity: Some(0.99),
+            model: (status != Status::Failed).then_some(sunjitter_core::record::Model::Similarity),
             status,
             message: if status == Status::Degraded {
                 "few inliers".into()

@@ -149,12 +149,14 @@ fn overlap_start(a: usize, p: &ChannelPolicy, times: &[i64], overlap: Option<usi
         return 0;
     }
     match &p.policy {
+        // Back to the single run's keyframe before the range, and one more: a keyframe is
+        // reached through the one it replaces and the one before that.
         PolicySpec::Keyframe => {
             let want = overlap.unwrap_or(p.keyframe_every_frames as usize).max(1);
             let s = a.saturating_sub(want);
             let keyframes = predicted_keyframes(times, p);
             let at = keyframes.partition_point(|&k| k <= s);
-            keyframes[at.saturating_sub(1)]
+            keyframes[at.saturating_sub(2)]
         }
         // Each reference along the chain renews a quarter of the self-test cases it is handed:
         // after as many references the shard's chain holds the single run's cases.
@@ -736,10 +738,12 @@ mod tests {
         let p = config.channel_policy("A");
         let times: Vec<i64> = (0..200).map(|i| i * 12_000_000_000).collect();
         assert_eq!(predicted_keyframes(&times, &p), vec![0, 50, 100, 150]);
-        // Own frames from 120: at least 50 frames before (70), back to the keyframe at 50.
-        assert_eq!(overlap_start(120, &p, &times, None), 50);
-        // Own frames from 100 (a keyframe itself): its link is the keyframe at 50.
-        assert_eq!(overlap_start(100, &p, &times, Some(1)), 50);
+        // Own frames from 120: at least 50 frames before (70), back to the keyframe at 50,
+        // and to the one before it (0), through which the keyframe at 100 is reached too.
+        assert_eq!(overlap_start(120, &p, &times, None), 0);
+        assert_eq!(overlap_start(170, &p, &times, None), 50);
+        // Own frames from 100 (a keyframe itself): reached from the keyframes at 50 and 0.
+        assert_eq!(overlap_start(100, &p, &times, Some(1)), 0);
         assert_eq!(overlap_start(0, &p, &times, None), 0);
     }
 

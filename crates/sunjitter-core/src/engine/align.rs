@@ -16,7 +16,7 @@ use super::verdict::{verdict, Evidence, Refinement, Verdict};
 use super::{
     check_usable, cleaned_from, derotate, flow_check, geometry_check, photometry, quality,
 };
-use super::{refine, AlignOutcome, SigmaMethod};
+use super::{model, refine, AlignOutcome, SigmaMethod};
 use crate::flow::Roi;
 use crate::geometry::{sigmas, Similarity};
 use crate::meta::FrameMeta;
@@ -33,6 +33,7 @@ use std::time::Instant;
 /// prepared.
 pub(super) struct FrameOwn {
     cleaned: Array2<f32>,
+    fill: Option<super::FillSeen>,
     check: geometry_check::Checked,
     notes: Vec<String>,
     cleaned_in: std::time::Duration,
@@ -47,12 +48,13 @@ impl FrameOwn {
     ) -> Result<FrameOwn, String> {
         check_usable("frame", &data)?;
         let started = Instant::now();
-        let cleaned = cleaned_from(data, hot_pixel_fraction);
+        let (cleaned, fill) = cleaned_from(data, hot_pixel_fraction);
         let cleaned_in = started.elapsed();
         let mut notes = Vec::new();
         let check = geometry_check::checked(frame, &cleaned, &mut notes);
         Ok(FrameOwn {
             cleaned,
+            fill,
             check,
             notes,
             cleaned_in,
@@ -122,6 +124,7 @@ pub(super) fn align_frame(
     let Measured { outcome, self_test } = outcome;
     let kept = side.kept_check.map(|(check, notes)| FrameWork {
         cleaned: side.kept_cleaned.unwrap_or(side.data),
+        fill: side.fill,
         check,
         notes,
         hot_pixel_fraction: cfg.hot_pixel_fraction,
@@ -143,6 +146,8 @@ struct FrameSide {
     solar_rotation: Option<SolarRotationFields>,
     /// The reference's notes and the frame's checks'.
     notes: Vec<String>,
+    /// The frame's border fill, taken as missing data.
+    fill: Option<super::FillSeen>,
     /// With `keep`: the frame's own disk check and its notes, and the cleaned frame where
     /// the intensity match changed `data`.
     kept_check: Option<(geometry_check::Checked, Vec<String>)>,
@@ -162,11 +167,13 @@ fn prepare_frame(
     let mut notes: Vec<String> = work.notes.clone();
     let FrameOwn {
         cleaned: mut frame_data,
+        fill,
         check: own,
         notes: own_notes,
         cleaned_in,
         checked_in,
     } = own;
+    notes.extend(super::fill_note(work.fill, fill));
 
     let mut block_means = own.block_means.clone();
     // Coarse: headers, checked against the disks the images show.
@@ -237,6 +244,7 @@ fn prepare_frame(
         carried,
         solar_rotation,
         notes,
+        fill,
         kept_check,
         kept_cleaned,
     })
@@ -311,6 +319,18 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured
         winsize: pair.work.winsize,
         refinement,
     };
+    // Scale and roll where the images measure them worse than the instrument holds them:
+    // the headers' values.
+    let prior = cfg.model_prior();
+    let (model, why) = model::choose(&fine.transform, &fine.covariance, &start.coarse, &prior);
+    model::constrain(
+        &mut fine.transform,
+        &mut fine.covariance,
+        model,
+        &start.coarse,
+        &prior,
+    );
+    notes.extend(why);
     let verdict = verdict(&evidence, notes, cfg)?;
     let outcome = outcome(
         pair,
@@ -318,6 +338,7 @@ fn measure(pair: &Pair, start: Start, mut notes: Vec<String>) -> Result<Measured
         start.coarse,
         start.solar_rotation,
         similarity,
+        model,
         verdict,
     );
     // A frame that matched well hands the reference's self-test on, should it become the
@@ -829,6 +850,7 @@ fn outcome(
     coarse: Similarity,
     solar_rotation: Option<SolarRotationFields>,
     similarity: Option<f64>,
+    model: model::Model,
     verdict: Verdict,
 ) -> AlignOutcome {
     let work = pair.work;
@@ -869,6 +891,7 @@ fn outcome(
         inliers: fine.fit.n_inliers,
         residual_rms_px: Some(fine.fit.residual_rms_px),
         similarity,
+        model: Some(model),
         status: verdict.status,
         message: verdict.message,
         elapsed_ms: 0.0,

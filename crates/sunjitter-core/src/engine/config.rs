@@ -1,5 +1,6 @@
 //! The engine's settings (the configuration file's `[engine]` table).
 
+use super::model::{ModelChoice, ModelPrior, ROLL_STABILITY_ARCSEC, SCALE_STABILITY};
 use super::refine::RefineMode;
 use super::seed::{FINAL_EXTENT_PX, SEED_EXTENT_PX};
 use super::sigma::SigmaMethod;
@@ -73,6 +74,14 @@ pub struct EngineConfig {
     /// The Sun's differential rotation taken out between the reference's and the frame's
     /// times (`howard`, `snodgrass`, `allen`, or `none` to keep it in the answer).
     pub solar_rotation: crate::solar_rotation::Profile,
+    /// Which transform to fit: `auto` fits scale and roll only where the images measure them
+    /// better than the instrument holds them (`scale_stability`, `roll_stability_arcsec`);
+    /// `similarity`, `rigid` or `translation` always.
+    pub model: ModelChoice,
+    /// How well the instrument holds its plate scale between two frames (relative, 1-σ).
+    pub scale_stability: f64,
+    /// How well the instrument holds its roll between two frames, arcsec (1-σ).
+    pub roll_stability_arcsec: f64,
 }
 
 impl Default for EngineConfig {
@@ -105,6 +114,49 @@ impl Default for EngineConfig {
             seed_extent_px: SEED_EXTENT_PX,
             final_extent_px: FINAL_EXTENT_PX,
             solar_rotation: crate::solar_rotation::Profile::default(),
+            model: ModelChoice::default(),
+            scale_stability: SCALE_STABILITY,
+            roll_stability_arcsec: ROLL_STABILITY_ARCSEC,
         }
     }
+}
+
+impl EngineConfig {
+    /// The model settings, as the fit reads them.
+    pub fn model_prior(&self) -> ModelPrior {
+        ModelPrior {
+            model: self.model,
+            scale_stability: self.scale_stability,
+            roll_stability_arcsec: self.roll_stability_arcsec,
+        }
+    }
+
+    /// The settings a channel may have of its own, as this configuration gives them.
+    pub fn channel_settings(&self) -> ChannelSettings {
+        ChannelSettings {
+            solar_rotation: self.solar_rotation,
+            model: self.model_prior(),
+        }
+    }
+
+    /// This configuration with a channel's own settings.
+    pub fn for_channel(&self, settings: &ChannelSettings) -> EngineConfig {
+        EngineConfig {
+            solar_rotation: settings.solar_rotation,
+            model: settings.model.model,
+            scale_stability: settings.model.scale_stability,
+            roll_stability_arcsec: settings.model.roll_stability_arcsec,
+            ..self.clone()
+        }
+    }
+}
+
+/// What a channel may set for the frames it measures, beside the engine's settings (the
+/// configuration's `[channels.NAME]` table): what the instrument and its target do.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChannelSettings {
+    /// The Sun's rotation profile taken out.
+    pub solar_rotation: crate::solar_rotation::Profile,
+    /// The model fitted and the instrument's stability.
+    pub model: ModelPrior,
 }

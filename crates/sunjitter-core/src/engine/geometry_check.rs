@@ -60,14 +60,32 @@ pub(super) fn checked(meta: &FrameMeta, data: &Array2<f32>, notes: &mut Vec<Stri
     }
     let mut fixed = meta.clone();
     fixed.sun_center_px = seen.center_px;
+    let mut note = describe(meta, header_radius, &seen);
     if let (true, Some(rsun)) = (radius_wrong, meta.rsun_arcsec) {
-        let plate = rsun / seen.radius_px;
-        fixed.plate_scale_arcsec = [
-            plate.copysign(meta.plate_scale_arcsec[0]),
-            plate.copysign(meta.plate_scale_arcsec[1]),
-        ];
+        let rebinned = header_radius.and_then(|r| rebinning_factor(r, seen.radius_px));
+        fixed.plate_scale_arcsec = match rebinned {
+            Some(k) => {
+                note.push_str(&format!(
+                    ", whose disk is the header's {}; plate scale the header's {}",
+                    k.describe(),
+                    k.applied()
+                ));
+                meta.plate_scale_arcsec.map(|p| p * k.factor())
+            }
+            None => {
+                let plate = rsun / seen.radius_px;
+                note.push_str(&format!(
+                    "; plate scale {plate:.4}″/px from its radius (a limb seen above the \
+                     photosphere, as in EUV, makes it too small by as much)"
+                ));
+                [
+                    plate.copysign(meta.plate_scale_arcsec[0]),
+                    plate.copysign(meta.plate_scale_arcsec[1]),
+                ]
+            }
+        };
     }
-    notes.push(describe(meta, header_radius, &seen));
+    notes.push(note);
     Checked {
         meta: fixed,
         disk_px: Some((seen.center_px, seen.radius_px)),
@@ -167,6 +185,73 @@ fn same_claimed_geometry(a: &FrameMeta, b: &FrameMeta) -> bool {
         }
 }
 
+/// A whole-number resampling of the image that its header was not updated for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Rebinned {
+    /// Binned `k`×: pixels `k` times larger.
+    Binned(u32),
+    /// Upsampled `k`×.
+    Upsampled(u32),
+}
+
+impl Rebinned {
+    /// The factor on the header's plate scale.
+    fn factor(self) -> f64 {
+        match self {
+            Rebinned::Binned(k) => k as f64,
+            Rebinned::Upsampled(k) => 1.0 / k as f64,
+        }
+    }
+
+    fn describe(self) -> String {
+        match self {
+            Rebinned::Binned(k) => format!("binned {k}×"),
+            Rebinned::Upsampled(k) => format!("upsampled {k}×"),
+        }
+    }
+
+    fn applied(self) -> String {
+        match self {
+            Rebinned::Binned(k) => format!("× {k}"),
+            Rebinned::Upsampled(k) => format!("÷ {k}"),
+        }
+    }
+}
+
+/// The largest whole-number resampling [`rebinning_factor`] recognises.
+const MAX_REBINNING: u32 = 64;
+/// How far the disk seen may stand beyond the photospheric one its header describes
+/// (fraction of the radius): the EUV limb stands above the photosphere, by 2–5 % on 128²
+/// EIT and AIA images, and a coarse grid blurs it outwards.
+const LIMB_ABOVE: f64 = 0.07;
+/// How far it may fall inside it: the limb fit's own error.
+const LIMB_BELOW: f64 = 0.03;
+
+/// The whole-number factor `k ≥ 2` by which the image was binned (or upsampled) without its
+/// header being updated, when the disk it shows (`seen_px`) is the header's (`header_px`)
+/// resampled by `k`, with the limb between [`LIMB_BELOW`] inside and [`LIMB_ABOVE`] outside
+/// the photosphere's. The header's plate scale times `k` is then exact, where a plate scale
+/// from the radius carries the limb's height (EIT 195 rebinned 8×: 4 % small).
+fn rebinning_factor(header_px: f64, seen_px: f64) -> Option<Rebinned> {
+    if !(header_px > 0.0 && seen_px > 0.0) {
+        return None;
+    }
+    // seen = header · scale · (1 + h), h ∈ [−LIMB_BELOW, LIMB_ABOVE].
+    let fits = |scale: f64| {
+        let h = seen_px / (header_px * scale) - 1.0;
+        (-LIMB_BELOW..=LIMB_ABOVE).contains(&h)
+    };
+    let ratio = header_px / seen_px;
+    (2..=MAX_REBINNING)
+        .map(Rebinned::Binned)
+        .chain((2..=MAX_REBINNING).map(Rebinned::Upsampled))
+        .filter(|k| fits(1.0 / k.factor()))
+        .min_by(|a, b| {
+            let off = |k: &Rebinned| (k.factor() / ratio).ln().abs();
+            off(a).total_cmp(&off(b))
+        })
+}
+
 fn describe(meta: &FrameMeta, header_radius: Option<f64>, seen: &DiskFit) -> String {
     let name = meta
         .file
@@ -205,8 +290,9 @@ mod tests {
         let mut notes = Vec::new();
         let reference = checked(&eit.meta, &eit.data, &mut notes);
         assert!(reference.seen);
+        // Binned 8× from 1024²: 8 × 2.63″ exactly, where the EUV limb's radius gives 4 % less.
         let plate = reference.meta.plate_scale_arcsec[0].abs();
-        assert!((plate / 21.0 - 1.0).abs() < 0.06, "reference plate {plate}");
+        assert!((plate - 8.0 * 2.63).abs() < 1e-9, "reference plate {plate}");
 
         let blank = Array2::from_elem(eit.data.dim(), 900.0f32);
         let frame = checked_frame(&eit.meta, &blank, &eit.meta, &reference, &mut notes);
@@ -222,5 +308,23 @@ mod tests {
         assert!(notes
             .iter()
             .any(|n| n.contains("no disk was seen in the reference")));
+    }
+
+    #[test]
+    fn whole_number_rebinnings_are_recognised_with_the_limb_above_the_photosphere() {
+        // The header's radius over the seen one, the EUV limb 0–7 % above.
+        assert_eq!(rebinning_factor(371.1, 48.5), Some(Rebinned::Binned(8)));
+        assert_eq!(rebinning_factor(371.1, 47.4), Some(Rebinned::Binned(8)));
+        assert_eq!(
+            rebinning_factor(400.0, 200.0 * 1.03),
+            Some(Rebinned::Binned(2))
+        );
+        assert_eq!(
+            rebinning_factor(50.0, 200.0 * 1.02),
+            Some(Rebinned::Upsampled(4))
+        );
+        // A radius 30 % off is no rebinning, nor is a ratio between two whole numbers.
+        assert_eq!(rebinning_factor(100.0, 130.0), None);
+        assert_eq!(rebinning_factor(250.0, 100.0), None);
     }
 }

@@ -17,6 +17,7 @@ pub mod derotate;
 mod fine;
 mod flow_check;
 mod geometry_check;
+mod model;
 mod photometry;
 mod prepared;
 pub mod quality;
@@ -32,7 +33,8 @@ use crate::record::{AlignResult, Status, TransformFields};
 use ndarray::Array2;
 use std::time::Instant;
 
-pub use config::EngineConfig;
+pub use config::{ChannelSettings, EngineConfig};
+pub use model::{Model, ModelChoice, ModelPrior};
 pub use prepared::{FrameWork, PreparedReference, Workspace};
 pub use refine::RefineMode;
 pub use sigma::SigmaMethod;
@@ -144,7 +146,7 @@ fn aligned_pair(
     cfg: &EngineConfig,
     started: Instant,
 ) -> AlignOutcome {
-    let (mut outcome, _) = prepared.align_own(frame, own, cfg.solar_rotation, false, started);
+    let (mut outcome, _) = prepared.align_own(frame, own, &cfg.channel_settings(), false, started);
     outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
     outcome
 }
@@ -191,11 +193,56 @@ fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
 /// Parts (of rows) that [`check_usable`] reads one after the other.
 const USABLE_CHECK_PARTS: usize = 16;
 
-/// `data` cleaned of hot pixels (a copy when nothing is to be cleaned), in place when it is
-/// owned: no second frame-sized array is faulted in.
-fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32) -> Array2<f32> {
-    match data {
-        std::borrow::Cow::Owned(mut d) if d.is_standard_layout() => {
+/// An image's border fill, taken as missing data: its value and pixel count.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct FillSeen {
+    value: f32,
+    pixels: usize,
+}
+
+/// What the record's message says of the fill of the reference and of the frame.
+fn fill_note(reference: Option<FillSeen>, frame: Option<FillSeen>) -> Option<String> {
+    let taken = "taken as missing data";
+    Some(match (reference, frame) {
+        (Some(r), Some(f)) if r.value.to_bits() == f.value.to_bits() => format!(
+            "border fill {} {taken} ({} px of the reference, {} of the frame)",
+            r.value, r.pixels, f.pixels
+        ),
+        (Some(r), Some(f)) => format!(
+            "border fill {} of the reference ({} px) and {} of the frame ({} px) {taken}",
+            r.value, r.pixels, f.value, f.pixels
+        ),
+        (Some(r), None) => format!(
+            "border fill {} {taken} ({} px of the reference)",
+            r.value, r.pixels
+        ),
+        (None, Some(f)) => format!(
+            "border fill {} {taken} ({} px of the frame)",
+            f.value, f.pixels
+        ),
+        (None, None) => return None,
+    })
+}
+
+/// `data` with its border fill taken as missing (NaN) and cleaned of hot pixels (a copy when
+/// nothing is to be cleaned), in place when it is owned: no second frame-sized array is
+/// faulted in. Also what fill was found.
+fn cleaned_from(
+    data: std::borrow::Cow<'_, Array2<f32>>,
+    hot_pixel_fraction: f32,
+) -> (Array2<f32>, Option<FillSeen>) {
+    use std::borrow::Cow;
+    let fill = preprocess::find_fill(data.view());
+    let data = match &fill {
+        Some(fill) => {
+            let mut d = data.into_owned();
+            fill.blank(&mut d);
+            Cow::Owned(d)
+        }
+        None => data,
+    };
+    let cleaned = match data {
+        Cow::Owned(mut d) if d.is_standard_layout() => {
             if hot_pixel_fraction > 0.0 {
                 preprocess::remove_hot_pixels(&mut d, hot_pixel_fraction);
             }
@@ -206,7 +253,12 @@ fn cleaned_from(data: std::borrow::Cow<'_, Array2<f32>>, hot_pixel_fraction: f32
         }
         // Copied in parallel: a frame is tens of MB, faulted in page by page.
         d => ndarray::Zip::from(&*d).par_map_collect(|&v| v),
-    }
+    };
+    let seen = fill.map(|f| FillSeen {
+        value: f.value,
+        pixels: f.pixels,
+    });
+    (cleaned, seen)
 }
 
 impl AlignOutcome {
@@ -237,6 +289,7 @@ impl AlignOutcome {
                 points: 0,
                 inliers: 0,
                 residual_rms_px: None,
+                model: None,
                 similarity: None,
                 status: Status::Failed,
                 message: reason.into(),
@@ -289,6 +342,7 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
             points: 0,
             inliers: 0,
             residual_rms_px: Some(0.0),
+            model: None,
             similarity: Some(1.0),
             status: Status::Ok,
             message: "reference frame (aligned to itself)".into(),

@@ -2,7 +2,7 @@
 //! the working memory alignments share.
 
 use super::align::{align_frame, FrameOwn};
-use super::config::EngineConfig;
+use super::config::{ChannelSettings, EngineConfig};
 use super::fine::{grown, mask_roi, Crop};
 use super::seed::Binned;
 use super::{check_usable, cleaned_from, geometry_check, quality, refine};
@@ -87,6 +87,8 @@ pub(super) struct ReferenceWork {
     pub(super) reference_check: geometry_check::Checked,
     pub(super) notes: Vec<String>,
     pub(super) cleaned: Array2<f32>,
+    /// Its border fill, taken as missing data.
+    pub(super) fill: Option<super::FillSeen>,
     pub(super) mask: Array2<bool>,
     /// Why the mask cannot be used (raised after the frame's own checks).
     pub(super) mask_error: Option<String>,
@@ -133,6 +135,7 @@ const MATCHED_CACHE: usize = 4;
 /// a frame that becomes the next reference (`previous`) is not cleaned and checked twice.
 pub struct FrameWork {
     pub(super) cleaned: Array2<f32>,
+    pub(super) fill: Option<super::FillSeen>,
     pub(super) check: geometry_check::Checked,
     pub(super) notes: Vec<String>,
     pub(super) hot_pixel_fraction: f32,
@@ -204,16 +207,12 @@ impl PreparedReference {
 
     /// Align `frame` to the prepared reference.
     pub fn align(&self, frame: &Image) -> AlignOutcome {
-        self.align_with(frame, self.cfg.solar_rotation)
+        self.align_with(frame, &self.cfg.channel_settings())
     }
 
-    /// Align `frame`, taking out the Sun's rotation by `profile` (a channel's own setting).
-    pub fn align_with(
-        &self,
-        frame: &Image,
-        profile: crate::solar_rotation::Profile,
-    ) -> AlignOutcome {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, false)
+    /// Align `frame` with its channel's own settings.
+    pub fn align_with(&self, frame: &Image, settings: &ChannelSettings) -> AlignOutcome {
+        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), settings, false)
             .0
     }
 
@@ -222,16 +221,16 @@ impl PreparedReference {
     pub fn align_keeping(
         &self,
         frame: &Image,
-        profile: crate::solar_rotation::Profile,
+        settings: &ChannelSettings,
     ) -> (AlignOutcome, Option<FrameWork>) {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, true)
+        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), settings, true)
     }
 
     fn align_inner(
         &self,
         frame_meta: &FrameMeta,
         frame_data: Cow<'_, Array2<f32>>,
-        profile: crate::solar_rotation::Profile,
+        settings: &ChannelSettings,
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
@@ -241,7 +240,7 @@ impl PreparedReference {
             .as_ref()
             .map_err(Clone::clone)
             .and_then(|_| FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction));
-        self.align_own(frame_meta, own, profile, keep, started)
+        self.align_own(frame_meta, own, settings, keep, started)
     }
 
     /// [`PreparedReference::align_inner`] from the frame's own preparation, made beforehand
@@ -250,7 +249,7 @@ impl PreparedReference {
         &self,
         frame_meta: &FrameMeta,
         own: Result<FrameOwn, String>,
-        profile: crate::solar_rotation::Profile,
+        settings: &ChannelSettings,
         keep: bool,
         started: Instant,
     ) -> (AlignOutcome, Option<FrameWork>) {
@@ -258,10 +257,7 @@ impl PreparedReference {
             .aligned
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
             == 0;
-        let cfg = EngineConfig {
-            solar_rotation: profile,
-            ..self.cfg.clone()
-        };
+        let cfg = self.cfg.for_channel(settings);
         let result = match &self.work {
             Ok(work) => {
                 own.and_then(|own| align_frame(work, frame_meta, own, &cfg, keep, &self.workspace))
@@ -309,15 +305,15 @@ impl ReferenceWork {
         let (h, w) = data.dim();
         let started = Instant::now();
         check_usable("reference", &data)?;
-        let (cleaned, reference_check, notes, handed_on) = match kept {
+        let (cleaned, fill, reference_check, notes, handed_on) = match kept {
             Some(k) if k.hot_pixel_fraction.to_bits() == cfg.hot_pixel_fraction.to_bits() => {
-                (k.cleaned, k.check, k.notes, k.self_test)
+                (k.cleaned, k.fill, k.check, k.notes, k.self_test)
             }
             _ => {
-                let cleaned = cleaned_from(data, cfg.hot_pixel_fraction);
+                let (cleaned, fill) = cleaned_from(data, cfg.hot_pixel_fraction);
                 let mut notes = Vec::new();
                 let check = geometry_check::checked(&meta, &cleaned, &mut notes);
-                (cleaned, check, notes, None)
+                (cleaned, fill, check, notes, None)
             }
         };
         let checked_at = started.elapsed();
@@ -360,6 +356,7 @@ impl ReferenceWork {
             reference_check,
             notes,
             cleaned,
+            fill,
             mask,
             mask_error,
             mask_box,

@@ -51,9 +51,9 @@ pub use reader::{
 };
 pub use schemas::{
     alert_schema, frame_alignment_schema, jitter_topic, log_schema, reference_change_schema,
-    reference_topic, Alert, FoxgloveTime, LogEntry, LogLevel, ReferenceChange, ALERT_SCHEMA,
-    ALERT_TOPIC, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, LOG_TOPIC, MESSAGE_ENCODING, METADATA_NAME,
-    REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
+    reference_topic, Alert, FoxgloveTime, LogEntry, LogLevel, ReferenceChange, ReferenceClosure,
+    ALERT_SCHEMA, ALERT_TOPIC, FRAME_ALIGNMENT_SCHEMA, LOG_SCHEMA, LOG_TOPIC, MESSAGE_ENCODING,
+    METADATA_NAME, REFERENCE_CHANGE_SCHEMA, SCHEMA_ENCODING,
 };
 
 use segment::{SegmentFile, SegmentKey, UNLIMITED};

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::{json, Value};
 use sunjitter_core::chain::Chain;
-use sunjitter_core::record::ReferenceKind;
+use sunjitter_core::record::{ReferenceKind, TransformFields};
 
 /// Schema encoding of every channel.
 pub const SCHEMA_ENCODING: &str = "jsonschema";
@@ -37,9 +37,8 @@ pub const ALERT_TOPIC: &str = "/alert";
 /// Name of the metadata record written at the start of every segment.
 pub const METADATA_NAME: &str = "sunjitter";
 
-/// One `/reference/<channel>` message: a reference was chosen or replaced. The chain fields
-/// are not part of the schema: they travel in memory, from the policy to the sinks and
-/// shards that keep a channel's chain, and are absent from a log read back.
+/// One `/reference/<channel>` message: a reference was chosen or replaced, with its chain
+/// where the policy knows it (a restart goes on from it).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReferenceChange {
     /// The channel whose reference changed.
@@ -59,9 +58,101 @@ pub struct ReferenceChange {
     pub sequence: u64,
     /// The reference it replaces (`FILE` or `FILE[N]`), `null` for the first.
     pub replaces: Option<String>,
+    /// A keyframe reached two ways (through the keyframe it replaces and through the one
+    /// before that): how far the two chains are apart, and the σ of that difference.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub closure: Option<ReferenceClosure>,
+    /// The covariance of the new keyframe's chain with the chain of the keyframe it replaces
+    /// (16 numbers, row by row, over scale, rotation rad, dx px, dy px): with `chain`, what a
+    /// restart needs to go on exactly as the run would have.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_covariance: Option<Vec<f64>>,
     /// The new reference's chain (origin grid → its grid), where the policy knows it.
-    #[serde(skip)]
+    #[serde(
+        default,
+        with = "chain_fields",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub chain: Option<Chain>,
+}
+
+/// A chain in a `/reference` message: its parameters, the centre they turn about, its plate
+/// scale and its covariance as 16 numbers row by row (JSON Schema as Foxglove reads it has no
+/// arrays of arrays).
+mod chain_fields {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+    use sunjitter_core::chain::Chain;
+    use sunjitter_core::geometry::Similarity;
+
+    #[derive(Serialize, Deserialize)]
+    struct Fields {
+        scale: f64,
+        rotation_rad: f64,
+        dx_px: f64,
+        dy_px: f64,
+        center_px: [f64; 2],
+        #[serde(default)]
+        covariance: Option<Vec<f64>>,
+        #[serde(default)]
+        plate_scale_arcsec: Option<[f64; 2]>,
+    }
+
+    pub fn serialize<S: Serializer>(chain: &Option<Chain>, s: S) -> Result<S::Ok, S::Error> {
+        chain
+            .as_ref()
+            .map(|c| Fields {
+                scale: c.transform.scale,
+                rotation_rad: c.transform.rotation_rad,
+                dx_px: c.transform.dx,
+                dy_px: c.transform.dy,
+                center_px: c.transform.center,
+                covariance: c.covariance.map(|m| m.iter().flatten().copied().collect()),
+                plate_scale_arcsec: c.plate_scale_arcsec,
+            })
+            .serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Chain>, D::Error> {
+        Ok(Option::<Fields>::deserialize(d)?.map(|f| Chain {
+            transform: Similarity {
+                scale: f.scale,
+                rotation_rad: f.rotation_rad,
+                dx: f.dx_px,
+                dy: f.dy_px,
+                center: f.center_px,
+            },
+            covariance: f
+                .covariance
+                .filter(|v| v.len() == 16)
+                .map(|v| std::array::from_fn(|r| std::array::from_fn(|c| v[4 * r + c]))),
+            plate_scale_arcsec: f.plate_scale_arcsec,
+        }))
+    }
+}
+
+/// The closure of a keyframe's two chains (`/reference` messages' `closure`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReferenceClosure {
+    /// The keyframe before the one replaced, through which the second chain runs.
+    pub through: String,
+    /// Second chain minus first, per parameter.
+    pub difference: TransformFields,
+    /// 1-σ of that difference.
+    pub sigma: TransformFields,
+}
+
+impl ReferenceClosure {
+    /// The differences in units of their σ (scale, rotation, dx, dy); 0 where a σ is 0.
+    pub fn z(&self) -> [f64; 4] {
+        let (d, s) = (&self.difference, &self.sigma);
+        let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else { 0.0 };
+        [
+            ratio(d.scale, s.scale),
+            ratio(d.rotation_arcsec, s.rotation_arcsec),
+            ratio(d.dx_px, s.dx_px),
+            ratio(d.dy_px, s.dy_px),
+        ]
+    }
 }
 
 impl ReferenceChange {
@@ -175,12 +266,11 @@ fn number_or_null(description: &str) -> Value {
     json!({ "type": "number", "nullable": true, "description": description })
 }
 
-/// JSON Schema of `sunjitter.FrameAlignment` (fields of `sunjitter_core::record::FrameAlignment`).
-pub fn frame_alignment_schema() -> Value {
-    let transform = json!({
+/// JSON Schema of a transform's fields (`TransformFields`).
+fn transform_fields_schema(description: &str) -> Value {
+    json!({
         "type": "object",
-        "nullable": true,
-        "description": "The part of the transform the FITS headers did not predict",
+        "description": description,
         "properties": {
             "scale": { "type": "number" },
             "rotation_arcsec": { "type": "number" },
@@ -188,7 +278,14 @@ pub fn frame_alignment_schema() -> Value {
             "dy_px": { "type": "number" }
         },
         "required": ["scale", "rotation_arcsec", "dx_px", "dy_px"]
-    });
+    })
+}
+
+/// JSON Schema of `sunjitter.FrameAlignment` (fields of `sunjitter_core::record::FrameAlignment`).
+pub fn frame_alignment_schema() -> Value {
+    let mut transform =
+        transform_fields_schema("The part of the transform the FITS headers did not predict");
+    transform["nullable"] = json!(true);
     let mut properties = serde_json::Map::new();
     let mut put = |name: &str, v: Value| {
         properties.insert(name.to_string(), v);
@@ -275,6 +372,14 @@ pub fn frame_alignment_schema() -> Value {
         number_or_null("Bhattacharyya coefficient of the histograms"),
     );
     put(
+        "model",
+        json!({
+            "type": "string",
+            "nullable": true,
+            "description": "The transform fitted: similarity, rigid or translation; scale and rotation not fitted are the headers' values, with the instrument's stability as σ (null: nothing fitted)"
+        }),
+    );
+    put(
         "status",
         json!({ "type": "string", "enum": ["ok", "degraded", "failed"] }),
     );
@@ -358,7 +463,34 @@ pub fn reference_change_schema() -> Value {
             "sequence": { "type": "integer", "minimum": 0,
                           "description": "sequence of the first frame aligned to it" },
             "replaces": { "type": "string", "nullable": true,
-                          "description": "The previous reference" }
+                          "description": "The previous reference" },
+            "closure": {
+                "type": "object",
+                "description": "A keyframe reached through the keyframe it replaces and through the one before: second chain minus first, and the σ of that difference (absent for other references)",
+                "properties": {
+                    "through": { "type": "string", "description": "The keyframe before the one replaced" },
+                    "difference": transform_fields_schema("Second chain minus first"),
+                    "sigma": transform_fields_schema("1-σ of the difference")
+                },
+                "required": ["through", "difference", "sigma"]
+            },
+            "chain": {
+                "type": "object",
+                "description": "The reference's chain (origin grid → its grid), for restarts",
+                "properties": {
+                    "scale": { "type": "number" },
+                    "rotation_rad": { "type": "number" },
+                    "dx_px": { "type": "number" },
+                    "dy_px": { "type": "number" },
+                    "center_px": { "type": "array", "items": { "type": "number" } },
+                    "covariance": { "type": "array", "items": { "type": "number" },
+                                    "description": "4 × 4, row by row: scale, rotation rad, dx px, dy px" },
+                    "plate_scale_arcsec": { "type": "array", "items": { "type": "number" } }
+                },
+                "required": ["scale", "rotation_rad", "dx_px", "dy_px", "center_px"]
+            },
+            "cross_covariance": { "type": "array", "items": { "type": "number" },
+                "description": "The chain's covariance with that of the keyframe it replaces, 4 × 4 row by row; for restarts" }
         },
         "required": ["channel", "file", "cube_frame", "obs_time", "reason", "reference_kind",
                      "sequence", "replaces"]
@@ -527,6 +659,22 @@ mod tests {
             reference_kind: ReferenceKind::Keyframe,
             sequence: 0,
             replaces: None,
+            closure: Some(ReferenceClosure {
+                through: "b.fits".into(),
+                difference: TransformFields {
+                    scale: 0.0,
+                    rotation_arcsec: 0.0,
+                    dx_px: 0.01,
+                    dy_px: -0.02,
+                },
+                sigma: TransformFields {
+                    scale: 1e-4,
+                    rotation_arcsec: 60.0,
+                    dx_px: 0.03,
+                    dy_px: 0.03,
+                },
+            }),
+            cross_covariance: Some(vec![0.0; 16]),
             chain: Some(Chain::origin([64.0, 64.0], Some([0.6, 0.6]))),
         };
         let v = serde_json::to_value(&change).unwrap();

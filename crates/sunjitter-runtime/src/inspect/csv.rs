@@ -58,6 +58,7 @@ pub const COLUMNS: &[&str] = &[
     "inliers",
     "residual_rms_px",
     "similarity",
+    "model",
     "message",
     "elapsed_ms",
 ];

@@ -13,6 +13,7 @@
 //!   parameters are present, after removing a straight-line fit (drift is not jitter).
 //! - Outliers: [`stats::outliers`] (leave-one-out local quadratic baseline) beyond 5σ.
 
+pub mod consistency;
 pub mod csv;
 pub mod lombscargle;
 pub mod plot;
@@ -114,6 +115,10 @@ pub struct Report {
     pub channels: Vec<ChannelReport>,
     /// What `/log` says; frames that never reached a channel are only there.
     pub log: LogSummary,
+    /// Fitted models, keyframe closures, disagreements with the headers and between
+    /// channels of one instrument ([`consistency::consistency`]).
+    #[serde(default)]
+    pub consistency: consistency::Consistency,
 }
 
 /// The `/log` topic in numbers.
@@ -278,6 +283,7 @@ pub fn report(files: &[String], analyses: &[ChannelAnalysis], log: LogSummary) -
         files: files.to_vec(),
         channels: analyses.iter().map(|a| a.report.clone()).collect(),
         log,
+        consistency: Default::default(),
     }
 }
 
@@ -575,8 +581,53 @@ pub fn render_text(report: &Report) -> String {
             }
         }
     }
+    render_consistency(&mut s, &report.consistency);
     render_log(&mut s, &report.log);
     s
+}
+
+fn render_consistency(s: &mut String, c: &consistency::Consistency) {
+    use sunjitter_core::text::escape;
+    for ch in &c.channels {
+        let models: Vec<String> = ch.models.iter().map(|(m, n)| format!("{m} {n}")).collect();
+        let closure = ch.closure.as_ref().map_or(String::new(), |c| {
+            format!(
+                "; keyframe closure within 2σ: dx {:.0} %, dy {:.0} %, rotation {:.0} %, scale {:.0} % of {}",
+                100.0 * c.within_2sigma[2],
+                100.0 * c.within_2sigma[3],
+                100.0 * c.within_2sigma[1],
+                100.0 * c.within_2sigma[0],
+                c.keyframes
+            )
+        });
+        if !models.is_empty() || !closure.is_empty() {
+            let _ = writeln!(
+                s,
+                "{}: fitted {}{closure}",
+                escape(&ch.channel),
+                models.join(", ")
+            );
+        }
+        for w in &ch.warnings {
+            let _ = writeln!(s, "  WARNING: {}", escape(w));
+        }
+    }
+    for p in &c.pairs {
+        let _ = writeln!(
+            s,
+            "{} vs {} (chained, {} samples): dx {:.3} px RMS, {:.0} % within 1σ; dy {:.3} px RMS, {:.0} % within 1σ",
+            escape(&p.channels[0]),
+            escape(&p.channels[1]),
+            p.samples,
+            p.rms_px[0],
+            100.0 * p.within_1sigma[0],
+            p.rms_px[1],
+            100.0 * p.within_1sigma[1]
+        );
+        for w in &p.warnings {
+            let _ = writeln!(s, "  WARNING: {}", escape(w));
+        }
+    }
 }
 
 fn render_log(s: &mut String, log: &LogSummary) {
@@ -647,6 +698,7 @@ pub(crate) mod testdata {
                     points: 400,
                     inliers: 380,
                     residual_rms_px: v(0.05),
+                    model: None,
                     similarity: v(0.9),
                     status,
                     message: String::new(),

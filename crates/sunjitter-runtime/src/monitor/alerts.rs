@@ -435,6 +435,7 @@ mod tests {
                 points: 100,
                 inliers: 90,
                 residual_rms_px: num(0.1),
+                model: None,
                 similarity: num(0.9),
                 status,
                 message: String::new(),

@@ -41,7 +41,7 @@ impl FrameReader for FitsReader {
 /// its channels align to, so a reference used for many frames is prepared once.
 pub struct EngineAligner {
     config: EngineConfig,
-    rotation: ChannelRotation,
+    channels: ChannelEngine,
     prepared: Mutex<Vec<(ReferenceKey, Arc<PreparedReference>)>>,
     /// Each channel's last aligned frame, cleaned and disk-checked: under `previous` it is the
     /// next reference.
@@ -92,7 +92,7 @@ impl EngineAligner {
     pub fn new(config: EngineConfig) -> EngineAligner {
         EngineAligner {
             config,
-            rotation: Default::default(),
+            channels: Default::default(),
             prepared: Mutex::new(Vec::new()),
             last_frames: Mutex::new(Vec::new()),
             in_use: Mutex::new(Vec::new()),
@@ -107,11 +107,11 @@ impl EngineAligner {
         self
     }
 
-    /// The whole configuration's engine, with each channel's own solar rotation profile.
+    /// The whole configuration's engine, with each channel's own settings.
     pub fn from_config(config: &crate::config::Config) -> EngineAligner {
         EngineAligner {
-            rotation: ChannelRotation {
-                by_channel: config.channel_rotation(),
+            channels: ChannelEngine {
+                by_channel: config.channel_settings(),
                 names: config.channel_names.clone(),
             },
             ..EngineAligner::new(config.engine.clone())
@@ -205,13 +205,13 @@ impl EngineAligner {
     /// the work on `frame` for when it becomes the next reference.
     fn align_to(&self, reference: &Image, position: Option<u64>, frame: &Image) -> AlignOutcome {
         let channel = &frame.meta.channel;
-        let name = self.rotation.names.get(channel).unwrap_or(channel);
-        let profile = self.rotation.by_channel.get(name).copied();
+        let name = self.channels.names.get(channel).unwrap_or(channel);
+        let settings = self.channels.by_channel.get(name).copied();
         let key = ReferenceKey::of(reference);
         let prepared = self.prepared_as(reference, key.clone(), position);
         self.used_by(channel, key);
         let (outcome, kept) =
-            prepared.align_keeping(frame, profile.unwrap_or(self.config.solar_rotation));
+            prepared.align_keeping(frame, &settings.unwrap_or(self.config.channel_settings()));
         if let Some(work) = kept {
             let mut last = match self.last_frames.lock() {
                 Ok(g) => g,
@@ -249,11 +249,11 @@ impl Aligner for EngineAligner {
     }
 }
 
-/// Channels whose solar rotation profile is their own, by topic name, and the header
-/// channel → topic name map that finds them.
+/// Channels whose engine settings are their own, by topic name, and the header channel →
+/// topic name map that finds them.
 #[derive(Debug, Default)]
-struct ChannelRotation {
-    by_channel: std::collections::BTreeMap<String, sunjitter_core::solar_rotation::Profile>,
+struct ChannelEngine {
+    by_channel: std::collections::BTreeMap<String, sunjitter_core::engine::ChannelSettings>,
     names: std::collections::BTreeMap<String, String>,
 }
 
