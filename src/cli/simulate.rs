@@ -73,10 +73,17 @@ struct Report {
 }
 
 pub fn run(args: &Args) -> Result<i32> {
-    let mut cfg = args.config.load(&Default::default())?.engine;
+    let mut config = args.config.load(&Default::default())?;
     if args.window_px.is_some() {
-        cfg.window_px = args.window_px;
+        config.engine.window_px = args.window_px;
+        config.validate()?;
     }
+    crate::limits::flag_int("--trials", args.trials as u64, 1, 1_000_000)?;
+    crate::limits::flag_int("--cc-trials", args.cc_trials as u64, 0, 1_000_000)?;
+    if let Some(k) = args.noise {
+        crate::limits::flag_float("--noise", k, 0.0, 1e6, false)?;
+    }
+    let cfg = config.engine;
     let spec = FrameSpec::parse(&args.image);
     if let Some(out) = &args.trials_out {
         let mut inputs = vec![spec.path.as_path()];
@@ -213,7 +220,10 @@ pub fn run(args: &Args) -> Result<i32> {
         lines.push(serde_json::to_string(o).unwrap_or_default());
     }
     if let Some(path) = &args.trials_out {
-        std::fs::write(path, lines.join("\n") + "\n").map_err(|e| Error::io(path, e))?;
+        let text = lines.join("\n") + "\n";
+        crate::outputs::write_file_atomically(path, |w| {
+            std::io::Write::write_all(w, text.as_bytes())
+        })?;
     }
 
     let report = Report {
