@@ -56,10 +56,15 @@ impl OutputLock {
         }
         let id = handle_id(&handle).ok_or_else(|| Error::output(dir, "cannot stat"))?;
         let path = dir.join(LOCK_FILE);
-        let mut file = OpenOptions::new()
-            .write(true)
-            .create(true)
-            .truncate(true)
+        let mut options = OpenOptions::new();
+        options.write(true).create(true).truncate(true);
+        #[cfg(unix)]
+        {
+            // A link planted under the pid file's name is not followed (nor truncated through).
+            use std::os::unix::fs::OpenOptionsExt;
+            options.custom_flags(libc::O_NOFOLLOW);
+        }
+        let mut file = options
             .open(&path)
             .map_err(|e| Error::unwritable(&path, e))?;
         writeln!(file, "{}", std::process::id())
