@@ -20,9 +20,10 @@ pub use sunjitter_core::{
     blur, coarse, crosscorr, engine, error, fit, flow, geometry, header, meta, preprocess, record,
     resample, sampling, simulate, solar_rotation, stats, synth, text, time,
 };
-pub use sunjitter_io::{aligned, fits, font, outputs, records, self_tests, sink};
+pub use sunjitter_io::{aligned, fits, font, input, outputs, records, self_tests, sink};
 pub use sunjitter_runtime::{
-    config, daemon, ingest, inspect, merge, monitor, pipeline, ports, products, reference, shard,
+    config, daemon, ingest, inspect, limits, merge, monitor, pipeline, ports, products, reference,
+    runs, shard,
 };
 
 pub mod allocator;

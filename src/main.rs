@@ -1,6 +1,7 @@
 //! Thin binary: parse the command line, run the library, map errors to exit codes.
 
 use clap::{Parser, Subcommand};
+use std::io::Write;
 use sunjitter::cli;
 
 #[derive(Debug, Parser)]
@@ -122,7 +123,13 @@ fn main() {
     match outcome {
         Ok(code) => std::process::exit(code),
         Err(e) => {
-            eprintln!("sunjitter: {}", sunjitter::text::escape(&e.to_string()));
+            // Not eprintln!: a stderr that cannot be written (a full disk) must not turn the
+            // error into a panic.
+            let _ = writeln!(
+                std::io::stderr(),
+                "sunjitter: {}",
+                sunjitter::text::escape(&e.to_string())
+            );
             std::process::exit(e.exit_code());
         }
     }

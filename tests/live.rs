@@ -25,23 +25,34 @@ interval_s = 0.05
 [channels.SJI_1400]
 "#;
 
+/// The watched and output directories under `tmp`, the configuration `config` written there,
+/// and real IRIS frames `indices` staged to be moved in.
+fn setup(
+    tmp: &std::path::Path,
+    config: &str,
+    indices: &[usize],
+) -> (
+    std::path::PathBuf,
+    std::path::PathBuf,
+    std::path::PathBuf,
+    Vec<std::path::PathBuf>,
+) {
+    let (watched, out) = (tmp.join("in"), tmp.join("out"));
+    std::fs::create_dir_all(&watched).unwrap();
+    let path = tmp.join("sunjitter.toml");
+    std::fs::write(&path, config).unwrap();
+    let frames: Vec<(usize, Alter)> = indices.iter().map(|i| (*i, Alter::None)).collect();
+    let staged = stage_frames(&tmp.join("stage"), &frames);
+    (watched, out, path, staged)
+}
+
 #[test]
 fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_costs_nothing() {
     NodeClient::require_installed();
     let tmp = tempfile::tempdir().unwrap();
-    let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
-    std::fs::create_dir_all(&watched).unwrap();
-    let config = tmp.path().join("sunjitter.toml");
-    std::fs::write(&config, CONFIG).unwrap();
     // Real frames 7–16 of the IRIS cube.
     let indices: Vec<usize> = (7..17).collect();
-    let staged = stage_frames(
-        &tmp.path().join("stage"),
-        &indices
-            .iter()
-            .map(|i| (*i, Alter::None))
-            .collect::<Vec<_>>(),
-    );
+    let (watched, out, config, staged) = setup(tmp.path(), CONFIG, &indices);
 
     let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
     let line = daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]);
@@ -179,20 +190,10 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
 fn a_client_connected_before_a_channels_first_frame_receives_every_frame() {
     NodeClient::require_installed();
     let tmp = tempfile::tempdir().unwrap();
-    let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
-    std::fs::create_dir_all(&watched).unwrap();
-    let config = tmp.path().join("sunjitter.toml");
     // No [channels.SJI_1400]: the channel is advertised with its first frame.
     let unnamed = CONFIG.replace("[channels.SJI_1400]", "");
-    std::fs::write(&config, unnamed).unwrap();
     let indices: Vec<usize> = (7..19).collect();
-    let staged = stage_frames(
-        &tmp.path().join("stage"),
-        &indices
-            .iter()
-            .map(|i| (*i, Alter::None))
-            .collect::<Vec<_>>(),
-    );
+    let (watched, out, config, staged) = setup(tmp.path(), &unnamed, &indices);
 
     let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
     let url = live_url(&daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]));
@@ -358,9 +359,11 @@ fn a_live_port_in_use_is_a_usage_error() {
     let tmp = tempfile::tempdir().unwrap();
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = taken.local_addr().unwrap().to_string();
+    let watched = tmp.path().join("in");
+    std::fs::create_dir_all(&watched).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
         .arg("watch")
-        .arg(tmp.path())
+        .arg(&watched)
         .arg("--out")
         .arg(tmp.path().join("out"))
         .args(["--live", &addr])
@@ -369,4 +372,131 @@ fn a_live_port_in_use_is_a_usage_error() {
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains(&format!("--live {addr}")), "{err}");
+}
+
+#[test]
+fn a_client_offering_only_the_classic_subprotocol_is_served() {
+    NodeClient::require_installed();
+    let tmp = tempfile::tempdir().unwrap();
+    let indices: Vec<usize> = (7..10).collect();
+    let (watched, out, config, staged) = setup(tmp.path(), CONFIG, &indices);
+    let mut daemon = Daemon::start(&watched, &out, &config, &["--live", "127.0.0.1:0"]);
+    let url = live_url(&daemon.expect_stderr(&["live view", "ws://127.0.0.1:"]));
+    // The classic name of the protocol (older Foxglove apps and @foxglove/ws-protocol users).
+    let reader =
+        NodeClient::start_offering(&url, &["read", "/jitter/SJI_1400"], "foxglove.websocket.v1");
+    assert_eq!(reader.expect("open")["protocol"], "foxglove.websocket.v1");
+    reader.expect("subscribed");
+    daemon.expect_stderr(&["live: subscribed", "/jitter/SJI_1400"]);
+    move_in(&staged, &watched);
+    let live: Vec<serde_json::Value> = indices.iter().map(|_| reader.expect("message")).collect();
+    // Offered both, a client gets the SDK's name; offered neither, it is told what is spoken.
+    let ((code, _), head) =
+        ws_handshake_offering(&url, None, "foxglove.websocket.v1, foxglove.sdk.v1");
+    assert_eq!(code, 101);
+    assert!(
+        head.contains("Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n"),
+        "{head}"
+    );
+    let ((code, mut refused), _) = ws_handshake_offering(&url, None, "foxglove.sdk.v1.1");
+    assert_eq!(code, 400);
+    let mut body = String::new();
+    let _ = std::io::Read::read_to_string(&mut refused, &mut body);
+    assert!(
+        body.contains("foxglove.sdk.v1 and foxglove.websocket.v1"),
+        "{body}"
+    );
+    let (exit, log) = daemon.terminate();
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(contents.jitter.len(), indices.len());
+    for (m, logged) in live.iter().zip(&contents.jitter) {
+        let decoded: sunjitter::FrameAlignment =
+            serde_json::from_value(m["payload"].clone()).unwrap();
+        assert_eq!(decoded, logged.record);
+        assert_eq!(m["logTime"], logged.log_time_ns.to_string());
+    }
+}
+
+/// Every `IP:PORT` written in `text`.
+fn addresses(text: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for (i, _) in text.match_indices("127.") {
+        let tail: String = text[i..]
+            .chars()
+            .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == ':')
+            .collect();
+        if tail.contains(':') && tail.split(':').nth(1).is_some_and(|p| !p.is_empty()) {
+            found.push(tail.trim_end_matches(':').to_string());
+        }
+    }
+    found
+}
+
+#[test]
+fn the_live_view_listens_on_its_one_address_and_bounds_what_a_client_sends() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (daemon, url, out) = live_daemon(tmp.path(), "[live]\nmax_clients = 2\n");
+    let public = url.strip_prefix("ws://").unwrap().to_string();
+
+    // A client sends one text message in fragments past the bound (64 KiB): the server
+    // closes the connection with 1009 (RFC 6455 §7.4.1, message too big) before holding it.
+    let (code, mut stream) = ws_handshake(&url, None);
+    assert_eq!(code, 101);
+    let masked_frame = |fin: bool, opcode: u8, payload: &[u8]| {
+        let mut frame = vec![(if fin { 0x80 } else { 0 }) | opcode, 0x80 | 126];
+        frame.extend_from_slice(&(payload.len() as u16).to_be_bytes());
+        let mask = [1u8, 2, 3, 4];
+        frame.extend_from_slice(&mask);
+        frame.extend(payload.iter().enumerate().map(|(i, b)| b ^ mask[i % 4]));
+        frame
+    };
+    let piece = vec![b' '; 16 * 1024];
+    use std::io::{Read, Write};
+    let mut sent = 0;
+    let mut closed = None;
+    for k in 0..16 {
+        let frame = masked_frame(false, if k == 0 { 1 } else { 0 }, &piece);
+        if stream.write_all(&frame).is_err() {
+            break;
+        }
+        sent += piece.len();
+    }
+    // Read the server's frames until its close frame (or the end of the connection).
+    let mut bytes = Vec::new();
+    let mut buf = [0u8; 4096];
+    while let Ok(n) = stream.read(&mut buf) {
+        if n == 0 {
+            break;
+        }
+        bytes.extend_from_slice(&buf[..n]);
+        if let Some(at) = bytes.iter().position(|b| *b == 0x88) {
+            if bytes.len() >= at + 4 {
+                closed = Some(u16::from_be_bytes([bytes[at + 2], bytes[at + 3]]));
+                break;
+            }
+        }
+    }
+    assert_eq!(closed, Some(1009), "sent {sent} bytes; got {bytes:?}");
+    drop(stream);
+    // The server goes on: two clients at once (the configured maximum) are served.
+    let (a, _sa) = ws_handshake(&url, None);
+    let (b, _sb) = ws_handshake(&url, None);
+    assert_eq!((a, b), (101, 101));
+
+    let (exit, log) = {
+        let d = daemon;
+        d.terminate()
+    };
+    assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
+    // One address in the daemon's log and its status: the one it serves.
+    let text = log.join("\n");
+    let named = addresses(&text);
+    assert!(!named.is_empty(), "{text}");
+    assert!(
+        named.iter().all(|a| *a == public),
+        "{named:?} besides {public}"
+    );
+    let status = std::fs::read_to_string(out.join("status.json")).unwrap();
+    assert!(addresses(&status).iter().all(|a| *a == public), "{status}");
 }

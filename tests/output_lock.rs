@@ -61,13 +61,8 @@ fn assert_refused_naming(stderr: &str, out: &Path, pid: u32) {
     assert!(lines[0].contains(&format!("pid {pid}")), "{stderr}");
 }
 
-#[test]
-fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
-    let s = setup(10);
-    let mut first = WatchProcess::spawn(&s.watched, &s.out, &s.config, &s.base.join("1.stderr"));
-    first.wait_watching();
-
-    // The same directory watched twice into the same log.
+/// A second `watch` of the same directory into the same log exits 2 naming `holder`.
+fn second_daemon_is_refused(s: &Setup, holder: u32) {
     let mut second = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
         .arg("watch")
         .arg(&s.watched)
@@ -84,7 +79,17 @@ fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
     let mut stderr = String::new();
     std::io::Read::read_to_string(&mut second.stderr.take().unwrap(), &mut stderr).unwrap();
     assert_eq!(status.code(), Some(2), "{stderr}");
-    assert_refused_naming(&stderr, &s.out, first.pid());
+    assert_refused_naming(&stderr, &s.out, holder);
+}
+
+#[test]
+fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
+    let s = setup(10);
+    let mut first = WatchProcess::spawn(&s.watched, &s.out, &s.config, &s.base.join("1.stderr"));
+    first.wait_watching();
+
+    // The same directory watched twice into the same log.
+    second_daemon_is_refused(&s, first.pid());
 
     for f in &s.frames {
         publish(&s.watched, f);
@@ -169,4 +174,35 @@ fn a_lock_file_left_by_a_killed_daemon_does_not_block_a_restart() {
     let status = restarted.terminate();
     assert!(status.success(), "clean stop: {status}");
     assert_eq!(logged(&s.out).values().sum::<usize>(), 1);
+}
+
+#[test]
+fn removing_the_lock_file_lets_no_second_writer_in() {
+    let s = setup(6);
+    let mut first = WatchProcess::spawn(&s.watched, &s.out, &s.config, &s.base.join("1.stderr"));
+    first.wait_watching();
+    // The pid file is only a name for the message: the lock is on the directory itself.
+    std::fs::remove_file(s.out.join(sunjitter::outputs::LOCK_FILE)).unwrap();
+    let before = snapshot(&s.out);
+
+    // Linux names the holder from the kernel's list of locks.
+    second_daemon_is_refused(&s, first.pid());
+    let (code, _, stderr) = support::sunjitter(&[
+        "replay".as_ref(),
+        s.watched.as_os_str(),
+        "--out".as_ref(),
+        s.out.as_os_str(),
+    ] as &[&std::ffi::OsStr]);
+    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(snapshot(&s.out), before, "the refused runs touched nothing");
+
+    for f in &s.frames {
+        publish(&s.watched, f);
+    }
+    let out = s.out.clone();
+    first.wait_until("6 frames logged", |_| logged(&out).len() == 6);
+    assert!(first.terminate().success());
+    let counts = logged(&s.out);
+    assert_eq!(counts.len(), 6, "{counts:?}");
+    assert!(counts.values().all(|&n| n == 1), "{counts:?}");
 }

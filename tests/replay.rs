@@ -58,8 +58,11 @@ fn read_mcap(out: &Path) -> (Vec<Msg>, Vec<serde_json::Value>) {
             });
         }
         for record in mcap::read::LinearReader::new(&bytes).unwrap() {
-            if let mcap::records::Record::Metadata(md) = record.unwrap() {
-                configs.push(serde_json::from_str(&md.metadata["config"]).unwrap());
+            match record.unwrap() {
+                mcap::records::Record::Metadata(md) if md.name == "sunjitter" => {
+                    configs.push(serde_json::from_str(&md.metadata["config"]).unwrap());
+                }
+                _ => {}
             }
         }
     }

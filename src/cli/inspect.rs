@@ -92,14 +92,12 @@ pub fn run(args: &Args) -> Result<i32> {
     report.consistency = inspect::consistency::consistency(&frames, &references);
 
     if let Some(path) = &args.csv {
-        let file = std::fs::File::create(path).map_err(|e| Error::unwritable(path, e))?;
-        let mut out = std::io::BufWriter::new(file);
-        inspect::csv::write_csv(&mut out, &analyses)
-            .and_then(|_| std::io::Write::flush(&mut out))
-            .map_err(|e| Error::io(path, e))?;
+        crate::outputs::write_file_atomically(path, |mut w| {
+            inspect::csv::write_csv(&mut w, &analyses)
+        })?;
     }
     if let Some(path) = &args.plot {
-        inspect::plot::write_plot(&analyses, path)?;
+        crate::outputs::write_atomically(path, |tmp| inspect::plot::write_plot(&analyses, tmp))?;
     }
     if args.output.json {
         let doc = serde_json::to_string_pretty(&report)

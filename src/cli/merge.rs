@@ -21,7 +21,8 @@ Examples:
   sunjitter merge out/shards/* --out out/merged --json
 The shards are the outputs of `sunjitter replay … --shard K/N` for K = 0…N−1. A set with a
 shard missing, given twice, unfinished or made from other inputs or configuration is refused
-and nothing is written; a merge run again replaces its own earlier output.";
+and nothing is written; a merge run again replaces its own earlier output, which stays
+whole until the new one takes its place.";
 
 pub fn run(args: &Args) -> Result<i32> {
     let mut shards = args
@@ -30,9 +31,9 @@ pub fn run(args: &Args) -> Result<i32> {
         .map(|p| crate::merge::read_shard(p))
         .collect::<Result<Vec<_>>>()?;
     crate::merge::check_set(&mut shards)?;
-    let replace = crate::merge::check_output(&args.out, &shards)?;
+    crate::merge::check_output(&args.out, &shards)?;
     let merged = crate::merge::merge(&shards);
-    let segments = crate::merge::write(&args.out, &shards, &merged, &replace)?;
+    let segments = crate::merge::write(&args.out, &shards, &merged)?;
     let frames: u64 = merged.frames.values().sum();
     eprintln!(
         "sunjitter: {} shards merged into {}: {frames} frames, {} with chained values carried across shards{}",

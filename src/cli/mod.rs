@@ -87,6 +87,48 @@ impl PipelineArgs {
     }
 }
 
+/// File descriptors a `watch` or `replay` holds at the most besides its live clients: the
+/// standard streams, the runtime's (event loop, its waker, the signal pipe), the watcher, the
+/// output directory's lock, an MCAP segment, the files its readers and workers have open
+/// (cfitsio, decompressed copies, the self-test cache) and a product being written, with room.
+pub const MIN_OPEN_FILES: u64 = 64;
+
+/// Make sure the process may open `need` files: the soft limit is raised toward the hard one
+/// when it is lower; if even the hard limit is lower, refuse before any work (exit 2) rather
+/// than fail half-way through a run.
+pub fn ensure_open_files(need: u64) -> crate::Result<()> {
+    #[cfg(unix)]
+    {
+        let mut limit = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit fills the struct it is given.
+        if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } != 0 {
+            return Ok(());
+        }
+        let (soft, hard) = (limit.rlim_cur, limit.rlim_max);
+        if limit.rlim_cur == libc::RLIM_INFINITY || soft >= need {
+            return Ok(());
+        }
+        if limit.rlim_max == libc::RLIM_INFINITY || hard >= need {
+            limit.rlim_cur = need as libc::rlim_t;
+            // SAFETY: a limit within the hard limit, for this process.
+            if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &limit) } == 0 {
+                return Ok(());
+            }
+        }
+        Err(crate::Error::Usage(format!(
+            "the open-file limit is {soft} (ulimit -n): this run needs at least {need}; raise it (e.g. ulimit -n 1024) and run again"
+        )))
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = need;
+        Ok(())
+    }
+}
+
 /// The engine's shared working memory for a command's alignments, keeping references'
 /// self-test cases between runs in the user's cache (`SUNJITTER_CACHE_DIR`).
 pub fn workspace() -> sunjitter_core::engine::Workspace {

@@ -3,10 +3,9 @@
 use super::watch::{effective_config, runtime, summary_json, termination};
 use crate::error::exit;
 use crate::ingest::expand_inputs;
-use crate::pipeline::{
-    open_output, replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts,
-};
+use crate::pipeline::{replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts};
 use crate::reference::History;
+use crate::runs::open_run;
 use crate::Result;
 use std::sync::Arc;
 
@@ -40,6 +39,10 @@ each into its own --out, then join them with `sunjitter merge`.";
 
 pub fn run(args: &Args) -> Result<i32> {
     let config = effective_config(&args.run)?;
+    super::ensure_open_files(super::MIN_OPEN_FILES)?;
+    if let Some(n) = args.shard_overlap {
+        crate::limits::flag_int("--shard-overlap", n as u64, 0, 1_000_000)?;
+    }
     let files = expand_inputs(&args.paths, &config)?;
     if args.shard.is_some() && args.run.aligned.is_some() {
         // A shard's chains start at its own origin and its overlap frames are not its own:
@@ -49,13 +52,35 @@ pub fn run(args: &Args) -> Result<i32> {
                 .into(),
         ));
     }
-    let products = crate::products::for_replay(args.run.products(), &args.paths, &files)?;
+    // What no output may overwrite besides the inputs: the references and the configuration.
+    let mut protected = config.reference_files();
+    protected.extend(args.run.config.path.clone());
+    let products =
+        crate::products::for_replay(args.run.products(), &args.paths, &files, &protected)?;
+    let dirs: Vec<std::path::PathBuf> = args
+        .paths
+        .iter()
+        .map(std::path::PathBuf::from)
+        .filter(|p| p.is_dir())
+        .collect();
+    let trees: Vec<(&std::path::Path, &str)> = dirs
+        .iter()
+        .map(|d| (d.as_path(), "the input directory"))
+        .collect();
+    let mut input_files: Vec<std::path::PathBuf> = files.iter().map(|(p, _)| p.clone()).collect();
+    input_files.extend(protected.iter().cloned());
+    crate::runs::check_out_dir(&args.run.out, &trees, config.daemon.recursive, &input_files)?;
     let reader = FitsReader::from_config(&config);
+    let mut earlier = 0;
     let (sink, history, inputs, shard) = match args.shard {
         None => {
-            let (sink, history) = open_output(&args.run.out, &config)?;
-            let inputs = replay_inputs(&files, &config, &reader, &history);
-            (sink, history, inputs, None)
+            let identity = crate::runs::RunIdentity::replay(&files);
+            let opened = open_run(&args.run.out, &config, &identity)?;
+            earlier = opened.earlier_frames;
+            let inputs = replay_inputs(&files, &config, &reader, &opened.history);
+            let sink: Box<dyn crate::records::RecordSink> =
+                Box::new(crate::records::McapRecordSink(opened.sink));
+            (sink, opened.history, inputs, None)
         }
         // A shard starts afresh: a requeued attempt replaces its earlier output.
         Some(spec) => {
@@ -98,21 +123,33 @@ pub fn run(args: &Args) -> Result<i32> {
                 }
             })
         };
-        let result = crate::pipeline::run_replay(inputs, parts, termination()).await;
+        let result = match termination() {
+            Ok(stop) => crate::pipeline::run_replay(inputs, parts, stop).await,
+            Err(e) => Err(e),
+        };
         bar_task.abort();
         result
     });
     drop(bar);
     let progress = result?;
     match &shard {
+        None if progress.frames == 0 && progress.skipped == 0 && earlier > 0 => eprintln!(
+            "sunjitter: all {earlier} frames already logged in {} (nothing left to measure)",
+            crate::text::path(&args.run.out),
+        ),
         None => eprintln!(
-            "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped",
+            "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped{}",
             progress.frames,
             crate::text::path(&args.run.out),
             progress.ok,
             progress.degraded,
             progress.failed,
-            progress.skipped
+            progress.skipped,
+            if earlier > 0 {
+                format!("; {earlier} frames were logged before")
+            } else {
+                String::new()
+            }
         ),
         Some(plan) => eprintln!(
             "sunjitter: shard {}: frames {}..{} of {} logged to {} ({} own; {} measured with \

@@ -73,14 +73,21 @@ struct Report {
 }
 
 pub fn run(args: &Args) -> Result<i32> {
-    let mut cfg = args.config.load(&Default::default())?.engine;
+    let mut config = args.config.load(&Default::default())?;
+    if args.window_px.is_some() {
+        config.engine.window_px = args.window_px;
+        config.validate()?;
+    }
+    crate::limits::flag_int("--trials", args.trials as u64, 1, 1_000_000)?;
+    crate::limits::flag_int("--cc-trials", args.cc_trials as u64, 0, 1_000_000)?;
+    if let Some(k) = args.noise {
+        crate::limits::flag_float("--noise", k, 0.0, 1e6, false)?;
+    }
+    let mut cfg = config.engine;
     // The trials' transforms are random similarities, not a telescope's: scale and roll are
     // what is measured, whatever the instrument would hold them to.
     if cfg.model == crate::engine::ModelChoice::Auto {
         cfg.model = crate::engine::ModelChoice::Similarity;
-    }
-    if args.window_px.is_some() {
-        cfg.window_px = args.window_px;
     }
     let spec = FrameSpec::parse(&args.image);
     if let Some(out) = &args.trials_out {
@@ -218,7 +225,10 @@ pub fn run(args: &Args) -> Result<i32> {
         lines.push(serde_json::to_string(o).unwrap_or_default());
     }
     if let Some(path) = &args.trials_out {
-        std::fs::write(path, lines.join("\n") + "\n").map_err(|e| Error::io(path, e))?;
+        let text = lines.join("\n") + "\n";
+        crate::outputs::write_file_atomically(path, |w| {
+            std::io::Write::write_all(w, text.as_bytes())
+        })?;
     }
 
     let report = Report {

@@ -11,6 +11,7 @@
 //! "cadence_s": S, "seed": S, "jitter": SPEC, "truth_csv": PATH, "files": [PATH…],
 //! "seconds_per_frame": T}`, where `seconds_per_frame` is the generation plus write time.
 
+use crate::geometry::Similarity;
 use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
 use crate::time::{parse_fits_time, TimeScale};
 
@@ -19,7 +20,6 @@ use crate::error::exit;
 use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -66,18 +66,22 @@ Examples:
   sunjitter synth --out synth --jitter sine:0.3:120,walk:0.02 --solar-rotation none --seed 7
   sunjitter synth --out incoming --realtime --cadence 12";
 
+/// Longest time a synthetic sequence spans (its last frame's DATE-OBS stays a real date).
+const MAX_SPAN_S: f64 = 100.0 * 365.25 * 86_400.0;
+
 pub fn run(args: &Args) -> Result<i32> {
-    if args.frames == 0 {
-        return Err(Error::Usage("--frames must be at least 1".into()));
-    }
-    if !(args.cadence.is_finite() && args.cadence > 0.0) {
-        return Err(Error::Usage(format!(
-            "--cadence {} must be positive",
-            args.cadence
-        )));
-    }
+    crate::limits::flag_int("--frames", args.frames as u64, 1, 1_000_000)?;
+    crate::limits::flag_float("--cadence", args.cadence, 0.0, 365.25 * 86_400.0, true)?;
     let spec: JitterSpec = args.jitter.parse()?;
     let start_ns = start_time(args)?;
+    let span_s = (args.frames - 1) as f64 * args.cadence;
+    let end_ns = (start_ns as f64) + span_s * 1e9;
+    if span_s > MAX_SPAN_S || end_ns >= i64::MAX as f64 {
+        return Err(Error::Usage(format!(
+            "--frames {} at --cadence {} s span {:.3e} s, past what a DATE-OBS can carry (100 years from --start, before 2262)",
+            args.frames, args.cadence, span_s
+        )));
+    }
     let cfg = SynthConfig {
         solar_rotation: args.solar_rotation,
         start_ns,
@@ -86,6 +90,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let began = Instant::now();
     let model = SunModel::new(&cfg)?;
     let truth = synth::jitter_truth(&spec, args.frames, args.cadence, args.seed, args.size);
+    check_motion(&truth, args.size, &args.jitter)?;
     let digits = (args.frames - 1).to_string().len().max(4);
     let frame_name = |k: usize| format!("synth_{k:0digits$}.fits");
     let truth_path = args.out.join("truth.csv");
@@ -95,14 +100,8 @@ pub fn run(args: &Args) -> Result<i32> {
     crate::outputs::check_outputs(&outputs, &[])?;
     std::fs::create_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
 
-    let mut truth_csv =
-        std::fs::File::create(&truth_path).map_err(|e| Error::io(&truth_path, e))?;
-    let csv_err = |e: std::io::Error| Error::io(&truth_path, e);
-    writeln!(
-        truth_csv,
-        "frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale"
-    )
-    .map_err(csv_err)?;
+    // Written whole once the frames are (under a temporary name, renamed).
+    let mut truth_csv = String::from("frame,file,obs_time,dx_px,dy_px,rotation_arcsec,scale\n");
 
     let wall_start = Instant::now();
     let mut files = Vec::with_capacity(args.frames);
@@ -117,20 +116,18 @@ pub fn run(args: &Args) -> Result<i32> {
             std::thread::sleep(due.saturating_duration_since(Instant::now()));
         }
         write_frame(&path, &synth::header_cards(&cfg, k, obs_ns), &image)?;
-        writeln!(
-            truth_csv,
-            "{k},{name},{},{:.6},{:.6},{:.6},{:.9}",
+        truth_csv.push_str(&format!(
+            "{k},{name},{},{:.6},{:.6},{:.6},{:.9}\n",
             crate::time::format_iso_utc(obs_ns),
             motion.dx,
             motion.dy,
             motion.rotation_arcsec(),
             motion.scale
-        )
-        .map_err(csv_err)?;
-        truth_csv.flush().map_err(csv_err)?;
+        ));
         tracing::debug!(frame = k, file = %path.display(), "wrote frame");
         files.push(path);
     }
+    crate::outputs::write_file_atomically(&truth_path, |w| w.write_all(truth_csv.as_bytes()))?;
     let per_frame = if args.realtime {
         None
     } else {
@@ -167,6 +164,27 @@ pub fn run(args: &Args) -> Result<i32> {
     Ok(exit::OK)
 }
 
+/// Refuse a jitter that takes a frame off its own image or past any instrument's motion: a
+/// shift beyond the frame's size, a scale outside 0.5–2, a roll beyond 180°, or a value that
+/// is not finite (amplitudes such as 1e30 px).
+fn check_motion(truth: &[Similarity], size: usize, spec: &str) -> Result<()> {
+    let limit = size as f64;
+    for (k, m) in truth.iter().enumerate() {
+        let rotation = m.rotation_arcsec();
+        let fine = m.dx.abs() <= limit
+            && m.dy.abs() <= limit
+            && (0.5..=2.0).contains(&m.scale)
+            && rotation.abs() <= 180.0 * 3600.0;
+        if !fine {
+            return Err(Error::Usage(format!(
+                "--jitter {spec}: frame {k} would move by dx {:.3e} px, dy {:.3e} px, rotation {:.3e}″, scale {:.6}: beyond ±{size} px (the frame's size), ±180° or a scale of 0.5–2; give smaller amplitudes",
+                m.dx, m.dy, rotation, m.scale
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn start_time(args: &Args) -> Result<i64> {
     match &args.start {
         Some(s) => parse_fits_time(s, TimeScale::Utc).map_err(|_| {
@@ -194,19 +212,17 @@ fn remove_extname(f: &mut FitsFile) {
     }
 }
 
-/// One primary-HDU int16 image; written to `NAME.tmp` then renamed into place.
+/// One primary-HDU int16 image, written under a temporary name and renamed into place.
 fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>) -> Result<()> {
-    let tmp = path.with_extension("fits.tmp");
     let fail = |e: fitsio::errors::Error| Error::output(path, e.to_string());
     let (h, w) = image.dim();
     let desc = ImageDescription {
         data_type: ImageType::Short,
         dimensions: &[h, w],
     };
-    {
-        let mut f = FitsFile::create(&tmp)
+    crate::outputs::write_atomically(path, |tmp| {
+        let mut f = FitsFile::create(tmp)
             .with_custom_primary(&desc)
-            .overwrite()
             .open()
             .map_err(fail)?;
         remove_extname(&mut f);
@@ -223,7 +239,6 @@ fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>)
             .iter()
             .map(|&v| v.round().clamp(i16::MIN as f32, i16::MAX as f32) as i16)
             .collect();
-        hdu.write_image(&mut f, &pixels).map_err(fail)?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+        hdu.write_image(&mut f, &pixels).map_err(fail)
+    })
 }

@@ -3,8 +3,9 @@
 use crate::config::{Config, Overrides};
 use crate::error::exit;
 use crate::monitor::{Monitor, MonitorSetup};
-use crate::outputs::{check_outputs, OutputLock};
-use crate::pipeline::{read_history, EngineAligner, FitsReader, Progress, RunParts};
+use crate::outputs::check_outputs_outside;
+use crate::pipeline::{EngineAligner, FitsReader, Progress, RunParts};
+use crate::runs::open_run;
 use crate::{Error, Result};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -51,6 +52,12 @@ pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
 pub fn run(args: &Args) -> Result<i32> {
     let live = args.live.as_deref().map(parse_live_address).transpose()?;
     let config = effective_config(&args.run)?;
+    let clients = if live.is_some() {
+        config.live.max_clients as u64
+    } else {
+        0
+    };
+    super::ensure_open_files(super::MIN_OPEN_FILES + clients)?;
     if !args.dir.is_dir() {
         return Err(Error::bad_input(&args.dir, "not a directory"));
     }
@@ -58,20 +65,39 @@ pub fn run(args: &Args) -> Result<i32> {
         .dir
         .canonicalize()
         .map_err(|e| Error::io(&args.dir, e))?;
-    let products =
-        crate::products::open(args.run.products(), std::slice::from_ref(&root), &[], &root)?;
-    // Before reading (and recovering) the log: another daemon may be writing it.
-    let lock = OutputLock::acquire(&args.run.out)?;
+    // What no output may overwrite: the references and the configuration (and, as trees,
+    // the watched directory and the products).
+    let mut protected = config.reference_files();
+    protected.extend(args.run.config.path.clone());
+    let products = crate::products::open(
+        args.run.products(),
+        std::slice::from_ref(&root),
+        &protected,
+        &root,
+    )?;
+    let watched: (&std::path::Path, &str) = (&root, "the watched directory");
+    crate::runs::check_out_dir(&args.run.out, &[watched], true, &[])?;
     let status_file = config.health.status_path(&args.run.out);
-    let config_file: Vec<&std::path::Path> = args.run.config.path.as_deref().into_iter().collect();
-    check_outputs(&[&status_file], &config_file)?;
-    let history = read_history(&args.run.out)?;
-    let mcap = crate::sink::McapSink::new(
-        &args.run.out,
-        config.sink.clone(),
-        config.to_json().to_string(),
-    )?
-    .holding(lock);
+    let mut trees = vec![watched];
+    if let Some(dir) = args.run.aligned.as_deref() {
+        trees.push((dir, "the --aligned directory"));
+    }
+    let protected_refs: Vec<&std::path::Path> = protected.iter().map(|p| p.as_path()).collect();
+    check_outputs_outside(&[&status_file], &protected_refs, &trees)?;
+    // Before reading (and recovering) the log: another daemon may be writing it.
+    let identity = crate::runs::RunIdentity::watch(&root);
+    let opened = open_run(&args.run.out, &config, &identity)?;
+    if let Some(dir) = status_file.parent().filter(|d| !d.as_os_str().is_empty()) {
+        crate::error::check_writable_dir(dir)?;
+    }
+    if opened.earlier_frames > 0 {
+        tracing::info!(
+            frames = opened.earlier_frames,
+            "resuming the log in {}: frames already logged are not measured again",
+            crate::text::path(&args.run.out)
+        );
+    }
+    let (history, mcap) = (opened.history, opened.sink);
     let (progress_tx, progress_rx) = tokio::sync::watch::channel(Progress::default());
     let runtime = runtime()?;
     let setup = MonitorSetup {
@@ -94,7 +120,7 @@ pub fn run(args: &Args) -> Result<i32> {
         products,
     };
     let result = runtime
-        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()).await });
+        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()?).await });
     let stopped = {
         let _inside = runtime.enter();
         monitor.stop()
@@ -139,34 +165,34 @@ pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
 
 /// Resolves on SIGINT or SIGTERM. Call it inside the runtime: the handlers are installed at
 /// once, so a signal that arrives before the future is first polled still stops the run
-/// cleanly (instead of killing the process with the default action).
-pub(crate) fn termination() -> impl std::future::Future<Output = ()> + Send + 'static {
+/// cleanly (instead of killing the process with the default action). A handler that cannot
+/// be installed is an error, before any work: a run that could not be stopped is not started.
+pub(crate) fn termination() -> Result<impl std::future::Future<Output = ()> + Send + 'static> {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{signal, SignalKind};
-        let handlers = (
-            signal(SignalKind::terminate()),
-            signal(SignalKind::interrupt()),
-        );
-        async move {
-            match handlers {
-                (Ok(mut term), Ok(mut int)) => {
-                    tokio::select! {
-                        _ = term.recv() => {}
-                        _ = int.recv() => {}
-                    }
-                }
-                _ => {
-                    let _ = tokio::signal::ctrl_c().await;
-                }
+        let install = |kind: SignalKind, name: &str| {
+            signal(kind).map_err(|e| {
+                Error::output(
+                    "signal handlers",
+                    format!("cannot install the {name} handler: {e}"),
+                )
+            })
+        };
+        let mut term = install(SignalKind::terminate(), "SIGTERM")?;
+        let mut int = install(SignalKind::interrupt(), "SIGINT")?;
+        Ok(async move {
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = int.recv() => {}
             }
-        }
+        })
     }
     #[cfg(not(unix))]
     {
-        async {
+        Ok(async {
             let _ = tokio::signal::ctrl_c().await;
-        }
+        })
     }
 }
 

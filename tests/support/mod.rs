@@ -237,3 +237,86 @@ pub fn logged(out: &Path) -> std::collections::BTreeMap<String, usize> {
     }
     counts
 }
+
+/// A file of the repository (`data/real/…`).
+pub fn repo_file(relative: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(relative)
+}
+
+/// The first `n` frames of a real cube, each written into `dir` as a FITS file of its own.
+pub fn cube_frames_into(cube: &str, dir: &Path, n: usize) -> Vec<std::path::PathBuf> {
+    std::fs::create_dir_all(dir).unwrap();
+    let scratch = tempfile::tempdir().unwrap();
+    sunjitter_runtime::fake::split_cube(&repo_file(cube), scratch.path())
+        .unwrap()
+        .into_iter()
+        .take(n)
+        .map(|f| {
+            let path = dir.join(&f.name);
+            std::fs::write(&path, &f.bytes).unwrap();
+            path
+        })
+        .collect()
+}
+
+/// `replay INPUT --shard K/N --out BASE/shard-K` for every K (with `--config` when given),
+/// each of which must succeed: the shard outputs.
+pub fn replay_shards(
+    base: &Path,
+    input: &Path,
+    config: Option<&Path>,
+    count: usize,
+) -> Vec<std::path::PathBuf> {
+    (0..count)
+        .map(|k| {
+            let out = base.join(format!("shard-{k}"));
+            let mut args: Vec<std::ffi::OsString> = vec!["replay".into(), input.into()];
+            if let Some(c) = config {
+                args.extend(["--config".into(), c.into()]);
+            }
+            args.extend(["--out".into(), out.clone().into()]);
+            args.extend(["--shard".into(), format!("{k}/{count}").into()]);
+            let (code, _, err) = sunjitter(&args);
+            assert_eq!(code, 0, "shard {k}/{count}: {err}");
+            out
+        })
+        .collect()
+}
+
+/// A watched directory `BASE/in` (created), `BASE/out` for the log and `BASE/c.toml` holding
+/// [`QUICK_DAEMON_CONFIG`] followed by `extra`.
+pub fn daemon_dirs(
+    base: &Path,
+    extra: &str,
+) -> (std::path::PathBuf, std::path::PathBuf, std::path::PathBuf) {
+    let watched = base.join("in");
+    std::fs::create_dir_all(&watched).unwrap();
+    let config = base.join("c.toml");
+    std::fs::write(&config, format!("{QUICK_DAEMON_CONFIG}{extra}")).unwrap();
+    (watched, base.join("out"), config)
+}
+
+/// Run `cmd` with the resource limit `resource` (soft and hard) at `value`. Past
+/// `RLIMIT_FSIZE`, a write then fails (EFBIG) as on a full disk instead of the process being
+/// killed (SIGXFSZ ignored).
+pub fn with_rlimit(
+    cmd: &mut std::process::Command,
+    resource: libc::__rlimit_resource_t,
+    value: u64,
+) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: only async-signal-safe calls between fork and exec.
+    unsafe {
+        cmd.pre_exec(move || {
+            let l = libc::rlimit {
+                rlim_cur: value,
+                rlim_max: value,
+            };
+            libc::setrlimit(resource, &l);
+            if resource == libc::RLIMIT_FSIZE {
+                libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+            }
+            Ok(())
+        });
+    }
+}

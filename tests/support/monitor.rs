@@ -208,12 +208,18 @@ impl NodeClient {
     }
 
     pub fn start(url: &str, args: &[&str]) -> NodeClient {
+        NodeClient::start_offering(url, args, "foxglove.sdk.v1")
+    }
+
+    /// [`NodeClient::start`], the client offering `subprotocols` (comma-separated).
+    pub fn start_offering(url: &str, args: &[&str], subprotocols: &str) -> NodeClient {
         NodeClient::require_installed();
         let dir = client_dir();
         let mut child = Command::new("node")
             .arg(dir.join("client.js"))
             .arg(url)
             .args(args)
+            .env("SUBPROTOCOLS", subprotocols)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -280,6 +286,16 @@ pub fn process_running(pid: u32) -> bool {
 /// live view at `url` (`ws://HOST:PORT`), with an `Origin` header when given: the response's
 /// HTTP status code, and the connection (open, for a `101`).
 pub fn ws_handshake(url: &str, origin: Option<&str>) -> (u16, std::net::TcpStream) {
+    ws_handshake_offering(url, origin, "foxglove.sdk.v1").0
+}
+
+/// [`ws_handshake`] offering `subprotocols`: also the response's head (status line and
+/// headers, as text).
+pub fn ws_handshake_offering(
+    url: &str,
+    origin: Option<&str>,
+    subprotocols: &str,
+) -> ((u16, std::net::TcpStream), String) {
     use std::io::{Read, Write};
     let host = url.strip_prefix("ws://").expect("a ws:// address");
     let mut stream = std::net::TcpStream::connect(host).unwrap();
@@ -288,7 +304,7 @@ pub fn ws_handshake(url: &str, origin: Option<&str>) -> (u16, std::net::TcpStrea
     let request = format!(
         "GET / HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
          Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
-         Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n{origin}\r\n"
+         Sec-WebSocket-Protocol: {subprotocols}\r\n{origin}\r\n"
     );
     stream.write_all(request.as_bytes()).unwrap();
     let mut head = Vec::new();
@@ -303,11 +319,11 @@ pub fn ws_handshake(url: &str, origin: Option<&str>) -> (u16, std::net::TcpStrea
         );
         head.push(byte[0]);
     }
-    let head = String::from_utf8_lossy(&head);
+    let head = String::from_utf8_lossy(&head).into_owned();
     let code = head
         .strip_prefix("HTTP/1.1 ")
         .and_then(|r| r.get(..3))
         .and_then(|c| c.parse().ok())
         .unwrap_or_else(|| panic!("not an HTTP response: {head}"));
-    (code, stream)
+    ((code, stream), head)
 }

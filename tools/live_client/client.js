@@ -6,7 +6,7 @@
 //   node client.js ws://127.0.0.1:PORT stall           subscribe to every channel, then never
 //                                                      read the socket again
 //
-// Lines on stdout: {"event":"advertised","topic":...,"schemaName":...,"schemaEncoding":...,
+// Lines on stdout: {"event":"open","protocol":...}, {"event":"advertised","topic":...,"schemaName":...,"schemaEncoding":...,
 // "encoding":...}, {"event":"subscribed","topic":...}, {"event":"message","topic":...,
 // "logTime":"<ns>","payload":{...}}, {"event":"stalled"}. Errors go to stderr, exit code 1.
 "use strict";
@@ -20,8 +20,10 @@ if (!url || !["read", "stall"].includes(mode)) {
 }
 
 const out = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
-// The SDK 0.30 server accepts only the foxglove.sdk.v1 subprotocols.
-const ws = new WebSocket(url, ["foxglove.sdk.v1"]);
+// SUBPROTOCOLS (comma-separated) is what the client offers; by default the SDK's name of
+// the protocol. `foxglove.websocket.v1` is the classic name of the same protocol.
+const offered = (process.env.SUBPROTOCOLS || "foxglove.sdk.v1").split(",");
+const ws = new WebSocket(url, offered);
 const client = new FoxgloveClient({ ws });
 const wanted = new Set(topics);
 const channels = new Map(); // channel id -> channel
@@ -33,7 +35,7 @@ client.on("error", (e) => {
   process.exit(1);
 });
 client.on("close", () => process.exit(0));
-client.on("open", () => out({ event: "open" }));
+client.on("open", () => out({ event: "open", protocol: ws.protocol }));
 client.on("advertise", (list) => {
   for (const ch of list) {
     channels.set(ch.id, ch);

@@ -501,11 +501,16 @@ pub fn image_geometry(header: &Header, kind: &HduKind) -> Result<Option<ImageGeo
 /// pixel (or be silently ignored).
 fn check_scaling(header: &Header) -> Result<(), String> {
     for key in ["BSCALE", "BZERO"] {
-        if !header.contains(key) {
+        // A card whose value is no FITS value at all (an unquoted `NAN`) counts as present.
+        let Some(card) = header.cards().iter().find(|c| c.key == key) else {
             continue;
-        }
-        let shown = match header.get(key) {
-            None => return Err(format!("{key} has no value")),
+        };
+        let shown = match &card.value {
+            None => {
+                return Err(format!(
+                    "{key} has no value a FITS reader can use (not a finite number)"
+                ))
+            }
             Some(v) => match v.as_f64() {
                 Some(0.0) if key == "BSCALE" => {
                     return Err("BSCALE = 0 would make every pixel BZERO".into())

@@ -79,6 +79,7 @@ pub struct ImagePlace {
 /// The observation time here is the header's; cube readers replace it per frame.
 pub fn from_header(header: &Header, place: ImagePlace) -> Result<FrameMeta, String> {
     let wcs = CelestialWcs::from_header(header)?;
+    check_observer(header)?;
     let instrument = instrument(header);
     let wavelength = wavelength(header);
     Ok(FrameMeta {
@@ -513,6 +514,33 @@ pub fn exptime_s(h: &Header) -> Option<f64> {
     ["XPOSURE", "EXPTIME", "EXPOSURE", "SHT_MDUR"]
         .iter()
         .find_map(|k| h.f64(k))
+}
+
+/// Refuse an observer position no observer can have: a latitude (`HGLT_OBS`, `CRLT_OBS`,
+/// `SOLAR_B0`) beyond ±90°, a longitude (`HGLN_OBS`, `CRLN_OBS`) beyond ±360°. The Sun's
+/// rotation is taken out with them, so a wrong one would bias every shift.
+pub fn check_observer(h: &Header) -> Result<(), String> {
+    for (keys, limit, what) in [
+        (
+            &["HGLT_OBS", "CRLT_OBS", "SOLAR_B0"][..],
+            90.0,
+            "a latitude (−90° to 90°)",
+        ),
+        (
+            &["HGLN_OBS", "CRLN_OBS"][..],
+            360.0,
+            "a longitude (−360° to 360°)",
+        ),
+    ] {
+        for key in keys {
+            if let Some(v) = h.f64(key) {
+                if v.abs() > limit {
+                    return Err(format!("{key} = {v} is not {what}"));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The observer's position from the header: Stonyhurst (`HGLN_OBS`, `HGLT_OBS`), else

@@ -1032,26 +1032,13 @@ fn resize(img: &Array2<f32>) -> Array2<f32> {
 /// Encode with plotters' bitmap backend (PNG chosen by the `.png` name of a temporary file,
 /// renamed into place so a half-written picture is never seen under `path`).
 fn write_png(path: &Path, look: &Quicklook) -> Result<()> {
-    let out_err = |reason: String| Error::output(path, reason);
-    let name = path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| out_err("not a UTF-8 file name".into()))?;
-    let tmp = path.with_file_name(format!(".{name}.{}.tmp.png", std::process::id()));
     let size = (look.width as u32, look.height as u32);
-    let drawn = {
-        let mut backend = BitMapBackend::new(&tmp, size);
+    crate::outputs::write_atomically(path, |tmp| {
+        let mut backend = BitMapBackend::new(tmp, size);
         backend
             .blit_bitmap((0, 0), size, &look.rgb)
             .and_then(|_| backend.present())
-    };
-    if let Err(e) = drawn {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(out_err(format!("cannot write the PNG: {e}")));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        out_err(format!("cannot move the written file into place: {e}"))
+            .map_err(|e| Error::output(path, format!("cannot write the PNG: {e}")))
     })
 }
 

@@ -12,6 +12,8 @@ use sunjitter_core::engine::EngineConfig;
 use sunjitter_core::{Error, Result};
 pub use sunjitter_io::sink::SinkConfig;
 
+pub mod limits;
+
 /// The whole configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
@@ -137,12 +139,16 @@ pub struct Overrides {
     pub recursive: bool,
 }
 
+/// Largest configuration file read.
+const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
 impl Config {
     /// Read `path` (or the defaults when `None`), apply `overrides`, check the result.
     pub fn load(path: Option<&Path>, overrides: &Overrides) -> Result<Config> {
         let mut config = match path {
             Some(path) => {
-                let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+                let text =
+                    sunjitter_io::input::read_text(path, MAX_CONFIG_BYTES, "configuration file")?;
                 Config::from_toml(&text).map_err(|e| Error::bad_input(path, e))?
             }
             None => Config::default(),
@@ -169,52 +175,14 @@ impl Config {
         }
     }
 
-    /// Reject settings that cannot work (exit code 2, one line naming the field).
+    /// Reject settings that cannot work (exit code 2, one line naming the field): every value
+    /// against its range ([`limits`]), channel references that form a cycle, live
+    /// origins that are not origins.
     pub fn validate(&self) -> Result<()> {
-        let bad = |what: &str| Err(Error::Usage(format!("configuration: {what}")));
-        let d = &self.daemon;
-        if d.queue_capacity == 0 || d.readers == 0 || d.workers == 0 {
-            return bad("daemon.queue_capacity, daemon.readers and daemon.workers must be ≥ 1");
-        }
-        for (name, v) in [
-            ("daemon.reorder_window_s", d.reorder_window_s),
-            ("daemon.settle_s", d.settle_s),
-            ("daemon.retry_initial_s", d.retry_initial_s),
-            ("daemon.retry_max_s", d.retry_max_s),
-            ("daemon.incomplete_wait_s", d.incomplete_wait_s),
-            ("daemon.rescan_interval_s", d.rescan_interval_s),
-            ("sink.segment_minutes", self.sink.segment_minutes),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(&format!("{name} must be a finite number ≥ 0"));
-            }
-        }
-        if !(d.flush_interval_s.is_finite() && d.flush_interval_s > 0.0) {
-            return bad("daemon.flush_interval_s must be > 0");
-        }
-        let names: Vec<&String> = self.channels.keys().collect();
-        for name in std::iter::once(None).chain(names.into_iter().map(Some)) {
-            let p = match name {
-                Some(n) => self.channel_policy(n),
-                None => self.channel_policy(""),
-            };
-            for (field, v) in [
-                ("keyframe_every_s", p.keyframe_every_s),
-                ("tolerance_s", p.tolerance_s),
-                ("hold_s", p.hold_s),
-                ("refresh_below_similarity", p.refresh_below_similarity),
-            ] {
-                if !(v.is_finite() && v >= 0.0) {
-                    let at = name.map_or("reference".to_string(), |n| format!("channels.{n}"));
-                    return bad(&format!("{at}.{field} must be a finite number ≥ 0"));
-                }
-            }
-        }
+        limits::check(self)?;
         for name in self.channels.keys() {
             self.partner_chain(name)?;
         }
-        self.alerts.validate()?;
-        self.health.validate()?;
         self.live.validate()?;
         Ok(())
     }
@@ -297,6 +265,18 @@ impl Config {
     /// The effective configuration as JSON (for the MCAP metadata record).
     pub fn to_json(&self) -> serde_json::Value {
         serde_json::to_value(self).unwrap_or(serde_json::Value::Null)
+    }
+
+    /// The files `fixed:` policies name (the cube itself for `fixed:FILE[N]`): inputs that no
+    /// output may overwrite.
+    pub fn reference_files(&self) -> Vec<std::path::PathBuf> {
+        std::iter::once(&self.reference.policy)
+            .chain(self.channels.values().filter_map(|c| c.policy.as_ref()))
+            .filter_map(|p| match p {
+                PolicySpec::Fixed(file) => Some(sunjitter_io::fits::parse_frame_key(file).path),
+                _ => None,
+            })
+            .collect()
     }
 
     /// Make `fixed:FILE` paths absolute and canonical, so they match frame keys in logs.
@@ -404,48 +384,12 @@ impl Thresholds {
             silence_s: self.silence_s.or(fallback.silence_s),
         }
     }
-
-    fn validate(&self, at: &str) -> Result<()> {
-        let bad = |what: String| Err(Error::Usage(format!("configuration: {at}.{what}")));
-        for (name, v) in [
-            ("amplitude_px", self.amplitude_px),
-            ("amplitude_arcsec", self.amplitude_arcsec),
-            ("rms_px", self.rms_px),
-            ("rms_arcsec", self.rms_arcsec),
-            ("jump_px", self.jump_px),
-            ("jump_arcsec", self.jump_arcsec),
-            ("sigma_px", self.sigma_px),
-            ("lag_s", self.lag_s),
-            ("silence_s", self.silence_s),
-        ] {
-            if let Some(v) = v {
-                if !(v.is_finite() && v > 0.0) {
-                    return bad(format!("{name} must be a finite number > 0"));
-                }
-            }
-        }
-        if self.rms_window_frames.is_some_and(|w| w < 2) {
-            return bad("rms_window_frames must be ≥ 2".into());
-        }
-        if self.consecutive_bad == Some(0) || self.consecutive_failed == Some(0) {
-            return bad("consecutive_bad and consecutive_failed must be ≥ 1".into());
-        }
-        Ok(())
-    }
 }
 
 impl AlertsConfig {
+    /// The ranges of `[alerts]` ([`limits`]).
     pub fn validate(&self) -> Result<()> {
-        if !(self.command_timeout_s.is_finite() && self.command_timeout_s > 0.0) {
-            return Err(Error::Usage(
-                "configuration: alerts.command_timeout_s must be > 0".into(),
-            ));
-        }
-        self.defaults.validate("alerts.defaults")?;
-        for (name, t) in &self.channels {
-            t.validate(&format!("alerts.channels.{name}"))?;
-        }
-        Ok(())
+        limits::alerts(self)
     }
 
     /// The thresholds in force for a channel.
@@ -500,14 +444,9 @@ impl Default for LiveConfig {
 }
 
 impl LiveConfig {
+    /// Origins are origins (the numbers are checked with the rest, [`crate::limits`]).
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(Error::Usage(format!("configuration: {m}")));
-        if self.queue == 0 {
-            return bad("live.queue must be ≥ 1".into());
-        }
-        if self.max_clients == 0 {
-            return bad("live.max_clients must be ≥ 1".into());
-        }
         for origin in &self.allowed_origins {
             if !is_origin(origin) {
                 return bad(format!(
@@ -534,17 +473,6 @@ fn is_origin(text: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c))
         && !(web && host.is_empty())
         && !host.contains(['/', '?', '#', ' ', '*'])
-}
-
-impl HealthConfig {
-    pub fn validate(&self) -> Result<()> {
-        if !(self.interval_s.is_finite() && self.interval_s > 0.0) {
-            return Err(Error::Usage(
-                "configuration: health.interval_s must be > 0".into(),
-            ));
-        }
-        Ok(())
-    }
 }
 
 #[cfg(test)]

@@ -93,6 +93,13 @@ pub async fn run_daemon(
         parts.reader.clone(),
         Arc::new(parts.history.clone()),
     );
+    // The run's own products are never its inputs, whatever link leads to them.
+    ingest.excluded = parts
+        .products
+        .as_ref()
+        .and_then(|p| sunjitter_io::outputs::file_id(p.dir()))
+        .into_iter()
+        .collect();
     // The start scan: after the watcher is installed, so nothing falls in between.
     ingest.rescan(None).await;
     parts.progress.send_modify(|p| p.watching = true);
@@ -203,6 +210,10 @@ struct Ingest {
     waiting: BTreeSet<(Instant, PathBuf)>,
     /// Paths in `files` not yet `Done` (shared with the scheduler's reorder window).
     pending: Arc<AtomicUsize>,
+    /// Directories the run writes (its products), by identity: nothing inside is taken.
+    excluded: Vec<sunjitter_io::outputs::FileId>,
+    /// Whether a file inside them has been named in the log yet (once per run).
+    excluded_noted: bool,
 }
 
 impl Ingest {
@@ -221,6 +232,8 @@ impl Ingest {
             ready: VecDeque::new(),
             waiting: BTreeSet::new(),
             pending: Arc::new(AtomicUsize::new(0)),
+            excluded: Vec::new(),
+            excluded_noted: false,
         }
     }
 
@@ -379,6 +392,18 @@ impl Ingest {
         let name = path.file_name()?.to_string_lossy();
         if !wanted_file(&name, self.d()) {
             return None;
+        }
+        if !self.files.contains_key(&path) {
+            if let Some(real) = crate::ingest::excluded_output(&path, &self.excluded) {
+                if !std::mem::replace(&mut self.excluded_noted, true) {
+                    tracing::warn!(
+                        file = %sunjitter_core::text::path(&path),
+                        "is the run's own product ({}), reached through a link: products are never taken",
+                        sunjitter_core::text::path(&real)
+                    );
+                }
+                return None;
+            }
         }
         match self.files.get(&path).cloned() {
             None => {
@@ -563,8 +588,15 @@ impl Ingest {
     async fn rescan(&mut self, under: Option<PathBuf>) {
         let root = under.unwrap_or_else(|| self.root.clone());
         let daemon = self.d().clone();
+        let excluded = self.excluded.clone();
         let found = tokio::task::spawn_blocking(move || {
-            scan_tree(&root, daemon.recursive, daemon.follow_symlinks, &daemon)
+            scan_tree(
+                &root,
+                daemon.recursive,
+                daemon.follow_symlinks,
+                &daemon,
+                &excluded,
+            )
         })
         .await;
         match found {

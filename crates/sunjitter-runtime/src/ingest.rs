@@ -34,12 +34,15 @@ pub fn wanted_dir(path: &Path, d: &DaemonConfig) -> bool {
 
 /// Every wanted file under `root` (recursively if asked), sorted. Symbolic links to files
 /// are listed (the pipeline reports them when not followed); linked directories are entered
-/// only when `follow_symlinks`.
+/// only when `follow_symlinks`. Directories that are, or lie inside, one of `excluded` (the
+/// run's own outputs, compared by identity whatever the link that leads there) are not
+/// entered.
 pub fn scan_tree(
     root: &Path,
     recursive: bool,
     follow_symlinks: bool,
     d: &DaemonConfig,
+    excluded: &[sunjitter_io::outputs::FileId],
 ) -> Result<Vec<PathBuf>> {
     let mut found = Vec::new();
     let mut dirs = vec![root.to_path_buf()];
@@ -60,6 +63,14 @@ pub fn scan_tree(
                 file_type.is_dir() || (file_type.is_symlink() && follow_symlinks && path.is_dir());
             if is_dir {
                 if recursive && wanted_dir(&path, d) {
+                    if let Some(output) = excluded_output(&path, excluded) {
+                        tracing::warn!(
+                            dir = %sunjitter_core::text::path(&path),
+                            "leads into {}, where this run writes: not entered",
+                            sunjitter_core::text::path(&output)
+                        );
+                        continue;
+                    }
                     dirs.push(path);
                 }
                 continue;
@@ -73,6 +84,17 @@ pub fn scan_tree(
     }
     found.sort();
     Ok(found)
+}
+
+/// The real path of `path` when it is, or lies inside, one of the `excluded` directories.
+pub fn excluded_output(path: &Path, excluded: &[sunjitter_io::outputs::FileId]) -> Option<PathBuf> {
+    if excluded.is_empty() {
+        return None;
+    }
+    excluded
+        .iter()
+        .any(|id| sunjitter_io::outputs::is_within(path, *id))
+        .then(|| path.canonicalize().unwrap_or_else(|_| path.to_path_buf()))
 }
 
 /// Shell-style wildcard match of one file name: `*`, `?`, `[abc]`, `[a-z]`, `[!x]`.
@@ -139,6 +161,16 @@ pub fn expand_inputs(args: &[String], config: &Config) -> Result<Vec<(std::path:
     };
     for arg in args {
         let path = Path::new(arg);
+        if !path.exists() {
+            let spec = sunjitter_io::fits::parse_frame_key(arg);
+            if let (Some(n), true) = (spec.frame, spec.path.is_file()) {
+                return Err(Error::Usage(format!(
+                    "{}: replay takes whole files, and this names frame {n} of {}: give the file (replay measures every frame of a cube), or measure one frame with `sunjitter align`",
+                    sunjitter_core::text::escape(arg),
+                    sunjitter_core::text::path(&spec.path)
+                )));
+            }
+        }
         let matches: Vec<std::path::PathBuf> = if path.exists() || !has_wildcards(arg) {
             vec![path.to_path_buf()]
         } else {
@@ -149,7 +181,7 @@ pub fn expand_inputs(args: &[String], config: &Config) -> Result<Vec<(std::path:
         }
         for m in matches {
             if m.is_dir() {
-                for f in scan_tree(&m, d.recursive, d.follow_symlinks, d)? {
+                for f in scan_tree(&m, d.recursive, d.follow_symlinks, d, &[])? {
                     push(f, false, &mut out)?;
                 }
             } else {

@@ -8,6 +8,7 @@
 //! configuration file, read once.
 
 pub mod config;
+pub use config::limits;
 pub mod daemon;
 /// Fakes with known truths for the pipeline's tests; not part of the product.
 #[cfg(any(test, feature = "test-fakes"))]
@@ -20,4 +21,5 @@ pub mod pipeline;
 pub mod ports;
 pub mod products;
 pub mod reference;
+pub mod runs;
 pub mod shard;

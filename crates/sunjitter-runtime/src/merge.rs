@@ -114,14 +114,29 @@ pub fn read_shard(path: &Path) -> Result<ShardLog> {
     let done = ShardDone::from_metadata(&done.metadata)
         .map_err(|e| refused(path, format!("shard {spec}: completion record: {e}")))?;
     if done.messages != contents.jitter.len() as u64 {
-        return Err(refused(
-            path,
-            format!(
-                "shard {spec} holds {} frame messages where it logged {}",
+        // Fewer (or more) messages than it logged: a segment damaged since.
+        let damaged = contents
+            .segments
+            .iter()
+            .find(|s| s.skipped > 0 || !s.notes.is_empty());
+        let why = match damaged {
+            Some(s) => format!(
+                "{} is damaged ({}); {} of the {} frame messages the shard logged are readable",
+                sunjitter_core::text::path(&s.path),
+                s.notes
+                    .first()
+                    .cloned()
+                    .unwrap_or_else(|| format!("{} messages unreadable", s.skipped)),
                 contents.jitter.len(),
                 done.messages
             ),
-        ));
+            None => format!(
+                "holds {} frame messages where it logged {} (a segment missing or added)",
+                contents.jitter.len(),
+                done.messages
+            ),
+        };
+        return Err(refused(path, format!("shard {spec}: {why}: run it again")));
     }
     let config_json = contents
         .metadata
@@ -135,6 +150,9 @@ pub fn read_shard(path: &Path) -> Result<ShardLog> {
             format!("configuration not readable by this version: {e}"),
         )
     })?;
+    config
+        .validate()
+        .map_err(|e| refused(path, format!("its {e}")))?;
     Ok(ShardLog {
         path: path.to_path_buf(),
         spec,
@@ -620,12 +638,14 @@ pub fn merge_metadata(shards: &[ShardLog], merged: &Merged) -> BTreeMap<String, 
     m
 }
 
-/// Check `out` before anything is written: not one of the shards, and holding no log other
-/// than an earlier merge of the same run (which is replaced). Returns the segments to remove.
-pub fn check_output(out: &Path, shards: &[ShardLog]) -> Result<Vec<PathBuf>> {
-    let canon = |p: &Path| std::fs::canonicalize(p).ok();
-    if let Some(o) = canon(out) {
-        if let Some(s) = shards.iter().find(|s| canon(&s.path).as_ref() == Some(&o)) {
+/// What a merge may write into: a new directory, an empty one, or one holding only an
+/// earlier merge of the same run (same inputs and configuration), which is replaced. Not a
+/// shard's output, nor a directory holding anything else. Checked before any work and again
+/// under the lock just before writing.
+pub fn check_output(out: &Path, shards: &[ShardLog]) -> Result<()> {
+    use sunjitter_io::outputs::file_id;
+    if let Some(o) = file_id(out) {
+        if let Some(s) = shards.iter().find(|s| file_id(&s.path) == Some(o)) {
             return Err(refused(
                 out,
                 format!(
@@ -636,12 +656,43 @@ pub fn check_output(out: &Path, shards: &[ShardLog]) -> Result<Vec<PathBuf>> {
         }
     }
     if !out.exists() {
-        return Ok(Vec::new());
+        return Ok(());
     }
     if !out.is_dir() {
         return Err(refused(out, "exists and is not a directory"));
     }
-    let contents = sunjitter_io::sink::read_logs(&[out.to_path_buf()])?;
+    let mut others = Vec::new();
+    for entry in std::fs::read_dir(out).map_err(|e| Error::io(out, e))? {
+        let entry = entry.map_err(|e| Error::io(out, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let segment = name.ends_with(".mcap") && entry.file_type().is_ok_and(|t| t.is_file());
+        if name != sunjitter_io::outputs::LOCK_FILE && !segment {
+            others.push(name);
+        }
+    }
+    if !others.is_empty() {
+        others.sort();
+        let shown: Vec<String> = others
+            .iter()
+            .take(3)
+            .map(|n| sunjitter_core::text::escape(n).into_owned())
+            .collect();
+        return Err(refused(
+            out,
+            format!(
+                "holds {} other file(s) ({}{}): merge writes only into a new or empty directory, or over its own earlier merge",
+                others.len(),
+                shown.join(", "),
+                if others.len() > 3 { ", …" } else { "" }
+            ),
+        ));
+    }
+    let contents = sunjitter_io::sink::read_logs(&[out.to_path_buf()]).map_err(|e| {
+        refused(
+            out,
+            format!("holds a log that cannot be read ({e}); refusing to write over it"),
+        )
+    })?;
     let first = &shards[0];
     let same_run = |i: usize| {
         contents.metadata.iter().any(|m| {
@@ -662,51 +713,140 @@ pub fn check_output(out: &Path, shards: &[ShardLog]) -> Result<Vec<PathBuf>> {
             ));
         }
     }
-    Ok(contents.segments.iter().map(|s| s.path.clone()).collect())
+    Ok(())
 }
 
-/// Write the merged log into `out` (lock held by `sink`).
-pub fn write(
-    out: &Path,
-    shards: &[ShardLog],
-    merged: &Merged,
-    replace: &[PathBuf],
-) -> Result<Vec<PathBuf>> {
-    let lock = sunjitter_io::outputs::OutputLock::acquire(out)?;
-    for p in replace {
-        std::fs::remove_file(p).map_err(|e| Error::io(p, e))?;
+/// The hidden directory beside `out` a merge is written into before it takes `out`'s place.
+fn staging_dir(parent: &Path, name: &std::ffi::OsStr, pid: u32) -> PathBuf {
+    parent.join(format!(".{}.merge-{pid}", name.to_string_lossy()))
+}
+
+/// Remove what a merge put in `dir` (segments, their recovery copies, the lock file), then
+/// the directory if that leaves it empty. Anything else is left; a link is never followed.
+fn remove_merge_dir(dir: &Path) {
+    let is_dir = std::fs::symlink_metadata(dir).is_ok_and(|m| m.is_dir());
+    if !is_dir {
+        return;
     }
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let ours = name == sunjitter_io::outputs::LOCK_FILE
+                || name.ends_with(".mcap")
+                || name.ends_with(".mcap.recovering");
+            if ours && entry.file_type().is_ok_and(|t| t.is_file()) {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+    }
+    let _ = std::fs::remove_dir(dir);
+}
+
+/// Staging directories of merges into `name` that were killed (nobody holds their lock).
+fn remove_stale_staging(parent: &Path, name: &std::ffi::OsStr) {
+    let prefix = format!(".{}.merge-", name.to_string_lossy());
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let n = entry.file_name().to_string_lossy().into_owned();
+        if !n.starts_with(&prefix) || !entry.file_type().is_ok_and(|t| t.is_dir()) {
+            continue;
+        }
+        if let Ok(lock) = sunjitter_io::outputs::OutputLock::acquire(&entry.path()) {
+            drop(lock);
+            remove_merge_dir(&entry.path());
+        }
+    }
+}
+
+/// Write the merged log as `out`: into a hidden directory beside it first, then put in
+/// `out`'s place in one rename (the old and the new directory exchanged where the system
+/// can, Linux), and the old merge removed. A merge stopped at any moment leaves `out` as
+/// it was (the hidden directory is removed by the next merge). Returns the segments.
+pub fn write(out: &Path, shards: &[ShardLog], merged: &Merged) -> Result<Vec<PathBuf>> {
+    let out = match out.canonicalize() {
+        Ok(real) => real,
+        Err(_) => std::path::absolute(out).map_err(|e| Error::io(out, e))?,
+    };
+    let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else {
+        return Err(refused(
+            &out,
+            "is not a directory a merge can be written as",
+        ));
+    };
+    std::fs::create_dir_all(parent).map_err(|e| Error::unwritable(parent, e))?;
+    // Held until the new log is in place: no other merge or run writes here meanwhile.
+    let out_lock = if out.exists() {
+        Some(sunjitter_io::outputs::OutputLock::acquire(&out)?)
+    } else {
+        None
+    };
+    check_output(&out, shards)?;
+    remove_stale_staging(parent, name);
+    let stage = staging_dir(parent, name, std::process::id());
+    remove_merge_dir(&stage);
+    let stage_lock = sunjitter_io::outputs::OutputLock::acquire(&stage)?;
     let first = &shards[0];
     let mut sink_config = first.config.sink.clone();
     // One pass over finished logs: segments by frame count only, not by the clock.
     sink_config.segment_minutes = 0.0;
-    let mut sink = sunjitter_io::sink::McapSink::new(out, sink_config, first.config_json.clone())?
-        .with_segment_metadata(MERGE_METADATA, merge_metadata(shards, merged))
-        .holding(lock);
-    for m in &merged.messages {
-        match &m.item {
-            Item::Frame(f) => sink.write_frame(f, m.log_time_ns, m.publish_time_ns)?,
-            Item::Reference(c) => {
-                sink.write_reference_change(c, m.log_time_ns, m.publish_time_ns)?
+    let written = (|| -> Result<sunjitter_io::sink::McapSink> {
+        let mut sink =
+            sunjitter_io::sink::McapSink::new(&stage, sink_config, first.config_json.clone())?
+                .with_segment_metadata(MERGE_METADATA, merge_metadata(shards, merged))
+                .holding(stage_lock);
+        for m in &merged.messages {
+            match &m.item {
+                Item::Frame(f) => sink.write_frame(f, m.log_time_ns, m.publish_time_ns)?,
+                Item::Reference(c) => {
+                    sink.write_reference_change(c, m.log_time_ns, m.publish_time_ns)?
+                }
+                Item::Log(e) => sink.write_log(
+                    e.level,
+                    &e.file,
+                    &e.message,
+                    m.log_time_ns,
+                    m.publish_time_ns,
+                )?,
             }
-            Item::Log(e) => sink.write_log(
-                e.level,
-                &e.file,
-                &e.message,
-                m.log_time_ns,
-                m.publish_time_ns,
-            )?,
         }
+        if merged.messages.is_empty() {
+            sink.write_metadata(
+                MERGE_METADATA,
+                merge_metadata(shards, merged),
+                sunjitter_io::records::mcap_ns(sunjitter_io::records::now_ns()),
+            )?;
+        }
+        sink.finish()?;
+        // On disk before it replaces anything.
+        for p in sink.segment_paths() {
+            std::fs::File::open(p)
+                .and_then(|f| f.sync_all())
+                .map_err(|e| Error::io(p, e))?;
+        }
+        Ok(sink)
+    })();
+    let sink = match written {
+        Ok(sink) => sink,
+        Err(e) => {
+            remove_merge_dir(&stage);
+            return Err(e);
+        }
+    };
+    let names: Vec<PathBuf> = sink
+        .segment_paths()
+        .iter()
+        .filter_map(|p| p.file_name().map(|n| out.join(n)))
+        .collect();
+    let replaced = sunjitter_io::outputs::put_dir_in_place(&stage, &out)?;
+    drop(sink);
+    drop(out_lock);
+    // The stage now holds the old merge (or nothing).
+    if replaced {
+        remove_merge_dir(&stage);
     }
-    if merged.messages.is_empty() {
-        sink.write_metadata(
-            MERGE_METADATA,
-            merge_metadata(shards, merged),
-            sunjitter_io::records::mcap_ns(sunjitter_io::records::now_ns()),
-        )?;
-    }
-    sink.finish()?;
-    Ok(sink.segment_paths().to_vec())
+    Ok(names)
 }
 
 #[cfg(test)]

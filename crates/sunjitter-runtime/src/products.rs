@@ -92,6 +92,11 @@ impl Products {
         self.mode
     }
 
+    /// The directory products are written into (canonical).
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
     /// The product of frame `key` (`None` for a frame outside the root).
     pub fn path_for(&self, key: &str) -> Option<PathBuf> {
         let rel = key.strip_prefix(&self.root)?;
@@ -493,11 +498,13 @@ pub fn open(
 
 /// [`open`] for `replay PATH…` over `files` (as [`crate::ingest::expand_inputs`] gives them):
 /// the directories given and those holding the files are input directories; names are below
-/// the deepest directory holding every file.
+/// the deepest directory holding every file. `protected` (references, the configuration) are
+/// inputs too: the product directory must not hold them.
 pub fn for_replay(
     request: Request<'_>,
     paths: &[String],
     files: &[(PathBuf, bool)],
+    protected: &[PathBuf],
 ) -> Result<Option<Arc<Products>>> {
     let files: Vec<PathBuf> = files.iter().map(|(p, _)| p.clone()).collect();
     let mut dirs: Vec<PathBuf> = paths
@@ -510,7 +517,9 @@ pub fn for_replay(
             .iter()
             .filter_map(|p| p.parent().map(Path::to_path_buf)),
     );
-    open(request, &dirs, &files, &common_root(&files))
+    let mut inputs = files.clone();
+    inputs.extend(protected.iter().cloned());
+    open(request, &dirs, &inputs, &common_root(&files))
 }
 
 /// The deepest directory holding every file (`/` at worst).

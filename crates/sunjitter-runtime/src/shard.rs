@@ -28,7 +28,10 @@ pub const SHARD_DONE_METADATA: &str = "sunjitter.shard.done";
 /// Link values kept per chain of a shard (frames other shards own, with a chained value).
 const LINKS_PER_CHAIN: usize = 4;
 
-/// `K/N`: shard K (0-based) of N.
+/// Shards of one run at most (a job array larger than any cluster runs at once).
+pub const MAX_SHARDS: usize = 100_000;
+
+/// `K/N`: shard K (0-based) of N, with 1 ≤ N ≤ [`MAX_SHARDS`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ShardSpec {
     pub index: usize,
@@ -46,6 +49,9 @@ impl FromStr for ShardSpec {
         let count: usize = n.trim().parse().map_err(|_| bad("N is not a number"))?;
         if count == 0 {
             return Err(bad("N must be at least 1"));
+        }
+        if count > MAX_SHARDS {
+            return Err(bad(&format!("N must be at most {MAX_SHARDS}")));
         }
         if index >= count {
             return Err(bad("K counts from 0 and must be below N"));
@@ -675,7 +681,17 @@ mod tests {
             "3/4".parse::<ShardSpec>().unwrap(),
             ShardSpec { index: 3, count: 4 }
         );
-        for bad in ["4/4", "1/0", "a/2", "2", "-1/3"] {
+        for bad in [
+            "4/4",
+            "1/0",
+            "a/2",
+            "2",
+            "-1/3",
+            "0/4294967296",
+            "0/18446744073709551615",
+            "0/18446744073709551616",
+            "0/100001",
+        ] {
             let e = bad.parse::<ShardSpec>().unwrap_err();
             assert_eq!(e.exit_code(), 2, "{bad}");
         }

@@ -51,9 +51,13 @@ pub(super) struct PlainFile {
 impl PlainFile {
     pub(super) fn of(path: &Path, limits: &ReadLimits) -> Result<PlainFile> {
         let mut magic = [0u8; 2];
-        let gzip = match File::open(path) {
+        let gzip = match crate::input::open_regular(path) {
             Ok(mut f) => f.read_exact(&mut magic).is_ok() && magic == [0x1f, 0x8b],
             Err(e) if sunjitter_core::error::transient_io(&e) => return Err(Error::io(path, e)),
+            // Not a regular file (a FIFO would block the readers): said by `open`.
+            Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => {
+                return Err(Error::bad_input(path, e.to_string()))
+            }
             Err(_) => false,
         };
         if !gzip {

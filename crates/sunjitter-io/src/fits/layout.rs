@@ -192,11 +192,12 @@ pub(super) fn open(path: &Path) -> Result<File> {
     if path.is_dir() {
         return Err(Error::bad_input(path, "is a directory, not a FITS file"));
     }
-    File::open(path).map_err(|e| {
+    crate::input::open_regular(path).map_err(|e| {
         if sunjitter_core::error::transient_io(&e) {
             return Error::io(path, e);
         }
         let reason = match bad_frame_suffix(path) {
+            _ if e.kind() == std::io::ErrorKind::InvalidInput => e.to_string(),
             Some(inner) if e.kind() == std::io::ErrorKind::NotFound => format!(
                 "no such file, and '[{inner}]' is not a frame index (FILE[N] takes N = 0, 1, 2, …)"
             ),

@@ -24,21 +24,15 @@ fn is_structural(key: &str) -> bool {
 ///
 /// Structural cards in `cards` (`BITPIX`, `NAXISn`, `BSCALE`, …) are skipped: the file holds the
 /// f32 values as given. Keys must be standard FITS keywords (≤ 8 characters). The file is
-/// written under a temporary name and renamed into place, so a directory watcher never sees a
-/// half-written file.
+/// written under a temporary name and renamed into place
+/// ([`crate::outputs::write_atomically`]), so a directory watcher never sees a half-written
+/// file and a failed write leaves nothing behind.
 pub fn write_image(
     path: &Path,
     data: ArrayView2<f32>,
     cards: &[(String, HeaderValue)],
 ) -> Result<()> {
     let out_err = |reason: String| Error::output(path, reason);
-    let file_name = path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| out_err("not a UTF-8 file name".into()))?;
-    let tmp = path.with_file_name(format!(".{file_name}.{}.tmp", std::process::id()));
-    let ctmp = CString::new(utf8_path(&tmp).map_err(|_| out_err("not a UTF-8 path".into()))?)
-        .map_err(|_| out_err("the path contains a NUL byte".into()))?;
     for (key, _) in cards {
         if key.is_empty()
             || key.len() > 8
@@ -51,16 +45,14 @@ pub fn write_image(
     }
     let pixels: Vec<f32> = data.iter().copied().collect();
     let (height, width) = data.dim();
-    let _ = std::fs::remove_file(&tmp);
-    {
+    // Under a temporary name, removed again whatever fails (a full disk, say).
+    crate::outputs::write_atomically(path, |tmp| {
+        let ctmp = CString::new(utf8_path(tmp).map_err(|_| out_err("not a UTF-8 path".into()))?)
+            .map_err(|_| out_err("the path contains a NUL byte".into()))?;
         let _guard = CFITSIO
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner());
-        write_with_cfitsio(&ctmp, width, height, pixels, cards).map_err(out_err)?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        out_err(format!("cannot move the written file into place: {e}"))
+        write_with_cfitsio(&ctmp, width, height, pixels, cards).map_err(out_err)
     })
 }
 

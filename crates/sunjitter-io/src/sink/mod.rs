@@ -539,6 +539,10 @@ impl McapSink {
     }
 
     fn open_segment(&mut self, publish_time_ns: u64) -> Result<()> {
+        // Only into the directory this sink locked, never one put in its place.
+        if let Some(lock) = &self.lock {
+            lock.verify()?;
+        }
         let mut key = self.next_key(publish_time_ns);
         let (path, file) = loop {
             let path = self.dir.join(key.file_name());

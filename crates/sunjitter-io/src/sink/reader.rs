@@ -145,11 +145,25 @@ pub fn logged_frames(paths: &[PathBuf]) -> Result<HashSet<FrameSpec>> {
 pub fn read_logs(paths: &[PathBuf]) -> Result<LogContents> {
     let mut contents = LogContents::default();
     for path in segment_files(paths)? {
-        let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+        let bytes = read_segment_bytes(&path)?;
         let raw = parse_segment(&path, &bytes)?;
         decode_segment(raw, &mut contents);
     }
     Ok(contents)
+}
+
+/// A segment's bytes; only a regular file is read (a FIFO or a device would block or never
+/// end).
+fn read_segment_bytes(path: &Path) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let mut file = crate::input::open_regular(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::InvalidInput => Error::bad_input(path, e.to_string()),
+        _ => Error::io(path, e),
+    })?;
+    let mut bytes = Vec::new();
+    file.read_to_end(&mut bytes)
+        .map_err(|e| Error::io(path, e))?;
+    Ok(bytes)
 }
 
 fn segment_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>> {
@@ -473,7 +487,7 @@ pub fn recover_segment(path: &Path) -> Result<RecoveryOutcome> {
 
 /// [`recover_segment`], with `fsync` of the new file and its directory only if `sync`.
 pub(super) fn recover_segment_with(path: &Path, sync: bool) -> Result<RecoveryOutcome> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bytes = read_segment_bytes(path)?;
     let raw = parse_segment(path, &bytes)?;
     if raw.report.complete {
         return Ok(RecoveryOutcome::AlreadyComplete);

@@ -1,15 +1,15 @@
-//! The live view's front door. The Foxglove SDK's server has no hook for its handshake, so the
-//! public address is ours: each connection's WebSocket handshake is read here, checked (its
-//! `Origin`, the number of clients), and the connection is then relayed byte for byte to the
-//! SDK's server on a private loopback address. A refused handshake gets an HTTP error status.
+//! The live view's front door, on the one address it listens on: each connection's WebSocket
+//! handshake is read here (at most 16 KiB, within 10 s), checked (its `Origin`, the number of
+//! clients, a WebSocket upgrade offering one of [`super::live::SUBPROTOCOLS`]) and answered,
+//! and the connection is handed to [`super::live::serve_client`]. A refused handshake gets an
+//! HTTP error status and one line saying why.
 //!
 //! Browsers send `Origin` with every WebSocket handshake and let any page open one to any
 //! address, so without the check any web page in the operator's browser could read the live
 //! data. Clients outside browsers (the Foxglove desktop app, scripts) send no `Origin`.
 
-use std::collections::hash_map::RandomState;
-use std::hash::{BuildHasher, Hasher};
-use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use super::live::{serve_client, Hub, SUBPROTOCOLS};
+use std::net::SocketAddr;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -32,17 +32,6 @@ pub struct Admission {
     pub allowed_origins: Vec<String>,
     /// Connections (clients, and handshakes being read) at once at most.
     pub max_clients: usize,
-}
-
-/// A loopback address for the SDK's server that a web page cannot guess: on Linux all of
-/// 127.0.0.0/8 is this host, so a random address there (else 127.0.0.1).
-pub fn private_loopback() -> IpAddr {
-    let r = RandomState::new().build_hasher().finish().to_le_bytes();
-    let candidate = Ipv4Addr::new(127, r[0], r[1], r[2].max(2));
-    match std::net::TcpListener::bind((candidate, 0)) {
-        Ok(_) => IpAddr::V4(candidate),
-        Err(_) => IpAddr::V4(Ipv4Addr::LOCALHOST),
-    }
 }
 
 /// Refusals to name on `/log`, at most one per kind and period.
@@ -152,17 +141,17 @@ pub struct Gate {
     open: Arc<AtomicUsize>,
     refusing: Arc<AtomicUsize>,
     notices: Notices,
-    backend: SocketAddr,
+    hub: Arc<Hub>,
 }
 
 impl Gate {
-    pub fn new(admission: Admission, backend: SocketAddr, notices: Notices) -> Arc<Gate> {
+    pub fn new(admission: Admission, hub: Arc<Hub>, notices: Notices) -> Arc<Gate> {
         Arc::new(Gate {
             admission,
             open: Arc::default(),
             refusing: Arc::default(),
             notices,
-            backend,
+            hub,
         })
     }
 
@@ -173,11 +162,18 @@ impl Gate {
         stop: tokio::sync::oneshot::Receiver<()>,
     ) {
         tokio::pin!(stop);
+        // Every connection's task: all ended when the gate stops, slow clients included.
+        let mut connections = tokio::task::JoinSet::new();
         loop {
+            // Reap the finished ones as they come, so the set stays as small as the clients.
+            while connections.try_join_next().is_some() {}
             tokio::select! {
-                _ = &mut stop => return,
+                _ = &mut stop => {
+                    connections.abort_all();
+                    return;
+                }
                 accepted = listener.accept() => match accepted {
-                    Ok((stream, peer)) => self.clone().admit(stream, peer),
+                    Ok((stream, peer)) => self.clone().admit(stream, peer, &mut connections),
                     Err(e) => {
                         // Out of file descriptors, say: wait rather than spin.
                         tracing::warn!("live view: cannot accept a connection: {e}");
@@ -188,16 +184,21 @@ impl Gate {
         }
     }
 
-    fn admit(self: Arc<Self>, stream: TcpStream, peer: SocketAddr) {
+    fn admit(
+        self: Arc<Self>,
+        stream: TcpStream,
+        peer: SocketAddr,
+        connections: &mut tokio::task::JoinSet<()>,
+    ) {
         match Slot::take(&self.open, self.admission.max_clients) {
             Some(slot) => {
-                tokio::spawn(self.serve(stream, peer, slot));
+                connections.spawn(self.serve(stream, peer, slot));
             }
             None => {
                 self.notices.refused_full(peer, self.admission.max_clients);
                 // Answered (the client learns why) while few are; else just closed.
                 if let Some(slot) = Slot::take(&self.refusing, REFUSING_AT_ONCE) {
-                    tokio::spawn(async move {
+                    connections.spawn(async move {
                         let _slot = slot;
                         let mut stream = stream;
                         if let Ok(_head) = read_head(&mut stream).await {
@@ -229,35 +230,106 @@ impl Gate {
             respond(&mut stream, 403, "Forbidden", "origin not allowed").await;
             return;
         }
-        let mut upstream = match TcpStream::connect(self.backend).await {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::error!("live view: cannot reach the live server: {e}");
-                respond(
-                    &mut stream,
-                    503,
-                    "Service Unavailable",
-                    "live server unavailable",
-                )
-                .await;
+        let accepted = match accept_upgrade(&head) {
+            Ok(accepted) => accepted,
+            Err((code, status, why)) => {
+                tracing::info!(%peer, "live view: handshake refused: {why}");
+                respond(&mut stream, code, status, &why).await;
                 return;
             }
         };
-        tracing::debug!(%peer, "live view: connection admitted");
-        // Live messages are small and should go out at once.
-        let _ = stream.set_nodelay(true);
-        let _ = upstream.set_nodelay(true);
-        if upstream.write_all(&head.bytes).await.is_err() {
+        let response = format!(
+            "HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+             Sec-WebSocket-Accept: {}\r\nSec-WebSocket-Protocol: {}\r\n\r\n",
+            accepted.key, accepted.subprotocol
+        );
+        if stream.write_all(response.as_bytes()).await.is_err() {
             return;
         }
-        let _ = tokio::io::copy_bidirectional(&mut stream, &mut upstream).await;
+        // Live messages are small and should go out at once.
+        let _ = stream.set_nodelay(true);
+        let read_ahead = head.bytes[head.len..].to_vec();
+        serve_client(self.hub.clone(), stream, read_ahead, peer).await;
     }
+}
+
+/// What an accepted upgrade answers: the `Sec-WebSocket-Accept` value and the subprotocol.
+struct Accepted {
+    key: String,
+    subprotocol: &'static str,
+}
+
+/// Check a handshake as RFC 6455 §4.2.1 asks (GET, `Upgrade: websocket`, `Connection:
+/// Upgrade`, version 13, a key) and choose the subprotocol; else the HTTP status and why.
+fn accept_upgrade(head: &Head) -> Result<Accepted, (u16, &'static str, String)> {
+    let has_token = |name: &str, token: &str| {
+        head.headers(name)
+            .flat_map(|v| v.split(','))
+            .any(|t| t.trim().eq_ignore_ascii_case(token))
+    };
+    if head.method != "GET"
+        || !has_token("upgrade", "websocket")
+        || !has_token("connection", "upgrade")
+    {
+        return Err((
+            400,
+            "Bad Request",
+            "this is a Foxglove WebSocket server (ws://): connect with Foxglove".into(),
+        ));
+    }
+    if !head
+        .headers("sec-websocket-version")
+        .any(|v| v.trim() == "13")
+    {
+        return Err((426, "Upgrade Required", "WebSocket version 13 only".into()));
+    }
+    let Some(key) = head.headers("sec-websocket-key").next().map(str::trim) else {
+        return Err((400, "Bad Request", "no Sec-WebSocket-Key".into()));
+    };
+    let offered: Vec<&str> = head
+        .headers("sec-websocket-protocol")
+        .flat_map(|v| v.split(','))
+        .map(str::trim)
+        .collect();
+    let Some(subprotocol) = SUBPROTOCOLS.into_iter().find(|p| offered.contains(p)) else {
+        return Err((
+            400,
+            "Bad Request",
+            format!(
+                "no supported subprotocol offered ({}); this server speaks {}",
+                if offered.is_empty() {
+                    "none".to_string()
+                } else {
+                    offered.join(", ")
+                },
+                SUBPROTOCOLS.join(" and ")
+            ),
+        ));
+    };
+    Ok(Accepted {
+        key: tokio_tungstenite::tungstenite::handshake::derive_accept_key(key.as_bytes()),
+        subprotocol,
+    })
 }
 
 struct Head {
     /// Everything read so far (the handshake, and whatever followed it).
     bytes: Vec<u8>,
+    /// Length of the handshake in `bytes`.
+    len: usize,
+    method: String,
+    /// Header names (lower case) and values, in order.
+    fields: Vec<(String, String)>,
     origins: Vec<String>,
+}
+
+impl Head {
+    fn headers<'a>(&'a self, name: &'a str) -> impl Iterator<Item = &'a str> + 'a {
+        self.fields
+            .iter()
+            .filter(move |(n, _)| n == name)
+            .map(|(_, v)| v.as_str())
+    }
 }
 
 enum HeadError {
@@ -279,23 +351,39 @@ async fn read_head(stream: &mut TcpStream) -> Result<Head, HeadError> {
             let mut headers = [httparse::EMPTY_HEADER; 64];
             let mut request = httparse::Request::new(&mut headers);
             match request.parse(&bytes) {
-                Ok(httparse::Status::Complete(_)) => {
-                    return Ok(request
+                Ok(httparse::Status::Complete(len)) => {
+                    let fields: Vec<(String, String)> = request
                         .headers
                         .iter()
-                        .filter(|h| h.name.eq_ignore_ascii_case("origin"))
-                        .map(|h| String::from_utf8_lossy(h.value).into_owned())
-                        .collect::<Vec<_>>())
+                        .map(|h| {
+                            (
+                                h.name.to_ascii_lowercase(),
+                                String::from_utf8_lossy(h.value).into_owned(),
+                            )
+                        })
+                        .collect();
+                    return Ok((len, request.method.unwrap_or("").to_string(), fields));
                 }
                 Ok(httparse::Status::Partial) if bytes.len() < MAX_HEAD => {}
                 _ => return Err(HeadError::Invalid),
             }
         }
     };
-    let origins = tokio::time::timeout(HEAD_TIMEOUT, read)
+    let (len, method, fields) = tokio::time::timeout(HEAD_TIMEOUT, read)
         .await
         .map_err(|_| HeadError::Gone)??;
-    Ok(Head { bytes, origins })
+    let origins = fields
+        .iter()
+        .filter(|(n, _)| n == "origin")
+        .map(|(_, v)| v.clone())
+        .collect();
+    Ok(Head {
+        bytes,
+        len,
+        method,
+        fields,
+        origins,
+    })
 }
 
 /// No `Origin` (not a browser), or exactly one that is configured.

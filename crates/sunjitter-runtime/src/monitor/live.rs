@@ -3,22 +3,23 @@
 //! The writer thread hands each message it has logged to [`LiveTap::offer`], which never
 //! waits: a bounded queue feeds one `sunjitter-live` thread, and when the queue is full the
 //! message is dropped for the live view only (counted in the status file). That thread encodes
-//! the message exactly as the MCAP sink does (same schema, same JSON, same `log_time`) and logs
-//! it to the SDK's server, which keeps its own bounded queue per client and drops the oldest
-//! messages of a slow client. The server advertises no capability: clients can subscribe,
-//! nothing else (no publishing, services or parameters). Clients reach it through the
-//! [`super::gate`], which admits them by origin and number.
+//! the message exactly as the MCAP sink does (same schema, same JSON, same `log_time`) and
+//! hands it to the [`Hub`], which queues it for each subscribed client in a bounded queue of
+//! its own: a slow client loses live messages, nothing else waits for it.
+//!
+//! The server is read-only and small: it advertises no capability, so clients can subscribe
+//! and nothing else (no publishing, services or parameters). One listening socket, the one
+//! the operator named: connections are admitted there by [`super::gate`] (origin, number of
+//! clients), the WebSocket handshake is answered there (subprotocols [`SUBPROTOCOLS`]), and
+//! every client message is bounded ([`MAX_CLIENT_MESSAGE`]), fragments included.
 //!
 //! Each channel keeps its latest message, and a client subscribing to a channel gets it at once
-//! (then every later one). Messages go only to the subscribers known when they are logged, under
-//! the same lock, so a subscriber gets each message once: none is lost to the time between a
-//! channel's advertisement (with its first message) and the client's subscription.
+//! (then every later one). Messages go only to the subscribers known when they are logged,
+//! under the hub's lock, so a subscriber gets each message once: none is lost to the time
+//! between a channel's advertisement (with its first message) and the client's subscription.
 
 use super::gate::{self, Notices};
-use foxglove::websocket::{ChannelView, Client, ServerListener};
-use foxglove::{
-    ChannelId, Context, PartialMetadata, RawChannel, Schema, SinkId, WebSocketServerHandle,
-};
+use futures_util::{SinkExt, StreamExt};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -27,6 +28,24 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use sunjitter_core::{Error, Result};
 use sunjitter_io::records::{mcap_ns, Record};
 use sunjitter_io::sink::{self, Alert, LogEntry};
+use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+use tokio_tungstenite::tungstenite::protocol::{CloseFrame, Role, WebSocketConfig};
+use tokio_tungstenite::tungstenite::Message;
+
+/// WebSocket subprotocols served, in order of preference: the Foxglove SDK's name of the
+/// protocol and the classic one (the same protocol on the wire for what this server does:
+/// `serverInfo`, `advertise`, `subscribe`, `unsubscribe`, message data).
+pub const SUBPROTOCOLS: [&str; 2] = ["foxglove.sdk.v1", "foxglove.websocket.v1"];
+
+/// Longest message (and frame) a client may send; its messages are small JSON requests. A
+/// longer one, however fragmented, closes the connection (1009) before it is held whole.
+pub const MAX_CLIENT_MESSAGE: usize = 64 * 1024;
+
+/// Messages queued for one client at most; past that, its live messages are dropped.
+const CLIENT_QUEUE: usize = 1024;
+
+/// Subscriptions one client may hold at once.
+const MAX_SUBSCRIPTIONS: usize = 4096;
 
 /// What the live thread publishes.
 #[derive(Debug)]
@@ -72,83 +91,369 @@ impl LiveTap {
 /// The running server, its front door and its publishing thread.
 pub struct LiveServer {
     tap: LiveTap,
-    handle: Option<WebSocketServerHandle>,
     gate_stop: Option<tokio::sync::oneshot::Sender<()>>,
     notices: Notices,
     thread: Option<std::thread::JoinHandle<()>>,
+    hub: Arc<Hub>,
     pub addr: SocketAddr,
 }
 
-/// The live channels: who subscribed to each, and its latest message.
-#[derive(Default)]
-struct Channels {
-    /// Topic → channel (`None`: it could not be created; not retried).
-    by_topic: HashMap<String, Option<ChannelId>>,
-    by_id: HashMap<ChannelId, Latched>,
+// ---------------------------------------------------------------------------------------------
+// The hub: channels, clients, subscriptions
+
+/// What goes to one client.
+#[derive(Debug, Clone)]
+enum Outgoing {
+    Text(String),
+    Data {
+        subscription: u32,
+        log_time_ns: u64,
+        payload: Arc<Vec<u8>>,
+    },
 }
 
-struct Latched {
-    channel: Arc<RawChannel>,
-    subscribers: Vec<SinkId>,
+impl Outgoing {
+    /// The WebSocket message: JSON text, or the binary message-data frame (opcode 1,
+    /// subscription id u32 LE, log time u64 LE ns, payload).
+    fn message(self) -> Message {
+        match self {
+            Outgoing::Text(text) => Message::text(text),
+            Outgoing::Data {
+                subscription,
+                log_time_ns,
+                payload,
+            } => {
+                let mut bytes = Vec::with_capacity(13 + payload.len());
+                bytes.push(1u8);
+                bytes.extend_from_slice(&subscription.to_le_bytes());
+                bytes.extend_from_slice(&log_time_ns.to_le_bytes());
+                bytes.extend_from_slice(&payload);
+                Message::binary(bytes)
+            }
+        }
+    }
+}
+
+struct Channel {
+    id: u32,
+    topic: String,
+    schema_name: &'static str,
+    schema: String,
     /// Payload and log time.
-    latest: Option<(Vec<u8>, u64)>,
+    latest: Option<(Arc<Vec<u8>>, u64)>,
 }
 
-type SharedChannels = Arc<Mutex<Channels>>;
-
-fn lock(channels: &SharedChannels) -> MutexGuard<'_, Channels> {
-    // The data stays consistent whatever panicked while holding it.
-    channels.lock().unwrap_or_else(|e| e.into_inner())
+impl Channel {
+    fn advertisement(&self) -> serde_json::Value {
+        serde_json::json!({
+            "id": self.id,
+            "topic": self.topic,
+            "encoding": sink::MESSAGE_ENCODING,
+            "schemaName": self.schema_name,
+            "schema": self.schema,
+            "schemaEncoding": sink::SCHEMA_ENCODING,
+        })
+    }
 }
 
-/// Keeps the subscribers of each channel and hands a new one the latest message; logs
-/// subscriptions (read-only server: that is all a client can do).
-struct Listener {
-    channels: SharedChannels,
+struct ClientEntry {
+    tx: tokio::sync::mpsc::Sender<Outgoing>,
+    /// Subscription id → channel id.
+    subscriptions: HashMap<u32, u32>,
 }
 
-impl ServerListener for Listener {
-    fn on_subscribe(&self, client: Client, channel: ChannelView) {
-        tracing::info!(
-            client = client.id().to_string(),
-            topic = channel.topic(),
-            "live: subscribed"
-        );
-        let Some(sink) = client.sink_id() else {
-            return;
+#[derive(Default)]
+struct HubState {
+    channels: Vec<Channel>,
+    by_topic: HashMap<String, u32>,
+    clients: HashMap<u64, ClientEntry>,
+    next_client: u64,
+}
+
+/// Channels and clients, under one lock.
+pub struct Hub {
+    state: Mutex<HubState>,
+    server_info: String,
+}
+
+fn advertise(channels: &[&Channel]) -> Outgoing {
+    let list: Vec<serde_json::Value> = channels.iter().map(|c| c.advertisement()).collect();
+    Outgoing::Text(serde_json::json!({"op": "advertise", "channels": list}).to_string())
+}
+
+fn status(level: u8, message: &str) -> Outgoing {
+    Outgoing::Text(
+        serde_json::json!({"op": "status", "level": level, "message": message}).to_string(),
+    )
+}
+
+impl Hub {
+    fn new() -> Hub {
+        let session = sunjitter_io::records::now_ns().to_string();
+        let server_info = serde_json::json!({
+            "op": "serverInfo",
+            "name": format!("sunjitter {}", env!("CARGO_PKG_VERSION")),
+            "capabilities": [],
+            "supportedEncodings": [],
+            "metadata": {},
+            "sessionId": session,
+        })
+        .to_string();
+        Hub {
+            state: Mutex::new(HubState::default()),
+            server_info,
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, HubState> {
+        // The data stays consistent whatever panicked while holding it.
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Queue a control message for a client; a client too far behind to take one is dropped
+    /// (its connection closes).
+    fn send_control(state: &mut HubState, client: u64, message: Outgoing) {
+        let full = state
+            .clients
+            .get(&client)
+            .is_some_and(|c| c.tx.try_send(message).is_err());
+        if full {
+            state.clients.remove(&client);
+        }
+    }
+
+    /// The channel of `topic`, created (and advertised to every client) on first use.
+    fn channel(&self, state: &mut HubState, topic: &str) -> u32 {
+        if let Some(id) = state.by_topic.get(topic) {
+            return *id;
+        }
+        let id = state.channels.len() as u32 + 1;
+        let (schema_name, schema) = schema_of(topic);
+        let channel = Channel {
+            id,
+            topic: topic.to_string(),
+            schema_name,
+            schema: schema().to_string(),
+            latest: None,
         };
-        let mut channels = lock(&self.channels);
-        if let Some(latched) = channels.by_id.get_mut(&channel.id()) {
-            if !latched.subscribers.contains(&sink) {
-                latched.subscribers.push(sink);
-            }
-            if let Some((data, log_time)) = &latched.latest {
-                latched.channel.log_with_meta_to_sink(
-                    data,
-                    PartialMetadata::with_log_time(*log_time),
-                    Some(sink),
-                );
+        let ad = advertise(&[&channel]);
+        state.channels.push(channel);
+        state.by_topic.insert(topic.to_string(), id);
+        let clients: Vec<u64> = state.clients.keys().copied().collect();
+        for c in clients {
+            Hub::send_control(state, c, ad.clone());
+        }
+        id
+    }
+
+    /// Log a message on `topic`: kept as the channel's latest, queued for its subscribers.
+    fn publish(&self, topic: &str, payload: Vec<u8>, log_time_ns: u64) {
+        let mut state = self.lock();
+        let id = self.channel(&mut state, topic);
+        let payload = Arc::new(payload);
+        for client in state.clients.values() {
+            for (&subscription, _) in client.subscriptions.iter().filter(|(_, c)| **c == id) {
+                // A full queue: this client loses the message (live only).
+                let _ = client.tx.try_send(Outgoing::Data {
+                    subscription,
+                    log_time_ns,
+                    payload: payload.clone(),
+                });
             }
         }
+        if let Some(channel) = state.channels.get_mut(id as usize - 1) {
+            channel.latest = Some((payload, log_time_ns));
+        }
     }
-    fn on_unsubscribe(&self, client: Client, channel: ChannelView) {
-        tracing::info!(
-            client = client.id().to_string(),
-            topic = channel.topic(),
-            "live: unsubscribed"
+
+    /// A new client: its id and queue, already holding `serverInfo` and the advertisement of
+    /// every channel there is.
+    fn connect(&self) -> (u64, tokio::sync::mpsc::Receiver<Outgoing>) {
+        let (tx, rx) = tokio::sync::mpsc::channel(CLIENT_QUEUE);
+        let mut state = self.lock();
+        state.next_client += 1;
+        let id = state.next_client;
+        let _ = tx.try_send(Outgoing::Text(self.server_info.clone()));
+        if !state.channels.is_empty() {
+            let all: Vec<&Channel> = state.channels.iter().collect();
+            let _ = tx.try_send(advertise(&all));
+        }
+        state.clients.insert(
+            id,
+            ClientEntry {
+                tx,
+                subscriptions: HashMap::new(),
+            },
         );
-        if let Some(sink) = client.sink_id() {
-            if let Some(latched) = lock(&self.channels).by_id.get_mut(&channel.id()) {
-                latched.subscribers.retain(|s| *s != sink);
+        (id, rx)
+    }
+
+    fn disconnect(&self, client: u64) {
+        self.lock().clients.remove(&client);
+    }
+
+    /// Every client's queue closed: their connections end.
+    fn disconnect_all(&self) {
+        self.lock().clients.clear();
+    }
+
+    /// A text message from `client`: `subscribe` and `unsubscribe` are served; anything else
+    /// is answered with a status message (this server offers nothing more).
+    fn request(&self, client: u64, text: &str) {
+        let request: serde_json::Value = match serde_json::from_str(text) {
+            Ok(v) => v,
+            Err(_) => {
+                let mut state = self.lock();
+                Hub::send_control(&mut state, client, status(2, "not a JSON request"));
+                return;
             }
+        };
+        let mut state = self.lock();
+        match request["op"].as_str() {
+            Some("subscribe") => {
+                let wanted = request["subscriptions"]
+                    .as_array()
+                    .cloned()
+                    .unwrap_or_default();
+                for s in wanted {
+                    let (Some(sub), Some(chan)) = (s["id"].as_u64(), s["channelId"].as_u64())
+                    else {
+                        continue;
+                    };
+                    let (Ok(sub), Ok(chan)) = (u32::try_from(sub), u32::try_from(chan)) else {
+                        continue;
+                    };
+                    let Some(channel) = state.channels.get(chan.wrapping_sub(1) as usize) else {
+                        Hub::send_control(&mut state, client, status(1, "no such channel"));
+                        continue;
+                    };
+                    let topic = channel.topic.clone();
+                    let latest = channel.latest.clone();
+                    let Some(entry) = state.clients.get_mut(&client) else {
+                        return;
+                    };
+                    if entry.subscriptions.len() >= MAX_SUBSCRIPTIONS
+                        || entry.subscriptions.contains_key(&sub)
+                    {
+                        Hub::send_control(
+                            &mut state,
+                            client,
+                            status(1, "subscription id in use, or too many subscriptions"),
+                        );
+                        continue;
+                    }
+                    entry.subscriptions.insert(sub, chan);
+                    tracing::info!(client = client.to_string(), topic, "live: subscribed");
+                    if let Some((payload, log_time_ns)) = latest {
+                        let _ = entry.tx.try_send(Outgoing::Data {
+                            subscription: sub,
+                            log_time_ns,
+                            payload,
+                        });
+                    }
+                }
+            }
+            Some("unsubscribe") => {
+                let ids = request["subscriptionIds"]
+                    .as_array()
+                    .cloned()
+                    .unwrap_or_default();
+                let mut topics = Vec::new();
+                if let Some(entry) = state.clients.get_mut(&client) {
+                    for id in ids.iter().filter_map(|v| v.as_u64()) {
+                        if let Some(chan) = u32::try_from(id)
+                            .ok()
+                            .and_then(|id| entry.subscriptions.remove(&id))
+                        {
+                            topics.push(chan);
+                        }
+                    }
+                }
+                for chan in topics {
+                    if let Some(c) = state.channels.get(chan as usize - 1) {
+                        tracing::info!(
+                            client = client.to_string(),
+                            topic = c.topic.as_str(),
+                            "live: unsubscribed"
+                        );
+                    }
+                }
+            }
+            _ => Hub::send_control(
+                &mut state,
+                client,
+                status(
+                    1,
+                    "read-only server: only subscribe and unsubscribe are served",
+                ),
+            ),
         }
     }
-    fn on_client_connect(&self) {
-        tracing::info!("live: client connected");
+}
+
+/// Serve one admitted client whose handshake (with `subprotocol`) has been answered: the
+/// hub's messages out, its requests in, until it leaves, is dropped or the server stops.
+/// `read_ahead` is whatever the client sent after its handshake.
+pub async fn serve_client(
+    hub: Arc<Hub>,
+    stream: tokio::net::TcpStream,
+    read_ahead: Vec<u8>,
+    peer: SocketAddr,
+) {
+    let config = WebSocketConfig::default()
+        .read_buffer_size(16 * 1024)
+        .write_buffer_size(64 * 1024)
+        .max_write_buffer_size(1024 * 1024)
+        .max_message_size(Some(MAX_CLIENT_MESSAGE))
+        .max_frame_size(Some(MAX_CLIENT_MESSAGE));
+    let ws = tokio_tungstenite::WebSocketStream::from_partially_read(
+        stream,
+        read_ahead,
+        Role::Server,
+        Some(config),
+    )
+    .await;
+    let (mut write, mut read) = ws.split();
+    let (id, mut queue) = hub.connect();
+    tracing::info!(client = id.to_string(), "live: client connected");
+    tracing::debug!(client = id.to_string(), %peer, "live: client's address");
+    loop {
+        tokio::select! {
+            out = queue.recv() => match out {
+                Some(message) => {
+                    if write.send(message.message()).await.is_err() {
+                        break;
+                    }
+                }
+                None => break,
+            },
+            incoming = read.next() => match incoming {
+                Some(Ok(Message::Text(text))) => hub.request(id, text.as_str()),
+                Some(Ok(Message::Close(_))) | None => break,
+                Some(Err(e)) => {
+                    tracing::info!(client = id.to_string(), "live: connection closed: {e}");
+                    if let tokio_tungstenite::tungstenite::Error::Capacity(_) = e {
+                        // RFC 6455 §7.4.1: 1009, a message too big to process.
+                        let frame = CloseFrame {
+                            code: CloseCode::Size,
+                            reason: "message too big".into(),
+                        };
+                        let _ = tokio::time::timeout(
+                            std::time::Duration::from_secs(1),
+                            write.send(Message::Close(Some(frame))),
+                        )
+                        .await;
+                    }
+                    break;
+                }
+                // Pings are answered by the WebSocket layer; binary frames are not requests.
+                Some(Ok(_)) => {}
+            },
+        }
     }
-    fn on_client_disconnect(&self) {
-        tracing::info!("live: client disconnected");
-    }
+    hub.disconnect(id);
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(1), write.close()).await;
+    tracing::info!(client = id.to_string(), "live: client disconnected");
 }
 
 impl LiveServer {
@@ -175,43 +480,33 @@ impl LiveServer {
             .await
             .map_err(|e| unavailable(&e))?;
         let addr = listener.local_addr().map_err(|e| unavailable(&e))?;
-        let context = Context::new();
-        let channels = SharedChannels::default();
-        let private = gate::private_loopback();
-        let handle = context
-            .websocket_server()
-            .name(format!("sunjitter {}", env!("CARGO_PKG_VERSION")))
-            .bind(private.to_string(), 0)
-            .listener(Arc::new(Listener {
-                channels: channels.clone(),
-            }))
-            .start()
-            .await
-            .map_err(|e| unavailable(&e))?;
+        let hub = Arc::new(Hub::new());
+        {
+            let mut state = hub.lock();
+            for topic in topics {
+                hub.channel(&mut state, topic);
+            }
+        }
         let notices = Notices::default();
         let admission = gate::Admission {
             allowed_origins: config.allowed_origins.clone(),
             max_clients: config.max_clients,
         };
-        let backend = SocketAddr::new(private, handle.port());
         let (gate_stop, stop) = tokio::sync::oneshot::channel();
-        tokio::spawn(gate::Gate::new(admission, backend, notices.clone()).run(listener, stop));
-        let publisher = Publisher { context, channels };
-        for topic in topics {
-            publisher.channel(&mut lock(&publisher.channels), topic);
-        }
+        tokio::spawn(gate::Gate::new(admission, hub.clone(), notices.clone()).run(listener, stop));
         let (tap, rx) = LiveTap::new(config.queue);
+        let publisher = hub.clone();
         let thread = std::thread::Builder::new()
             .name("sunjitter-live".into())
-            .spawn(move || publisher.run(rx))
+            .spawn(move || publish_all(&publisher, rx))
             .map_err(|e| Error::output("live view", e.to_string()))?;
         tracing::info!(%addr, "live view: Foxglove WebSocket server listening (ws://{addr})");
         Ok(LiveServer {
             tap,
-            handle: Some(handle),
             gate_stop: Some(gate_stop),
             notices,
             thread: Some(thread),
+            hub,
             addr,
         })
     }
@@ -230,9 +525,7 @@ impl LiveServer {
         if let Some(stop) = self.gate_stop.take() {
             let _ = stop.send(());
         }
-        if let Some(handle) = self.handle.take() {
-            handle.stop().detach_all();
-        }
+        self.hub.disconnect_all();
         // The thread ends when every tap is gone (the sink drops its copy when it finishes).
         drop(self.tap);
         if let Some(thread) = self.thread.take() {
@@ -241,68 +534,11 @@ impl LiveServer {
     }
 }
 
-struct Publisher {
-    context: Arc<Context>,
-    channels: SharedChannels,
-}
-
-impl Publisher {
-    fn run(self, rx: Receiver<LiveMessage>) {
-        while let Ok(message) = rx.recv() {
-            let Some((topic, data, log_time_ns)) = encode(&message) else {
-                continue;
-            };
-            let mut channels = lock(&self.channels);
-            let Some(id) = self.channel(&mut channels, &topic) else {
-                continue;
-            };
-            if let Some(latched) = channels.by_id.get_mut(&id) {
-                for sink in &latched.subscribers {
-                    latched.channel.log_with_meta_to_sink(
-                        &data,
-                        PartialMetadata::with_log_time(log_time_ns),
-                        Some(*sink),
-                    );
-                }
-                latched.latest = Some((data, log_time_ns));
-            }
+fn publish_all(hub: &Hub, rx: Receiver<LiveMessage>) {
+    while let Ok(message) = rx.recv() {
+        if let Some((topic, data, log_time_ns)) = encode(&message) {
+            hub.publish(&topic, data, log_time_ns);
         }
-    }
-
-    /// The channel of `topic`, created (and advertised) on first use. Created under the lock,
-    /// so a subscription to it waits until it is known here.
-    fn channel(&self, channels: &mut Channels, topic: &str) -> Option<ChannelId> {
-        if let Some(id) = channels.by_topic.get(topic) {
-            return *id;
-        }
-        let (name, schema) = schema_of(topic);
-        let bytes = serde_json::to_vec(&schema()).unwrap_or_default();
-        let built = self
-            .context
-            .channel_builder(topic)
-            .message_encoding(sink::MESSAGE_ENCODING)
-            .schema(Schema::new(name, sink::SCHEMA_ENCODING, bytes))
-            .build_raw();
-        let id = match built {
-            Ok(channel) => {
-                let id = channel.id();
-                channels.by_id.insert(
-                    id,
-                    Latched {
-                        channel,
-                        subscribers: Vec::new(),
-                        latest: None,
-                    },
-                );
-                Some(id)
-            }
-            Err(e) => {
-                tracing::error!(topic, "live view: cannot create the channel: {e}");
-                None
-            }
-        };
-        channels.by_topic.insert(topic.to_string(), id);
-        id
     }
 }
 

@@ -88,23 +88,14 @@ pub fn resolve_path(path: &Path) -> PathBuf {
 pub fn write_atomic(path: &Path, status: &Status) -> Result<()> {
     let text = serde_json::to_string_pretty(status)
         .map_err(|e| Error::output(path, format!("cannot encode the status: {e}")))?;
-    let dir = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = path
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| Error::output(path, "not a file path"))?;
-    let tmp = dir.join(format!(".{name}.tmp"));
-    std::fs::write(&tmp, format!("{text}\n"))
-        .and_then(|()| std::fs::rename(&tmp, path))
-        .map_err(|e| Error::output(path, format!("cannot write the status: {e}")))
+    sunjitter_io::outputs::write_file_atomically(path, |w| writeln!(w, "{text}"))
+        .map_err(|e| Error::output(path, format!("cannot write the status: {}", e.reason())))
 }
 
 /// Read a status file.
 pub fn read(path: &Path) -> Result<Status> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    // A status file is a few kB; a FIFO or a device is not read at all.
+    let text = sunjitter_io::input::read_text(path, 16 << 20, "status file")?;
     serde_json::from_str(&text)
         .map_err(|e| Error::bad_input(path, format!("not a status file: {e}")))
 }

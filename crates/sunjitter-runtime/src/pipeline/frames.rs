@@ -123,11 +123,12 @@ pub fn inspect_file(
         return FileOutcome::Skip(None);
     }
     let mtime_ns = system_time_ns(before.modified().ok());
-    if !before.is_file() {
+    if let Some(kind) = sunjitter_io::input::special_kind(&before) {
+        // Never opened: a FIFO would block the reader, a device never end.
         return FileOutcome::Skip(Some(Record::log(
             LogLevel::Error,
             &key,
-            "not a regular file",
+            format!("is {kind}, not a regular file"),
             mtime_ns,
         )));
     }

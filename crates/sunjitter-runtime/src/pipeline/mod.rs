@@ -33,7 +33,7 @@ pub use frames::{
     Input, Unready,
 };
 pub use job::{run_job, Job, JobContext, JobDone};
-pub use output::{open_output, read_history};
+pub use output::{history_of, open_output, read_history};
 pub use progress::Progress;
 pub use replay::{replay_inputs, run_replay};
 pub use run::{run_pipeline, RunParts};

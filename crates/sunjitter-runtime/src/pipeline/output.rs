@@ -5,12 +5,11 @@ use crate::reference::History;
 use std::path::Path;
 use sunjitter_core::Result;
 use sunjitter_io::records::{McapRecordSink, Record, RecordSink};
-use sunjitter_io::sink::LogLevel;
+use sunjitter_io::sink::{LogContents, LogLevel};
 
-/// Open the MCAP output in `out` for a new run, with what earlier runs already logged there.
-/// Unfinished segments (a crash) are first rewritten as finished files so every MCAP reader
-/// opens them; what they held counts as logged.
-/// Locks `out` first: nothing is recovered or written while another process holds it.
+/// Open the MCAP output in `out` for a library caller that names no run (the commands use
+/// `runs::open_run`, which also refuses another run's log): lock it first, then
+/// read what earlier runs logged there; whatever log `out` holds is resumed.
 pub fn open_output(out: &Path, config: &Config) -> Result<(Box<dyn RecordSink>, History)> {
     let lock = sunjitter_io::outputs::OutputLock::acquire(out)?;
     let history = read_history(out)?;
@@ -24,6 +23,11 @@ pub fn open_output(out: &Path, config: &Config) -> Result<(Box<dyn RecordSink>, 
 pub fn read_history(out: &Path) -> Result<History> {
     let dirs = [out.to_path_buf()];
     let contents = sunjitter_io::sink::read_logs(&dirs)?;
+    Ok(history_of(&contents))
+}
+
+/// The history of a log as read (unfinished segments are recovered on disk meanwhile).
+pub fn history_of(contents: &LogContents) -> History {
     for segment in contents.segments.iter().filter(|s| !s.complete) {
         match sunjitter_io::sink::recover_segment(&segment.path) {
             Ok(outcome) => {
@@ -55,7 +59,7 @@ pub fn read_history(out: &Path) -> Result<History> {
             finishes: level >= LogLevel::Error,
         });
     }
-    Ok(history)
+    history
 }
 
 fn clamp_ns(ns: u64) -> i64 {

@@ -80,8 +80,9 @@ pub async fn run_pipeline(
         .await
         .map_err(|e| Error::output("writer thread", e.to_string()))?
         .map_err(|_| Error::output("writer thread", "panicked"))?;
-    driven?;
+    // A writer that gave up says why (the log cannot be written); the driver only saw it go.
     written?;
+    driven?;
     let last = progress_rx.borrow().clone();
     Ok(last)
 }

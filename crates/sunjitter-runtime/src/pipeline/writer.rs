@@ -102,11 +102,18 @@ fn write_with_retry(
                 });
                 if stopping.load(Ordering::SeqCst) {
                     attempts_while_stopping += 1;
-                    if attempts_while_stopping >= 3 {
+                    if attempts_while_stopping >= 2 {
                         return Err(e);
                     }
                 }
-                std::thread::sleep(delay);
+                // A stop (SIGTERM) cuts the wait short: the last attempt follows at once.
+                let until = Instant::now() + delay;
+                while Instant::now() < until && !stopping.load(Ordering::SeqCst) {
+                    std::thread::sleep(
+                        Duration::from_millis(20)
+                            .min(until.saturating_duration_since(Instant::now())),
+                    );
+                }
                 delay = (delay * 2).min(Duration::from_secs(5));
             }
         }
