@@ -1,14 +1,9 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
-use super::watch::{effective_config, runtime, summary_json, termination};
+use super::watch::{effective_config, runtime, termination};
 use crate::error::exit;
-use crate::ingest::expand_inputs;
-use crate::pipeline::{
-    open_output, replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts,
-};
-use crate::reference::History;
+use crate::pipeline::{Progress, ReplayRequest, ReplayRun};
 use crate::Result;
-use std::sync::Arc;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -39,48 +34,16 @@ Past one machine: run --shard K/N for K = 0…N−1 (e.g. a Slurm job array, exa
 each into its own --out, then join them with `sunjitter merge`.";
 
 pub fn run(args: &Args) -> Result<i32> {
-    let config = effective_config(&args.run)?;
-    let files = expand_inputs(&args.paths, &config)?;
-    if args.shard.is_some() && args.run.aligned.is_some() {
-        // A shard's chains start at its own origin and its overlap frames are not its own:
-        // products of different shards would not share one pointing.
-        return Err(crate::Error::Usage(
-            "--aligned cannot be combined with --shard: write the products from a single run"
-                .into(),
-        ));
-    }
-    let products = crate::products::for_replay(args.run.products(), &args.paths, &files)?;
-    let reader = FitsReader::from_config(&config);
-    let (sink, history, inputs, shard) = match args.shard {
-        None => {
-            let (sink, history) = open_output(&args.run.out, &config)?;
-            let inputs = replay_inputs(&files, &config, &reader, &history);
-            (sink, history, inputs, None)
-        }
-        // A shard starts afresh: a requeued attempt replaces its earlier output.
-        Some(spec) => {
-            let all = replay_inputs(&files, &config, &reader, &History::default());
-            let (sink, inputs, plan) =
-                crate::shard::open_shard(&args.run.out, &config, spec, args.shard_overlap, all)?;
-            (sink, plan.history(), inputs, Some(plan))
-        }
-    };
-    let total = inputs
-        .iter()
-        .filter(|i| matches!(i, Input::Frame(_) | Input::Record(_)))
-        .count() as u64;
-    let config = Arc::new(config);
+    let replay = ReplayRun::open(ReplayRequest {
+        paths: &args.paths,
+        out: &args.run.out,
+        config: effective_config(&args.run)?,
+        products: args.run.products(),
+        shard: args.shard.map(|spec| (spec, args.shard_overlap)),
+    })?;
+    let total = replay.total();
+    let shard = replay.shard().cloned();
     let (progress_tx, mut progress_rx) = tokio::sync::watch::channel(Progress::default());
-    let parts = RunParts {
-        config: config.clone(),
-        reader: Arc::new(reader),
-        aligner: Arc::new(EngineAligner::from_config(&config).sharing(super::workspace())),
-        sink,
-        history,
-        progress: progress_tx,
-        live: false,
-        products,
-    };
 
     let bar = super::Bar::new(total, "frames");
     let runtime = runtime()?;
@@ -98,7 +61,7 @@ pub fn run(args: &Args) -> Result<i32> {
                 }
             })
         };
-        let result = crate::pipeline::run_replay(inputs, parts, termination()).await;
+        let result = replay.run(progress_tx, termination()).await;
         bar_task.abort();
         result
     });
@@ -131,7 +94,7 @@ pub fn run(args: &Args) -> Result<i32> {
         ),
     }
     if args.output.json {
-        println!("{}", summary_json(&progress, &args.run.out));
+        println!("{}", progress.summary_json(&args.run.out));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.

@@ -5,7 +5,7 @@ use super::align::{align_frame, FrameOwn};
 use super::config::EngineConfig;
 use super::fine::{grown, mask_roi, Crop};
 use super::seed::Binned;
-use super::{check_usable, cleaned_from, geometry_check, quality, refine};
+use super::{check_usable, cleaned_from, geometry_check, quality, refine, Pixels};
 use super::{AlignOutcome, Image, UsedGeometry};
 use crate::flow::{Farneback, Roi};
 use crate::meta::FrameMeta;
@@ -167,10 +167,32 @@ impl PreparedReference {
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> PreparedReference {
+        let (meta, data) = match reference {
+            Cow::Borrowed(image) => (Cow::Borrowed(&image.meta), Pixels::from(image.data.view())),
+            Cow::Owned(Image { meta, data }) => (Cow::Owned(meta), Pixels::from(data)),
+        };
+        PreparedReference::of_parts(meta, data, cfg, kept)
+    }
+
+    /// A reference from its metadata and pixels, owned (cleaned in place) or borrowed.
+    pub(super) fn of_pixels(
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
+        cfg: &EngineConfig,
+    ) -> PreparedReference {
+        PreparedReference::of_parts(meta, data, cfg, None)
+    }
+
+    fn of_parts(
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> PreparedReference {
         PreparedReference {
             cfg: cfg.clone(),
-            file: crate::text::path(&reference.meta.file).into_owned(),
-            work: ReferenceWork::new(reference, cfg, kept),
+            file: crate::text::path(&meta.file).into_owned(),
+            work: ReferenceWork::new(meta, data, cfg, kept),
             workspace: Default::default(),
             aligned: Default::default(),
         }
@@ -213,7 +235,7 @@ impl PreparedReference {
         frame: &Image,
         profile: crate::solar_rotation::Profile,
     ) -> AlignOutcome {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, false)
+        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), profile, false)
             .0
     }
 
@@ -224,13 +246,13 @@ impl PreparedReference {
         frame: &Image,
         profile: crate::solar_rotation::Profile,
     ) -> (AlignOutcome, Option<FrameWork>) {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), profile, true)
+        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), profile, true)
     }
 
     fn align_inner(
         &self,
         frame_meta: &FrameMeta,
-        frame_data: Cow<'_, Array2<f32>>,
+        frame_data: Pixels<'_>,
         profile: crate::solar_rotation::Profile,
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
@@ -298,14 +320,11 @@ impl ReferenceWork {
     }
 
     fn new(
-        reference: Cow<'_, Image>,
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> Result<ReferenceWork, String> {
-        let (meta, data) = match reference {
-            Cow::Borrowed(image) => (Cow::Borrowed(&image.meta), Cow::Borrowed(&image.data)),
-            Cow::Owned(Image { meta, data }) => (Cow::Owned(meta), Cow::Owned(data)),
-        };
         let (h, w) = data.dim();
         let started = Instant::now();
         check_usable("reference", &data)?;

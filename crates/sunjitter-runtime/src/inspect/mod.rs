@@ -1,6 +1,6 @@
 //! Offline inspection of logged alignments: per-channel statistics, periodogram, outliers,
-//! CSV and plots. Analysis works on an in-memory series ([`LoggedFrame`]); reading MCAP is
-//! the command's job.
+//! CSV and plots. Analysis works on an in-memory series ([`LoggedFrame`]), read from the logs
+//! by [`logs`].
 //!
 //! Definitions (also the `inspect --json` schema, see [`Report`]):
 //! - Frames are grouped by `channel` and ordered by `log_time` (then `sequence`).
@@ -14,10 +14,12 @@
 //! - Outliers: [`stats::outliers`] (leave-one-out local quadratic baseline) beyond 5σ.
 
 pub mod csv;
+pub mod logs;
 pub mod lombscargle;
 pub mod plot;
 pub mod stats;
 
+pub use logs::{log_files, read_frames};
 use lombscargle::{FrequencyGrid, Peak};
 use serde::{Deserialize, Serialize};
 use stats::Stats;
