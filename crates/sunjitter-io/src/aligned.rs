@@ -38,6 +38,9 @@ pub fn write_aligned(
     fits::write_image(path, data.view(), &cards)
 }
 
+/// An image's pixels and header cards, as a FITS product holds them.
+pub type Product = (Array2<f32>, Vec<(String, HeaderValue)>);
+
 /// What [`write_aligned`] writes, from the images' headers (as read: a cube's for a frame of
 /// it), metadata and shape or pixels: the frame resampled onto the reference grid, and the
 /// product's header cards.
@@ -45,7 +48,7 @@ pub fn aligned_product(
     reference: (&Header, &FrameMeta, (usize, usize)),
     frame: (&Header, &FrameMeta, ArrayView2<f32>),
     outcome: &AlignOutcome,
-) -> Result<(Array2<f32>, Vec<(String, HeaderValue)>)> {
+) -> Result<Product> {
     let transform = measured_transform(outcome)?;
     let grid = Grid::of_header(
         reference.0,
