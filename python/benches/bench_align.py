@@ -14,6 +14,7 @@ The engine's own time (``elapsed_ms`` of the record) is shown for both as well.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -50,19 +51,21 @@ def main() -> int:
             arrays.append((np.ascontiguousarray(hdul[0].data, dtype=np.float32), hdul[0].header.copy()))
     (ref, ref_header), (frame, frame_header) = arrays
 
+    records = {}
+
     def cli() -> tuple[float, float, str]:
         started = time.perf_counter()
         done = subprocess.run([str(args.bin), "align", str(a), str(b), "--json"],
                               check=True, capture_output=True, text=True)
         wall = time.perf_counter() - started
-        import json
-        record = json.loads(done.stdout)
-        return wall, record["elapsed_ms"] / 1e3, record["status"]
+        records["cli"] = json.loads(done.stdout)
+        return wall, records["cli"]["elapsed_ms"] / 1e3, records["cli"]["status"]
 
     def package() -> tuple[float, float, str]:
         started = time.perf_counter()
         r = sunjitter.align(ref, frame, reference_header=ref_header, frame_header=frame_header)
         wall = time.perf_counter() - started
+        records["python"] = r.to_dict()
         return wall, r.elapsed_ms / 1e3, r.status
 
     runs: dict[str, list[tuple[float, float, str]]] = {"cli": [], "python": []}
@@ -81,6 +84,9 @@ def main() -> int:
               f"{engine[k]:>24.3f} s")
     print(f"python / cli: wall {median['python'] / median['cli']:.3f}, "
           f"engine {engine['python'] / engine['cli']:.3f}")
+    numbers = [k for k in records["cli"] if k not in ("reference", "frame", "message", "elapsed_ms")]
+    same = all(records["cli"][k] == records["python"][k] for k in numbers)
+    print(f"same numbers as the command line: {'yes' if same else 'NO'}")
     return 0
 
 
