@@ -192,15 +192,10 @@ impl Alignment {
             self.reference_shape,
         );
         let view = pixels.view();
-        let (data, cards) = py
-            .detach(|| {
-                sunjitter_io::aligned::aligned_product(
-                    reference,
-                    (&header, &meta, view),
-                    &self.outcome,
-                )
-            })
-            .py_err()?;
+        let (data, cards) = wait::detached(py, "register", || {
+            sunjitter_io::aligned::aligned_product(reference, (&header, &meta, view), &self.outcome)
+        })?
+        .py_err()?;
         Ok((data.into_pyarray(py), cards_to_py(py, &cards)?))
     }
 
@@ -215,15 +210,18 @@ impl Alignment {
     ) -> PyResult<Bound<'py, PyList>> {
         let header = Header::parse(frame_header);
         let meta = self.frame_side(&header, shape, name).py_err()?;
-        let cards = sunjitter_io::aligned::corrected_pointing_cards(
-            (
-                &self.reference_header,
-                &self.reference_meta,
-                self.reference_shape,
-            ),
-            (&header, &meta, shape),
-            &self.outcome,
-        )
+        let reference = (
+            &self.reference_header,
+            &self.reference_meta,
+            self.reference_shape,
+        );
+        let cards = wait::detached(py, "correct_pointing", || {
+            sunjitter_io::aligned::corrected_pointing_cards(
+                reference,
+                (&header, &meta, shape),
+                &self.outcome,
+            )
+        })?
         .py_err()?;
         cards_to_py(py, &cards)
     }

@@ -125,10 +125,10 @@ pub fn summary(
             .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?,
         None => LogSummary::default(),
     };
-    py.detach(move || {
+    wait::detached(py, "summary", move || {
         let analyses = inspect::analyse(&frames, &InspectOptions::default());
         let report = inspect::report(&files, &analyses, log);
         serde_json::to_string(&report)
-    })
+    })?
     .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))
 }

@@ -46,10 +46,10 @@ pub fn run<T: Send + 'static>(
         crate::logging::forward(py);
         match got {
             Ok(outcome) => {
-                tick(py)?;
                 if let Some(err) = interrupted {
                     return Err(err);
                 }
+                tick(py)?;
                 return outcome.map_err(|panic| crate::errors::internal(what, panic));
             }
             Err(mpsc::RecvTimeoutError::Disconnected) => {
@@ -72,4 +72,15 @@ pub fn run<T: Send + 'static>(
             }
         }
     }
+}
+
+/// `work` on the calling thread with the interpreter detached; a panic becomes a
+/// `SunjitterError` naming `what` (never a `PanicException`).
+pub fn detached<T: Send>(
+    py: Python<'_>,
+    what: &str,
+    work: impl FnOnce() -> T + Send,
+) -> PyResult<T> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)))
+        .map_err(|panic| crate::errors::internal(what, panic))
 }
