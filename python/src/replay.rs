@@ -9,8 +9,9 @@ use pyo3::types::PyDict;
 use std::path::PathBuf;
 use sunjitter_core::{Error, Result};
 use sunjitter_runtime::config::Overrides;
-use sunjitter_runtime::pipeline::{Progress, ReplayRequest, ReplayRun};
+use sunjitter_runtime::pipeline::Progress;
 use sunjitter_runtime::products::Request;
+use sunjitter_runtime::replay::{ReplayRequest, ReplayRun};
 use tokio::sync::{oneshot, watch};
 
 /// The progress as a dict: `total`, `finished`, `frames`, `ok`, `degraded`, `failed`, `skipped`.

@@ -2,7 +2,8 @@
 
 use super::watch::{effective_config, runtime, termination};
 use crate::error::exit;
-use crate::pipeline::{Progress, ReplayRequest, ReplayRun};
+use crate::pipeline::Progress;
+use crate::replay::{ReplayRequest, ReplayRun};
 use crate::Result;
 
 #[derive(Debug, clap::Args)]

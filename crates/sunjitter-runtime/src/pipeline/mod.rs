@@ -35,7 +35,7 @@ pub use frames::{
 pub use job::{run_job, Job, JobContext, JobDone};
 pub use output::{open_output, read_history};
 pub use progress::Progress;
-pub use replay::{replay_inputs, run_replay, ReplayRequest, ReplayRun};
+pub use replay::{replay_inputs, run_replay};
 pub use run::{run_pipeline, RunParts};
 pub use scheduler::{Action, Scheduler, SchedulerSettings};
 pub use time::{iso8601_utc, parse_iso8601_utc};
