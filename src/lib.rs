@@ -10,7 +10,7 @@
 //! - `sunjitter-io`: FITS in ([`fits`]), MCAP out and back ([`sink`], [`records`]), corrected
 //!   frames ([`aligned`]), output paths ([`outputs`]).
 //! - `sunjitter-runtime`: files found ([`ingest`]) → reference policy ([`reference`](mod@reference)) →
-//!   pipeline ([`pipeline`]) → daemon and replay ([`daemon`], [`shard`], [`merge`]) →
+//!   pipeline ([`pipeline`]) → daemon and replay ([`daemon`], [`replay`], [`shard`], [`merge`]) →
 //!   [`monitor`], [`products`] → [`inspect`].
 //!
 //! This crate is the command line ([`cli`]) and the process: the allocator and exit codes.
@@ -23,7 +23,7 @@ pub use sunjitter_core::{
 pub use sunjitter_io::{aligned, fits, font, input, outputs, records, self_tests, sink};
 pub use sunjitter_runtime::{
     config, daemon, ingest, inspect, limits, merge, monitor, pipeline, ports, products, reference,
-    runs, shard,
+    replay, runs, shard,
 };
 
 pub mod allocator;

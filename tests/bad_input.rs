@@ -467,7 +467,7 @@ fn replay_logs_a_broken_scaling_and_continues() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let files = sunjitter::cli::inspect::log_files(&[out_dir]).unwrap();
+    let files = sunjitter::inspect::log_files(&[out_dir]).unwrap();
     let contents = sunjitter::sink::read_logs(&files).unwrap();
     let frames: Vec<&str> = contents
         .jitter

@@ -49,7 +49,7 @@ fn assert_printable(what: &str, bytes: &[u8]) {
 
 /// `/jitter` frames (each `frame` as logged) and `/log` entries (level, file, message).
 fn logged(out: &Path) -> (Vec<String>, Vec<(u8, String, String)>) {
-    let files = sunjitter::cli::inspect::log_files(&[out.to_path_buf()]).unwrap();
+    let files = sunjitter::inspect::log_files(&[out.to_path_buf()]).unwrap();
     let contents = sunjitter::sink::read_logs(&files).unwrap();
     let frames = contents
         .jitter

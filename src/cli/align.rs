@@ -58,7 +58,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let (reference, frame) = (reference?, frame?);
     // The per-frame products read the images as read; without them their pixels are freed
     // as soon as the engine has its cleaned copies.
-    let workspace = std::sync::Arc::new(super::workspace());
+    let workspace = std::sync::Arc::new(crate::self_tests::SelfTestCache::workspace_from_env());
     let (outcome, images) = if outputs.is_empty() {
         (
             engine::align_images_owned_in(reference, frame, &cfg, workspace),

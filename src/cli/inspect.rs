@@ -37,7 +37,7 @@
 //! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
 
 use crate::error::exit;
-use crate::inspect::{self, InspectOptions, LogSummary, LoggedFrame};
+use crate::inspect::{self, log_files, read_frames_and_references, InspectOptions};
 use crate::{Error, Result};
 use std::path::PathBuf;
 
@@ -85,7 +85,7 @@ pub fn run(args: &Args) -> Result<i32> {
         .collect();
     let inputs: Vec<&std::path::Path> = files.iter().map(PathBuf::as_path).collect();
     crate::outputs::check_outputs(&outputs, &inputs)?;
-    let (frames, references, log) = read_frames(&files)?;
+    let (frames, references, log) = read_frames_and_references(&files)?;
     let analyses = inspect::analyse(&frames, &InspectOptions::default());
     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
     let mut report = inspect::report(&names, &analyses, log);
@@ -107,65 +107,4 @@ pub fn run(args: &Args) -> Result<i32> {
         print!("{}", inspect::render_text(&report));
     }
     Ok(exit::OK)
-}
-
-/// The logs to read: files as given, directories replaced by their `*.mcap` files in name order.
-pub fn log_files(args: &[PathBuf]) -> Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    for arg in args {
-        let meta = std::fs::metadata(arg).map_err(|e| Error::io(arg, e))?;
-        if meta.is_dir() {
-            let mut found: Vec<PathBuf> = std::fs::read_dir(arg)
-                .map_err(|e| Error::io(arg, e))?
-                .filter_map(|entry| entry.ok().map(|e| e.path()))
-                .filter(|p| {
-                    p.extension()
-                        .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
-                })
-                .collect();
-            if found.is_empty() {
-                return Err(Error::bad_input(arg, "directory holds no .mcap files"));
-            }
-            found.sort();
-            files.extend(found);
-        } else {
-            files.push(arg.clone());
-        }
-    }
-    files.dedup();
-    Ok(files)
-}
-
-/// Every `/jitter/<channel>` message of `files`, with its `log_time`, the `/reference`
-/// messages, and the `/log` tally; damaged or unfinished segments are read as far as they go,
-/// with a warning naming what was skipped.
-pub fn read_frames(
-    files: &[PathBuf],
-) -> Result<(
-    Vec<LoggedFrame>,
-    Vec<crate::sink::ReferenceChange>,
-    LogSummary,
-)> {
-    let contents = crate::sink::read_logs(files)?;
-    for note in contents.notes() {
-        tracing::warn!("{note}");
-    }
-    let frames: Vec<LoggedFrame> = contents
-        .jitter
-        .into_iter()
-        .map(|m| LoggedFrame {
-            log_time_ns: i64::try_from(m.log_time_ns).unwrap_or(i64::MAX),
-            record: m.record,
-        })
-        .collect();
-    let entries = contents.logs.iter().map(|m| {
-        (
-            m.entry.level as u8,
-            m.entry.file.as_str(),
-            m.entry.message.as_str(),
-        )
-    });
-    let log = inspect::summarise_log(entries, &frames);
-    let references = contents.references.into_iter().map(|r| r.change).collect();
-    Ok((frames, references, log))
 }

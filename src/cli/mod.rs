@@ -128,18 +128,6 @@ pub fn ensure_open_files(need: u64) -> crate::Result<()> {
         Ok(())
     }
 }
-
-/// The engine's shared working memory for a command's alignments, keeping references'
-/// self-test cases between runs in the user's cache (`SUNJITTER_CACHE_DIR`).
-pub fn workspace() -> sunjitter_core::engine::Workspace {
-    match crate::self_tests::SelfTestCache::from_env() {
-        Some(cache) => {
-            sunjitter_core::engine::Workspace::keeping_self_tests(std::sync::Arc::new(cache))
-        }
-        None => Default::default(),
-    }
-}
-
 // ---------------------------------------------------------------------------------------------
 // Progress bars that log lines do not tear
 

@@ -1,13 +1,10 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
-use super::watch::{effective_config, runtime, summary_json, termination};
+use super::watch::{effective_config, runtime, termination};
 use crate::error::exit;
-use crate::ingest::expand_inputs;
-use crate::pipeline::{replay_inputs, EngineAligner, FitsReader, Input, Progress, RunParts};
-use crate::reference::History;
-use crate::runs::open_run;
+use crate::pipeline::Progress;
+use crate::replay::{ReplayRequest, ReplayRun};
 use crate::Result;
-use std::sync::Arc;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -40,72 +37,18 @@ each into its own --out, then join them with `sunjitter merge`.";
 pub fn run(args: &Args) -> Result<i32> {
     let config = effective_config(&args.run)?;
     super::ensure_open_files(super::MIN_OPEN_FILES)?;
-    if let Some(n) = args.shard_overlap {
-        crate::limits::flag_int("--shard-overlap", n as u64, 0, 1_000_000)?;
-    }
-    let files = expand_inputs(&args.paths, &config)?;
-    if args.shard.is_some() && args.run.aligned.is_some() {
-        // A shard's chains start at its own origin and its overlap frames are not its own:
-        // products of different shards would not share one pointing.
-        return Err(crate::Error::Usage(
-            "--aligned cannot be combined with --shard: write the products from a single run"
-                .into(),
-        ));
-    }
-    // What no output may overwrite besides the inputs: the references and the configuration.
-    let mut protected = config.reference_files();
-    protected.extend(args.run.config.path.clone());
-    let products =
-        crate::products::for_replay(args.run.products(), &args.paths, &files, &protected)?;
-    let dirs: Vec<std::path::PathBuf> = args
-        .paths
-        .iter()
-        .map(std::path::PathBuf::from)
-        .filter(|p| p.is_dir())
-        .collect();
-    let trees: Vec<(&std::path::Path, &str)> = dirs
-        .iter()
-        .map(|d| (d.as_path(), "the input directory"))
-        .collect();
-    let mut input_files: Vec<std::path::PathBuf> = files.iter().map(|(p, _)| p.clone()).collect();
-    input_files.extend(protected.iter().cloned());
-    crate::runs::check_out_dir(&args.run.out, &trees, config.daemon.recursive, &input_files)?;
-    let reader = FitsReader::from_config(&config);
-    let mut earlier = 0;
-    let (sink, history, inputs, shard) = match args.shard {
-        None => {
-            let identity = crate::runs::RunIdentity::replay(&files);
-            let opened = open_run(&args.run.out, &config, &identity)?;
-            earlier = opened.earlier_frames;
-            let inputs = replay_inputs(&files, &config, &reader, &opened.history);
-            let sink: Box<dyn crate::records::RecordSink> =
-                Box::new(crate::records::McapRecordSink(opened.sink));
-            (sink, opened.history, inputs, None)
-        }
-        // A shard starts afresh: a requeued attempt replaces its earlier output.
-        Some(spec) => {
-            let all = replay_inputs(&files, &config, &reader, &History::default());
-            let (sink, inputs, plan) =
-                crate::shard::open_shard(&args.run.out, &config, spec, args.shard_overlap, all)?;
-            (sink, plan.history(), inputs, Some(plan))
-        }
-    };
-    let total = inputs
-        .iter()
-        .filter(|i| matches!(i, Input::Frame(_) | Input::Record(_)))
-        .count() as u64;
-    let config = Arc::new(config);
+    let replay = ReplayRun::open(ReplayRequest {
+        paths: &args.paths,
+        out: &args.run.out,
+        config,
+        config_path: args.run.config.path.as_deref(),
+        products: args.run.products(),
+        shard: args.shard.map(|spec| (spec, args.shard_overlap)),
+    })?;
+    let total = replay.total();
+    let earlier = replay.earlier_frames();
+    let shard = replay.shard().cloned();
     let (progress_tx, mut progress_rx) = tokio::sync::watch::channel(Progress::default());
-    let parts = RunParts {
-        config: config.clone(),
-        reader: Arc::new(reader),
-        aligner: Arc::new(EngineAligner::from_config(&config).sharing(super::workspace())),
-        sink,
-        history,
-        progress: progress_tx,
-        live: false,
-        products,
-    };
 
     let bar = super::Bar::new(total, "frames");
     let runtime = runtime()?;
@@ -124,7 +67,7 @@ pub fn run(args: &Args) -> Result<i32> {
             })
         };
         let result = match termination() {
-            Ok(stop) => crate::pipeline::run_replay(inputs, parts, stop).await,
+            Ok(stop) => replay.run(progress_tx, stop).await,
             Err(e) => Err(e),
         };
         bar_task.abort();
@@ -168,7 +111,7 @@ pub fn run(args: &Args) -> Result<i32> {
         ),
     }
     if args.output.json {
-        println!("{}", summary_json(&progress, &args.run.out));
+        println!("{}", progress.summary_json(&args.run.out));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.

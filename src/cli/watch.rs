@@ -112,7 +112,10 @@ pub fn run(args: &Args) -> Result<i32> {
     let parts = RunParts {
         config: config.clone(),
         reader: Arc::new(FitsReader::from_config(&config)),
-        aligner: Arc::new(EngineAligner::from_config(&config).sharing(super::workspace())),
+        aligner: Arc::new(
+            EngineAligner::from_config(&config)
+                .sharing(crate::self_tests::SelfTestCache::workspace_from_env()),
+        ),
         sink: Box::new(sink),
         history,
         progress: progress_tx,
@@ -133,7 +136,7 @@ pub fn run(args: &Args) -> Result<i32> {
         "stopped cleanly"
     );
     if args.output.json {
-        println!("{}", summary_json(&progress, &args.run.out));
+        println!("{}", progress.summary_json(&args.run.out));
     }
     Ok(exit::OK)
 }
@@ -194,19 +197,4 @@ pub(crate) fn termination() -> Result<impl std::future::Future<Output = ()> + Se
             let _ = tokio::signal::ctrl_c().await;
         })
     }
-}
-
-/// The run summary printed with `--json`.
-pub(crate) fn summary_json(p: &Progress, out: &std::path::Path) -> serde_json::Value {
-    serde_json::json!({
-        "out": out.display().to_string(),
-        "frames": p.frames,
-        "ok": p.ok,
-        "degraded": p.degraded,
-        "failed": p.failed,
-        "skipped": p.skipped,
-        "reference_changes": p.references,
-        "channels": p.per_channel,
-        "write_errors": p.write_errors,
-    })
 }

@@ -27,10 +27,81 @@ pub fn write_aligned(
     frame: &Image,
     outcome: &AlignOutcome,
 ) -> Result<()> {
-    let transform = require_transform(path, outcome)?;
-    let grid = Grid::of_image(reference, outcome.reference_geometry)?;
-    let history = alignment_history(&reference.meta, &frame.meta, &transform, outcome);
-    write_resampled(path, &grid, frame, &transform, history, &[])
+    require_transform(path, outcome)?;
+    let (_, reference_header) = fits::read_image_header(&reference.meta.file)?;
+    let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
+    let (data, cards) = aligned_product(
+        (&reference_header, &reference.meta, reference.data.dim()),
+        (&frame_header, &frame.meta, frame.data.view()),
+        outcome,
+    )?;
+    fits::write_image(path, data.view(), &cards)
+}
+
+/// An image's pixels and header cards, as a FITS product holds them.
+pub type Product = (Array2<f32>, Vec<(String, HeaderValue)>);
+
+/// What [`write_aligned`] writes, from the images' headers (as read: a cube's for a frame of
+/// it), metadata and shape or pixels: the frame resampled onto the reference grid, and the
+/// product's header cards.
+pub fn aligned_product(
+    reference: (&Header, &FrameMeta, (usize, usize)),
+    frame: (&Header, &FrameMeta, ArrayView2<f32>),
+    outcome: &AlignOutcome,
+) -> Result<Product> {
+    let transform = measured_transform(outcome)?;
+    let grid = Grid::of_header(
+        reference.0,
+        reference.1,
+        reference.2,
+        outcome.reference_geometry,
+    );
+    let history = alignment_history(reference.1, frame.1, &transform, outcome, true);
+    let data = resampled(&grid, frame.2, &transform);
+    let cards = product_cards_of(frame.0, frame.1, &grid, history, &[], true);
+    Ok((data, cards))
+}
+
+/// The frame's header with its pointing corrected from the measurement, its pixels left as
+/// they are (`--wcs-only`'s product for a pair): the reference's WCS seen through the measured
+/// transform, so each pixel gets the world coordinates of the matching reference pixel.
+/// Returns the product's header cards.
+pub fn corrected_pointing_cards(
+    reference: (&Header, &FrameMeta, (usize, usize)),
+    frame: (&Header, &FrameMeta, (usize, usize)),
+    outcome: &AlignOutcome,
+) -> Result<Vec<(String, HeaderValue)>> {
+    let transform = measured_transform(outcome)?;
+    let origin = Grid::of_header(
+        reference.0,
+        reference.1,
+        reference.2,
+        outcome.reference_geometry,
+    );
+    // The identity first: the reference's roll stated as PCi_j, however its header gave it.
+    let identity = Similarity::identity(Similarity::array_center(1, 1));
+    let grid = Grid {
+        cards: compose_wcs(&compose_wcs(&origin.cards, &identity), &transform.inverse()),
+        shape: frame.2,
+        notes: origin.notes,
+    };
+    let history = alignment_history(reference.1, frame.1, &transform, outcome, false);
+    Ok(product_cards_of(
+        frame.0,
+        frame.1,
+        &grid,
+        history,
+        &[],
+        false,
+    ))
+}
+
+/// The measured grid-to-grid transform; an error saying why where the alignment failed.
+fn measured_transform(outcome: &AlignOutcome) -> Result<Similarity> {
+    outcome.transform.ok_or_else(|| {
+        let why = outcome.result.message.lines().next().unwrap_or("");
+        Error::AlignmentFailed(format!("{why}; no transform to apply"))
+    })
 }
 
 /// A pixel grid as a header describes it: its cards (those [`is_grid_key`] names), its shape
@@ -47,7 +118,22 @@ impl Grid {
     /// geometry instead (`used.from_disk`), with that plate scale and Sun centre.
     pub fn of_image(image: &Image, used: Option<UsedGeometry>) -> Result<Grid> {
         let (_, header) = fits::read_image_header(&image.meta.file)?;
-        let mut cards: Vec<(String, HeaderValue)> = fits::frame_header_cards(&header, &image.meta)
+        Ok(Grid::of_header(
+            &header,
+            &image.meta,
+            image.data.dim(),
+            used,
+        ))
+    }
+
+    /// [`Grid::of_image`] from the image's header (as read), metadata and shape.
+    pub fn of_header(
+        header: &Header,
+        meta: &FrameMeta,
+        shape: (usize, usize),
+        used: Option<UsedGeometry>,
+    ) -> Grid {
+        let mut cards: Vec<(String, HeaderValue)> = fits::frame_header_cards(header, meta)
             .into_iter()
             .filter(|(k, _)| is_grid_key(k))
             .map(|(k, v)| {
@@ -61,14 +147,14 @@ impl Grid {
             })
             .collect();
         let notes = match used.filter(|g| g.from_disk) {
-            Some(used) => use_checked_geometry(&mut cards, &image.meta, &used),
+            Some(used) => use_checked_geometry(&mut cards, meta, &used),
             None => Vec::new(),
         };
-        Ok(Grid {
+        Grid {
             cards,
-            shape: image.data.dim(),
+            shape,
             notes,
-        })
+        }
     }
 }
 
@@ -83,19 +169,24 @@ pub fn write_resampled(
     history: Vec<String>,
     extra: &[(String, HeaderValue)],
 ) -> Result<()> {
+    let data = resampled(grid, frame.data.view(), transform);
+    let cards = product_cards(grid, frame, history, extra, true)?;
+    fits::write_image(path, data.view(), &cards)
+}
+
+/// `frame` resampled onto `grid` through `transform`.
+fn resampled(grid: &Grid, frame: ArrayView2<f32>, transform: &Similarity) -> Array2<f32> {
     let (h, w) = grid.shape;
     let identity = transform.scale == 1.0
         && transform.rotation_rad == 0.0
         && transform.dx == 0.0
         && transform.dy == 0.0
-        && frame.data.dim() == grid.shape;
-    let data = if identity {
-        frame.data.clone()
+        && frame.dim() == grid.shape;
+    if identity {
+        frame.to_owned()
     } else {
-        HighOrderSpline::new(frame.data.view(), refine::MODEL).warp_similarity(transform, w, h)
-    };
-    let cards = product_cards(grid, frame, history, extra, true)?;
-    fits::write_image(path, data.view(), &cards)
+        HighOrderSpline::new(frame, refine::MODEL).warp_similarity(transform, w, h)
+    }
 }
 
 /// The frame's own pixels with `grid`'s cards in place of its own: a header-only correction.
@@ -118,12 +209,31 @@ fn product_cards(
     resampled: bool,
 ) -> Result<Vec<(String, HeaderValue)>> {
     let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
-    let mut frame_cards = fits::frame_header_cards(&frame_header, &frame.meta);
+    Ok(product_cards_of(
+        &frame_header,
+        &frame.meta,
+        grid,
+        history,
+        extra,
+        resampled,
+    ))
+}
+
+/// [`product_cards`] from the frame's header (as read) and metadata.
+fn product_cards_of(
+    frame_header: &Header,
+    frame: &FrameMeta,
+    grid: &Grid,
+    history: Vec<String>,
+    extra: &[(String, HeaderValue)],
+    resampled: bool,
+) -> Vec<(String, HeaderValue)> {
+    let mut frame_cards = fits::frame_header_cards(frame_header, frame);
     frame_cards.retain(|(k, _)| !extra.iter().any(|(e, _)| e == k));
-    let mut all_history = commentary(&frame_header, "HISTORY");
+    let mut all_history = commentary(frame_header, "HISTORY");
     all_history.extend(history);
     all_history.extend(grid.notes.iter().cloned());
-    let comments = commentary(&frame_header, "COMMENT");
+    let comments = commentary(frame_header, "COMMENT");
     let mut cards = aligned_header_cards(&grid.cards, &frame_cards, &comments, &[], !resampled);
     cards.extend(extra.iter().cloned());
     cards.extend(
@@ -131,7 +241,7 @@ fn product_cards(
             .into_iter()
             .map(|t| ("HISTORY".to_string(), HeaderValue::Str(t))),
     );
-    Ok(cards)
+    cards
 }
 
 /// The grid `cards` describe, seen through `m` (new pixel → old pixel, 0-based): the WCS whose
@@ -615,6 +725,7 @@ fn alignment_history(
     frame: &FrameMeta,
     t: &Similarity,
     outcome: &AlignOutcome,
+    resampled: bool,
 ) -> Vec<String> {
     let r = &outcome.result;
     let status = serde_json::to_value(r.status)
@@ -623,14 +734,22 @@ fn alignment_history(
         .unwrap_or_default();
     let sig = |v: Option<f64>| v.map_or("?".to_string(), |v| format!("{v:.3e}"));
     // Short lines: each fits one 72-character HISTORY card (paths may still wrap).
+    let (what, how) = if resampled {
+        (
+            "frame resampled onto the reference's pixel grid",
+            "quintic B-spline; NaN where the frame has no data; WCS = reference's",
+        )
+    } else {
+        (
+            "frame's pointing corrected, pixels as they were",
+            "WCS = reference's, seen through the transform below",
+        )
+    };
     vec![
-        format!(
-            "sunjitter {}: frame resampled onto the reference's pixel grid",
-            env!("CARGO_PKG_VERSION")
-        ),
+        format!("sunjitter {}: {what}", env!("CARGO_PKG_VERSION")),
         format!("reference: {}", describe(reference)),
         format!("frame: {}", describe(frame)),
-        "quintic B-spline; NaN where the frame has no data; WCS = reference's".to_string(),
+        how.to_string(),
         format!(
             "p_frame = s R(theta) (p_ref - c) + c + (dx, dy), c = ({}, {}) px",
             t.center[0], t.center[1]

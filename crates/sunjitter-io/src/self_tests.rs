@@ -65,6 +65,17 @@ impl SelfTestCache {
         (!dir.as_os_str().is_empty()).then(|| SelfTestCache::at(dir))
     }
 
+    /// The engine's shared working memory for a run's alignments, keeping references'
+    /// self-test cases in the user's cache ([`SelfTestCache::from_env`]) where there is one.
+    pub fn workspace_from_env() -> sunjitter_core::engine::Workspace {
+        match SelfTestCache::from_env() {
+            Some(cache) => {
+                sunjitter_core::engine::Workspace::keeping_self_tests(std::sync::Arc::new(cache))
+            }
+            None => Default::default(),
+        }
+    }
+
     /// The directory the files are in.
     pub fn dir(&self) -> &Path {
         &self.dir

@@ -2,8 +2,8 @@
 //!
 //! Files found ([`ingest`]) → reference policy and restart ([`reference`](mod@reference)) → the pipeline:
 //! frames read and measured through [`ports`], scheduler,
-//! jobs on the engine, one writer ([`pipeline`]) → the daemon ([`daemon`]) and sharded
-//! replays ([`shard`], [`merge`]) → health, alerts and the live view ([`monitor`]) →
+//! jobs on the engine, one writer ([`pipeline`]) → the daemon ([`daemon`]), replays
+//! ([`replay`]) and sharded ones ([`shard`], [`merge`]) → health, alerts and the live view ([`monitor`]) →
 //! corrected frames ([`products`]) → inspection of a log ([`inspect`]). [`config`] is the
 //! configuration file, read once.
 
@@ -21,5 +21,6 @@ pub mod pipeline;
 pub mod ports;
 pub mod products;
 pub mod reference;
+pub mod replay;
 pub mod runs;
 pub mod shard;

@@ -23,7 +23,6 @@ use crate::meta::FrameMeta;
 use crate::preprocess::{self, BlockMeans};
 use crate::record::{AlignResult, SolarRotationFields, TransformFields};
 use ndarray::{s, Array2, ArrayView2};
-use std::borrow::Cow;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
@@ -43,7 +42,7 @@ pub(super) struct FrameOwn {
 impl FrameOwn {
     pub(super) fn new(
         frame: &FrameMeta,
-        data: Cow<'_, Array2<f32>>,
+        data: super::Pixels<'_>,
         hot_pixel_fraction: f32,
     ) -> Result<FrameOwn, String> {
         check_usable("frame", &data)?;

@@ -30,7 +30,7 @@ use crate::geometry::{Covariance4, Similarity};
 use crate::meta::FrameMeta;
 use crate::preprocess;
 use crate::record::{AlignResult, Status, TransformFields};
-use ndarray::Array2;
+use ndarray::{Array2, ArrayView2};
 use std::time::Instant;
 
 pub use config::{ChannelSettings, EngineConfig};
@@ -41,6 +41,9 @@ pub use sigma::SigmaMethod;
 // `refine` reads these as `super::`.
 use fine::erode;
 pub(crate) use fine::gaussian_reach;
+
+/// An image's pixels as the engine takes them: its own (cleaned in place) or borrowed.
+pub type Pixels<'a> = ndarray::CowArray<'a, f32, ndarray::Ix2>;
 
 /// An image and what its header says about it.
 #[derive(Debug, Clone)]
@@ -93,11 +96,29 @@ pub fn align_images_in(
     cfg: &EngineConfig,
     workspace: std::sync::Arc<Workspace>,
 ) -> AlignOutcome {
+    align_views_in(
+        (&reference.meta, reference.data.view()),
+        (&frame.meta, frame.data.view()),
+        cfg,
+        workspace,
+    )
+}
+
+/// [`align_images_in`] on pixels held elsewhere (another language's arrays, say), each with
+/// its metadata: they are read where they lie, in any memory layout, and never written.
+pub fn align_views_in(
+    reference: (&FrameMeta, ArrayView2<'_, f32>),
+    frame: (&FrameMeta, ArrayView2<'_, f32>),
+    cfg: &EngineConfig,
+    workspace: std::sync::Arc<Workspace>,
+) -> AlignOutcome {
     let started = Instant::now();
-    let data = std::borrow::Cow::Borrowed(&frame.data);
-    let reference = std::borrow::Cow::Borrowed(reference);
-    let (prepared, own) = prepared_side_by_side(reference, &frame.meta, data, cfg);
-    aligned_pair(prepared.sharing(workspace), &frame.meta, own, cfg, started)
+    let reference = (
+        std::borrow::Cow::Borrowed(reference.0),
+        Pixels::from(reference.1),
+    );
+    let (prepared, own) = prepared_side_by_side(reference, frame.0, Pixels::from(frame.1), cfg);
+    aligned_pair(prepared.sharing(workspace), frame.0, own, cfg, started)
 }
 
 /// [`align_images`] for a caller done with both images: each one's pixels are cleaned in
@@ -115,25 +136,24 @@ pub fn align_images_owned_in(
 ) -> AlignOutcome {
     let started = Instant::now();
     let Image { data, meta } = frame;
-    let data = std::borrow::Cow::Owned(data);
-    let reference = std::borrow::Cow::Owned(reference);
-    let (prepared, own) = prepared_side_by_side(reference, &meta, data, cfg);
+    let reference = (
+        std::borrow::Cow::Owned(reference.meta),
+        Pixels::from(reference.data),
+    );
+    let (prepared, own) = prepared_side_by_side(reference, &meta, Pixels::from(data), cfg);
     aligned_pair(prepared.sharing(workspace), &meta, own, cfg, started)
 }
 
 /// The reference prepared and the frame cleaned and disk-checked side by side: the frame's
 /// own preparation needs nothing of the reference, and each fills the other's idle moments.
 fn prepared_side_by_side(
-    reference: std::borrow::Cow<'_, Image>,
+    reference: (std::borrow::Cow<'_, FrameMeta>, Pixels<'_>),
     frame: &FrameMeta,
-    data: std::borrow::Cow<'_, Array2<f32>>,
+    data: Pixels<'_>,
     cfg: &EngineConfig,
 ) -> (PreparedReference, Result<align::FrameOwn, String>) {
     rayon::join(
-        || match reference {
-            std::borrow::Cow::Borrowed(reference) => PreparedReference::new(reference, cfg),
-            std::borrow::Cow::Owned(reference) => PreparedReference::from_image(reference, cfg),
-        },
+        || PreparedReference::of_pixels(reference.0, reference.1, cfg),
         || align::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
     )
 }
@@ -156,7 +176,10 @@ pub fn usable_as_reference(image: &Image) -> Result<(), String> {
     check_usable("reference", &image.data)
 }
 
-fn check_usable(which: &str, data: &Array2<f32>) -> Result<(), String> {
+fn check_usable<S: ndarray::Data<Elem = f32>>(
+    which: &str,
+    data: &ndarray::ArrayBase<S, ndarray::Ix2>,
+) -> Result<(), String> {
     let (h, w) = data.dim();
     if h < 16 || w < 16 {
         return Err(format!("{which} image is {w}×{h} px; too small to align"));
@@ -227,38 +250,34 @@ fn fill_note(reference: Option<FillSeen>, frame: Option<FillSeen>) -> Option<Str
 /// `data` with its border fill taken as missing (NaN) and cleaned of hot pixels (a copy when
 /// nothing is to be cleaned), in place when it is owned: no second frame-sized array is
 /// faulted in. Also what fill was found.
-fn cleaned_from(
-    data: std::borrow::Cow<'_, Array2<f32>>,
-    hot_pixel_fraction: f32,
-) -> (Array2<f32>, Option<FillSeen>) {
-    use std::borrow::Cow;
+fn cleaned_from(data: Pixels<'_>, hot_pixel_fraction: f32) -> (Array2<f32>, Option<FillSeen>) {
     let fill = preprocess::find_fill(data.view());
     let data = match &fill {
         Some(fill) => {
             let mut d = data.into_owned();
             fill.blank(&mut d);
-            Cow::Owned(d)
+            Pixels::from(d)
         }
         None => data,
-    };
-    let cleaned = match data {
-        Cow::Owned(mut d) if d.is_standard_layout() => {
-            if hot_pixel_fraction > 0.0 {
-                preprocess::remove_hot_pixels(&mut d, hot_pixel_fraction);
-            }
-            d
-        }
-        d if hot_pixel_fraction > 0.0 => {
-            preprocess::hot_pixels_removed(d.view(), hot_pixel_fraction)
-        }
-        // Copied in parallel: a frame is tens of MB, faulted in page by page.
-        d => ndarray::Zip::from(&*d).par_map_collect(|&v| v),
     };
     let seen = fill.map(|f| FillSeen {
         value: f.value,
         pixels: f.pixels,
     });
-    (cleaned, seen)
+    if data.is_view() || !data.is_standard_layout() {
+        let cleaned = if hot_pixel_fraction > 0.0 {
+            preprocess::hot_pixels_removed(data.view(), hot_pixel_fraction)
+        } else {
+            // Copied in parallel: a frame is tens of MB, faulted in page by page.
+            ndarray::Zip::from(&data).par_map_collect(|&v| v)
+        };
+        return (cleaned, seen);
+    }
+    let mut d = data.into_owned();
+    if hot_pixel_fraction > 0.0 {
+        preprocess::remove_hot_pixels(&mut d, hot_pixel_fraction);
+    }
+    (d, seen)
 }
 
 impl AlignOutcome {

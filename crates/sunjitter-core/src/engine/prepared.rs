@@ -5,7 +5,7 @@ use super::align::{align_frame, FrameOwn};
 use super::config::{ChannelSettings, EngineConfig};
 use super::fine::{grown, mask_roi, Crop};
 use super::seed::Binned;
-use super::{check_usable, cleaned_from, geometry_check, quality, refine};
+use super::{check_usable, cleaned_from, geometry_check, quality, refine, Pixels};
 use super::{AlignOutcome, Image, UsedGeometry};
 use crate::flow::{Farneback, Roi};
 use crate::meta::FrameMeta;
@@ -170,10 +170,32 @@ impl PreparedReference {
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> PreparedReference {
+        let (meta, data) = match reference {
+            Cow::Borrowed(image) => (Cow::Borrowed(&image.meta), Pixels::from(image.data.view())),
+            Cow::Owned(Image { meta, data }) => (Cow::Owned(meta), Pixels::from(data)),
+        };
+        PreparedReference::of_parts(meta, data, cfg, kept)
+    }
+
+    /// A reference from its metadata and pixels, owned (cleaned in place) or borrowed.
+    pub(super) fn of_pixels(
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
+        cfg: &EngineConfig,
+    ) -> PreparedReference {
+        PreparedReference::of_parts(meta, data, cfg, None)
+    }
+
+    fn of_parts(
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
+        cfg: &EngineConfig,
+        kept: Option<FrameWork>,
+    ) -> PreparedReference {
         PreparedReference {
             cfg: cfg.clone(),
-            file: crate::text::path(&reference.meta.file).into_owned(),
-            work: ReferenceWork::new(reference, cfg, kept),
+            file: crate::text::path(&meta.file).into_owned(),
+            work: ReferenceWork::new(meta, data, cfg, kept),
             workspace: Default::default(),
             aligned: Default::default(),
         }
@@ -212,8 +234,13 @@ impl PreparedReference {
 
     /// Align `frame` with its channel's own settings.
     pub fn align_with(&self, frame: &Image, settings: &ChannelSettings) -> AlignOutcome {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), settings, false)
-            .0
+        self.align_inner(
+            &frame.meta,
+            Pixels::from(frame.data.view()),
+            settings,
+            false,
+        )
+        .0
     }
 
     /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
@@ -223,13 +250,13 @@ impl PreparedReference {
         frame: &Image,
         settings: &ChannelSettings,
     ) -> (AlignOutcome, Option<FrameWork>) {
-        self.align_inner(&frame.meta, Cow::Borrowed(&frame.data), settings, true)
+        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), settings, true)
     }
 
     fn align_inner(
         &self,
         frame_meta: &FrameMeta,
-        frame_data: Cow<'_, Array2<f32>>,
+        frame_data: Pixels<'_>,
         settings: &ChannelSettings,
         keep: bool,
     ) -> (AlignOutcome, Option<FrameWork>) {
@@ -294,14 +321,11 @@ impl ReferenceWork {
     }
 
     fn new(
-        reference: Cow<'_, Image>,
+        meta: Cow<'_, FrameMeta>,
+        data: Pixels<'_>,
         cfg: &EngineConfig,
         kept: Option<FrameWork>,
     ) -> Result<ReferenceWork, String> {
-        let (meta, data) = match reference {
-            Cow::Borrowed(image) => (Cow::Borrowed(&image.meta), Cow::Borrowed(&image.data)),
-            Cow::Owned(Image { meta, data }) => (Cow::Owned(meta), Cow::Owned(data)),
-        };
         let (h, w) = data.dim();
         let started = Instant::now();
         check_usable("reference", &data)?;

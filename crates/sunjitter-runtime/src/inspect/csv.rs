@@ -4,7 +4,7 @@
 //! flattened to `header_residual_<field>`), then any field a newer record adds, by name.
 //! Empty cells are `null`. Rows are grouped by channel (sorted) and ordered by time.
 
-use super::ChannelAnalysis;
+use super::{ChannelAnalysis, LoggedFrame};
 use serde_json::Value;
 use std::io::Write;
 
@@ -63,6 +63,9 @@ pub const COLUMNS: &[&str] = &[
     "elapsed_ms",
 ];
 
+/// The record's objects whose fields become columns `<object>_<field>`.
+pub const NESTED: &[&str] = &["header_residual", "solar_rotation"];
+
 /// A record as flat `name → value` (nested objects become `parent_child`).
 fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
     match v {
@@ -84,13 +87,13 @@ fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
     }
 }
 
-fn cell(v: Option<&Value>) -> String {
+fn cell(v: &Value) -> String {
     match v {
-        None | Some(Value::Null) => String::new(),
-        Some(Value::String(s)) => quote(s),
-        Some(Value::Number(n)) => n.to_string(),
-        Some(Value::Bool(b)) => b.to_string(),
-        Some(other) => quote(&other.to_string()),
+        Value::Null => String::new(),
+        Value::String(s) => quote(s),
+        Value::Number(n) => n.to_string(),
+        Value::Bool(b) => b.to_string(),
+        other => quote(&other.to_string()),
     }
 }
 
@@ -102,19 +105,28 @@ fn quote(s: &str) -> String {
     }
 }
 
-/// Write the time series of every channel.
-pub fn write_csv<W: Write>(out: &mut W, analyses: &[ChannelAnalysis]) -> std::io::Result<()> {
+/// The time series of every channel as a table: what `--csv` writes, and what other front
+/// ends (the Python package) show, so the columns are the same everywhere.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Table {
+    /// `log_time_ns`, then [`COLUMNS`], then the fields a newer record adds, by name.
+    pub columns: Vec<String>,
+    /// One row per frame, one value per column (`null` where the record has none).
+    pub rows: Vec<Vec<Value>>,
+}
+
+/// The table of every channel's frames.
+pub fn table(analyses: &[ChannelAnalysis]) -> Result<Table, serde_json::Error> {
     let mut rows = Vec::new();
     let mut extra: Vec<String> = Vec::new();
     for a in analyses {
         for f in &a.frames {
-            let v = serde_json::to_value(&f.record).map_err(std::io::Error::other)?;
+            let v = serde_json::to_value(&f.record)?;
             let mut flat = Vec::new();
             flatten("", &v, &mut flat);
             for (k, _) in &flat {
                 if !COLUMNS.contains(&k.as_str())
-                    && k != "header_residual"
-                    && k != "solar_rotation"
+                    && !NESTED.contains(&k.as_str())
                     && !extra.contains(k)
                 {
                     extra.push(k.clone());
@@ -124,16 +136,80 @@ pub fn write_csv<W: Write>(out: &mut W, analyses: &[ChannelAnalysis]) -> std::io
         }
     }
     extra.sort();
-    let header: Vec<&str> = std::iter::once("log_time_ns")
+    let columns: Vec<String> = std::iter::once("log_time_ns")
         .chain(COLUMNS.iter().copied())
         .chain(extra.iter().map(|s| s.as_str()))
+        .map(str::to_string)
         .collect();
-    writeln!(out, "{}", header.join(","))?;
-    for (t, flat) in rows {
-        let lookup = |name: &str| flat.iter().find(|(k, _)| k == name).map(|(_, v)| v);
-        let cells: Vec<String> = std::iter::once(t.to_string())
-            .chain(header[1..].iter().map(|name| cell(lookup(name))))
-            .collect();
+    let rows = rows
+        .into_iter()
+        .map(|(t, flat)| {
+            let lookup = |name: &str| flat.iter().find(|(k, _)| k == name).map(|(_, v)| v);
+            std::iter::once(Value::from(t))
+                .chain(
+                    columns[1..]
+                        .iter()
+                        .map(|name| lookup(name).cloned().unwrap_or(Value::Null)),
+                )
+                .collect()
+        })
+        .collect();
+    Ok(Table { columns, rows })
+}
+
+/// A row of a [`Table`] (named by `columns`) as the frame it was made from: nested objects
+/// gathered again (`null` where all their cells are), `log_time_ns` apart.
+pub fn frame_from_row(
+    columns: &[String],
+    row: impl IntoIterator<Item = Value>,
+) -> Result<LoggedFrame, String> {
+    let mut record = serde_json::Map::new();
+    let mut log_time_ns = None;
+    for (name, value) in columns.iter().zip(row) {
+        if name == "log_time_ns" {
+            log_time_ns = value.as_i64();
+            continue;
+        }
+        let nested = NESTED.iter().find_map(|n| {
+            name.strip_prefix(n)
+                .and_then(|r| r.strip_prefix('_'))
+                .map(|field| (*n, field))
+        });
+        match nested {
+            Some((object, field)) => {
+                let entry = record
+                    .entry(object)
+                    .or_insert_with(|| Value::Object(Default::default()));
+                if let Value::Object(fields) = entry {
+                    fields.insert(field.to_string(), value);
+                }
+            }
+            None => {
+                record.insert(name.clone(), value);
+            }
+        }
+    }
+    for object in NESTED {
+        if let Some(Value::Object(fields)) = record.get(*object) {
+            if fields.values().all(Value::is_null) {
+                record.insert(object.to_string(), Value::Null);
+            }
+        }
+    }
+    let log_time_ns = log_time_ns.ok_or("the row has no log_time_ns")?;
+    let record = serde_json::from_value(Value::Object(record)).map_err(|e| e.to_string())?;
+    Ok(LoggedFrame {
+        log_time_ns,
+        record,
+    })
+}
+
+/// Write the time series of every channel.
+pub fn write_csv<W: Write>(out: &mut W, analyses: &[ChannelAnalysis]) -> std::io::Result<()> {
+    let table = table(analyses).map_err(std::io::Error::other)?;
+    writeln!(out, "{}", table.columns.join(","))?;
+    for row in &table.rows {
+        let cells: Vec<String> = row.iter().map(cell).collect();
         writeln!(out, "{}", cells.join(","))?;
     }
     Ok(())
@@ -188,5 +264,31 @@ mod tests {
         assert_eq!(row1[col("status")], "failed");
         assert_eq!(row1[col("dx_px")], "");
         assert_eq!(row1[0], "1714564812000000000");
+    }
+
+    /// Each row of the table gives back the record it was made from (nested objects, null
+    /// ones included, and the log time).
+    #[test]
+    fn rows_give_back_their_records() {
+        let mut frames = vec![
+            frame("SYNTH_171", 0, 0.0, 0.25, -0.5, Status::Ok),
+            frame("SYNTH_171", 1, 12.0, 0.0, 0.0, Status::Failed),
+            frame("SYNTH_195", 0, 3.0, 1.5, 2.5, Status::Degraded),
+        ];
+        frames[0].record.align.header_residual = Some(TransformFields {
+            scale: 1.0,
+            rotation_arcsec: 0.5,
+            dx_px: 0.125,
+            dy_px: -0.25,
+        });
+        frames[2].record.pixel_checksum = Some("xxh3_64:0123456789abcdef".into());
+        let t = table(&analyse(&frames, &InspectOptions::default())).unwrap();
+        assert!(t.columns.iter().any(|c| c == "pixel_checksum"));
+        let back: Vec<LoggedFrame> = t
+            .rows
+            .iter()
+            .map(|row| frame_from_row(&t.columns, row.iter().cloned()).unwrap())
+            .collect();
+        assert_eq!(back, frames);
     }
 }

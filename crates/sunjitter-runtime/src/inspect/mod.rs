@@ -1,6 +1,6 @@
 //! Offline inspection of logged alignments: per-channel statistics, periodogram, outliers,
-//! CSV and plots. Analysis works on an in-memory series ([`LoggedFrame`]); reading MCAP is
-//! the command's job.
+//! CSV and plots. Analysis works on an in-memory series ([`LoggedFrame`]), read from the logs
+//! by [`logs`].
 //!
 //! Definitions (also the `inspect --json` schema, see [`Report`]):
 //! - Frames are grouped by `channel` and ordered by `log_time` (then `sequence`).
@@ -15,10 +15,12 @@
 
 pub mod consistency;
 pub mod csv;
+pub mod logs;
 pub mod lombscargle;
 pub mod plot;
 pub mod stats;
 
+pub use logs::{log_files, read_frames, read_frames_and_references};
 use lombscargle::{FrequencyGrid, Peak};
 use serde::{Deserialize, Serialize};
 use stats::Stats;

@@ -28,3 +28,20 @@ pub struct Progress {
     /// Frames buffered or being aligned, per channel.
     pub queued_per_channel: BTreeMap<String, u64>,
 }
+
+impl Progress {
+    /// The run's summary, as `watch --json` and `replay --json` print it.
+    pub fn summary_json(&self, out: &std::path::Path) -> serde_json::Value {
+        serde_json::json!({
+            "out": out.display().to_string(),
+            "frames": self.frames,
+            "ok": self.ok,
+            "degraded": self.degraded,
+            "failed": self.failed,
+            "skipped": self.skipped,
+            "reference_changes": self.references,
+            "channels": self.per_channel,
+            "write_errors": self.write_errors,
+        })
+    }
+}
