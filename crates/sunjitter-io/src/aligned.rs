@@ -49,7 +49,7 @@ impl Grid {
     /// where the alignment used a disk-checked geometry instead (`used.from_disk`), with that
     /// plate scale and Sun centre.
     pub fn of_image(image: &Image, used: Option<UsedGeometry>) -> Result<Grid> {
-        let (_, header) = fits::read_image_header(&image.meta.file)?;
+        let (_, header) = fits::read_image_header_as_read(&image.meta)?;
         let mut cards: Vec<(String, HeaderValue)> = fits::frame_header_cards(&header, &image.meta)
             .into_iter()
             .filter(|(k, _)| is_grid_key(k))
@@ -123,7 +123,7 @@ fn product_cards(
     extra: &[(String, HeaderValue)],
     resampled: bool,
 ) -> Result<Vec<(String, HeaderValue)>> {
-    let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
+    let (_, frame_header) = fits::read_image_header_as_read(&frame.meta)?;
     let mut frame_cards = fits::frame_header_cards(&frame_header, &frame.meta);
     frame_cards.retain(|(k, _)| !extra.iter().any(|(e, _)| e == k));
     let mut all_history = commentary(&frame_header, "HISTORY");
