@@ -121,8 +121,9 @@ impl Bar {
             Some(len),
             indicatif::ProgressDrawTarget::hidden(),
         );
+        // `wide_bar` takes what the terminal's width leaves: one line that never wraps.
         if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "[{elapsed_precise}] [{bar:30}] {pos}/{len} {prefix} ({eta}) {msg}",
+            "{elapsed_precise} [{wide_bar}] {pos}/{len} {prefix} {msg} (eta {eta})",
         ) {
             bar.set_style(style.progress_chars("=> "));
         }
