@@ -682,7 +682,7 @@ fn align_replay_and_watch_write_one_wcs_for_one_grid_with_the_roll_in_pc() {
     );
     watch.wait_watching();
     publish_file(&watched, Path::new(frame));
-    watch.wait_until("the frame logged", |_| logged(&watch_out).len() >= 1);
+    watch.wait_until("the frame logged", |_| !logged(&watch_out).is_empty());
     assert!(watch.terminate().success());
     assert_eq!(
         files_below(&watched_products),

@@ -21,7 +21,7 @@ use std::sync::Mutex;
 
 /// `--config` of every command that takes one.
 pub const CONFIG_HELP: &str =
-    "Configuration file, TOML as examples/sunjitter.toml (align and simulate use its [engine])";
+    "Configuration file, TOML as examples/sunjitter.toml (align uses its [engine] and channels' plate_scale_arcsec, simulate its [engine])";
 
 /// `--json` of every command.
 pub const JSON_HELP: &str = "Print the result as one JSON document on stdout";

@@ -278,8 +278,8 @@ impl RecordSink for MonitoredSink {
 /// The operator's line for one logged frame: channel, file name, status, the shift with its
 /// σ against the frame's reference and chained to the channel's first reference, and for a
 /// frame that is not `ok` the first of its reasons, e.g.
-/// `SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy 0.054 ± 0.096 px; chained dx 1.234 ± 0.140 px
-/// dy -0.541 ± 0.141 px`. A frame that starts a reference (its own transform the identity)
+/// `SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy 0.054 ± 0.096 px; chained dx 1.23 ± 0.14 px
+/// dy -0.54 ± 0.14 px`. A frame that starts a reference (its own transform the identity)
 /// says so instead of its zero shift: `starts a chain` (the channel's first reference, or
 /// the first after failures) or `starts a reference` (a new keyframe) with where it sits.
 pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
