@@ -1081,7 +1081,7 @@ fn overlaps(a: PixelBox, b: PixelBox) -> bool {
     a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
 }
 
-/// Mark each peak and label it (`dx 4349 s, FAP 0.28`) beside it, strongest first, where the
+/// Mark each peak and label it (`dx 4349 s, FAP 0.28`, `dy 119.7 s, FAP 1.2e-9`) beside it, strongest first, where the
 /// label covers no other label or mark and stays inside the plot: right or left of the peak,
 /// then stepped upwards (with a leader line). A label with no such place is left out (the
 /// text summary lists every period).
@@ -1110,8 +1110,10 @@ where
         )))?;
     }
     for (colour, name, pk) in &peaks {
+        // Four significant digits: 119.7 s, 4349 s.
+        let decimals = (3 - pk.period_s.abs().log10().floor() as i32).clamp(0, 3) as usize;
         let text = format!(
-            "{name} {:.0} s, FAP {}",
+            "{name} {:.decimals$} s, FAP {}",
             pk.period_s,
             super::probability(pk.false_alarm_probability)
         );
