@@ -224,8 +224,9 @@ pub fn peaks(
     select_peaks(t, y, grid, power, max_peaks, None)
 }
 
-/// [`peaks`] among the maxima at `min_hz` or above that are maxima on both sides: a rise
-/// towards the grid's end is power leaking from lower frequencies (a trend), not a period.
+/// [`peaks`] among the maxima at `min_hz` or above (on the grid and once refined) that are
+/// maxima on both sides: a rise towards the grid's end is power leaking from lower
+/// frequencies (a trend), not a period.
 pub fn resolved_peaks(
     t: &[f64],
     y: &[f64],
@@ -279,9 +280,11 @@ fn select_peaks(
                 }
             }
         }
-        if chosen
-            .iter()
-            .any(|c| (c.frequency_hz - f).abs() < grid.resolution_hz())
+        // Refined below the lowest frequency allowed: not a period the span holds that often.
+        if interior_from_hz.is_some_and(|min_hz| f < min_hz)
+            || chosen
+                .iter()
+                .any(|c| (c.frequency_hz - f).abs() < grid.resolution_hz())
         {
             continue;
         }

@@ -908,7 +908,7 @@ mod tests {
         let tau = 2.0 * std::f64::consts::PI;
         // 60 frames at 60 s: T = 3540 s.
         let span = 3540.0;
-        for (cycles, listed) in [(4.0, true), (2.0, false), (1.5, false)] {
+        for (cycles, listed) in [(4.0, true), (2.9, false), (2.0, false), (1.5, false)] {
             let period = span / cycles;
             let c = series(60, 60.0, |t| (0.3 * (tau * t / period).sin(), 0.0));
             let p = c.periodogram.as_ref().unwrap();
