@@ -659,8 +659,8 @@ pub fn render_text(report: &Report) -> String {
                 };
                 let _ = writeln!(
                     s,
-                    "  periods ({} series less its trend, {} samples; searched from {:.0} s, \
-                     a third of the span, down to {:.0} s; bin {:.3e} Hz):",
+                    "  periods ({} series less its trend, {} samples; searched from {:.1} s, \
+                     a third of the span, down to {:.1} s; bin {:.3e} Hz):",
                     series_name(p.series),
                     p.samples,
                     1.0 / p.frequency_min_hz,
