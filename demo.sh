@@ -6,7 +6,8 @@ set -euo pipefail
 cd "$(dirname "$0")"
 out=${1:-out/demo}
 rm -rf "$out"
-cargo build --release --quiet
+echo "demo: building sunjitter (cargo build --release; the first build takes several minutes)" >&2
+cargo build --release
 bin="${CARGO_TARGET_DIR:-target}/release/sunjitter"
 "$bin" replay \
   data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits \

@@ -7,7 +7,7 @@
 //! Frames: realistic synthetic full-disk pairs written by `sunjitter synth --frames 2 --size N`
 //! (channel SYNTH_171, default jitter) into a temporary directory; frame 0 is the reference
 //! (prepared once and held in memory, as the daemon keeps it), frame 1 is read, aligned and
-//! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see docs/PERFORMANCE.md).
+//! logged every iteration. Peak RSS and CPU time: `examples/bench_e2e.rs` (see docs/performance.md).
 //!
 //! `cold_N`: the paths that prepare a new reference for the frame, both images in memory:
 //! `same_channel` (`align_images`), `previous` (a reference prepared from frame 0 just after

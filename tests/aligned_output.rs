@@ -53,6 +53,13 @@ fn logged_frames(out: &Path) -> BTreeMap<String, (Status, ReferenceKind)> {
         .collect()
 }
 
+/// A frame key's file name without `.fits` (and without `[N]`): its product's name stem.
+fn stem(key: &str) -> String {
+    let file = key.rsplit('/').next().unwrap();
+    let file = file.split_once('[').map_or(file, |(f, _)| f);
+    file.strip_suffix(".fits").unwrap().to_string()
+}
+
 /// Every file below `dir` (relative), sorted.
 fn files_below(dir: &Path) -> Vec<String> {
     let mut found = Vec::new();
@@ -112,10 +119,7 @@ fn header_only_products_give_features_the_origins_coordinates() {
     let expected: Vec<String> = logged
         .iter()
         .filter(|(_, (s, _))| *s != Status::Failed)
-        .map(|(k, _)| {
-            let name = Path::new(k).file_name().unwrap().to_str().unwrap();
-            format!("{name}.wcs.fits")
-        })
+        .map(|(k, _)| format!("{}.wcs.fits", stem(k)))
         .collect();
     assert_eq!(files_below(&products), expected, "one product per frame");
 
@@ -123,7 +127,7 @@ fn header_only_products_give_features_the_origins_coordinates() {
     let first = frames.join("synth_0003.fits");
     let input = fits::read_frame(&FrameSpec::parse(first.to_str().unwrap())).unwrap();
     let product = fits::read_frame(&FrameSpec::parse(
-        products.join("synth_0003.fits.wcs.fits").to_str().unwrap(),
+        products.join("synth_0003.wcs.fits").to_str().unwrap(),
     ))
     .unwrap();
     assert_eq!(input.data, product.data);
@@ -185,7 +189,7 @@ fn resampled_products_register_every_frame_on_the_origin() {
     for k in 1..6 {
         let name = format!("synth_{k:04}.fits");
         let raw = read(&frames.join(&name));
-        let product_path = products.join(format!("{name}.aligned.fits"));
+        let product_path = products.join(format!("synth_{k:04}.aligned.fits"));
         let product = read(&product_path);
         let before = central_rms(&raw.data, &origin.data);
         let after = central_rms(&product.data, &origin.data);
@@ -228,7 +232,7 @@ fn resampled_products_register_every_frame_on_the_origin() {
     assert!(hi < 1.15 * lo, "residuals {residuals:?}");
     // The origin's product is the origin's pixels.
     assert_eq!(
-        read(&products.join("synth_0000.fits.aligned.fits")).data,
+        read(&products.join("synth_0000.aligned.fits")).data,
         origin.data
     );
 }
@@ -267,9 +271,9 @@ fn a_failed_frame_has_no_product_and_the_others_do() {
     assert_eq!(
         files_below(&products),
         [
-            "synth_0000.fits.wcs.fits",
-            "synth_0001.fits.wcs.fits",
-            "synth_0003.fits.wcs.fits"
+            "synth_0000.wcs.fits",
+            "synth_0001.wcs.fits",
+            "synth_0003.wcs.fits"
         ]
     );
 }
@@ -306,10 +310,10 @@ fn same_named_frames_in_different_directories_get_distinct_products() {
     assert_eq!(
         files_below(&products),
         [
-            "a/synth_0000.fits.aligned.fits",
-            "a/x/frame.fits.aligned.fits",
-            "b/synth_0001.fits.aligned.fits",
-            "b/x/frame.fits.aligned.fits",
+            "a/synth_0000.aligned.fits",
+            "a/x/frame.aligned.fits",
+            "b/synth_0001.aligned.fits",
+            "b/x/frame.aligned.fits",
         ]
     );
 }
@@ -399,7 +403,7 @@ fn a_real_cube_gets_one_header_only_product_per_measured_frame_on_its_chain() {
         "--wcs-only",
     ]);
     let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
-    let name = Path::new(cube).file_name().unwrap().to_str().unwrap();
+    let name = stem(cube);
     let mut expected = Vec::new();
     for m in &logs.jitter {
         let r = &m.record;
@@ -487,6 +491,25 @@ fn a_refused_plate_scale_is_not_the_one_products_state() {
 
 /// A watch started with `--aligned … --wcs-only` on `watched`.
 fn spawn_watch(watched: &Path, out: &Path, config: &Path, products: &Path) -> WatchProcess {
+    spawn_watch_with(
+        watched,
+        out,
+        config,
+        &[
+            "--aligned".as_ref(),
+            products.as_os_str(),
+            "--wcs-only".as_ref(),
+        ],
+    )
+}
+
+/// A watch started on `watched` with further arguments.
+fn spawn_watch_with(
+    watched: &Path,
+    out: &Path,
+    config: &Path,
+    args: &[&std::ffi::OsStr],
+) -> WatchProcess {
     let stderr = out.with_extension("stderr");
     let file = std::fs::File::create(&stderr).unwrap();
     let child = std::process::Command::new(env!("CARGO_BIN_EXE_sunjitter"))
@@ -494,11 +517,7 @@ fn spawn_watch(watched: &Path, out: &Path, config: &Path, products: &Path) -> Wa
         .arg(watched)
         .args(["--out".as_ref(), out.as_os_str()])
         .args(["--config".as_ref(), config.as_os_str()])
-        .args([
-            "--aligned".as_ref(),
-            products.as_os_str(),
-            "--wcs-only".as_ref(),
-        ])
+        .args(args)
         .env("SUNJITTER_LOG", "info")
         .stdout(std::process::Stdio::null())
         .stderr(file)
@@ -553,12 +572,7 @@ fn after_a_kill_and_a_restart_every_logged_frame_has_exactly_one_product() {
     let expected: Vec<String> = statuses
         .iter()
         .filter(|(_, (s, _))| *s != Status::Failed)
-        .map(|(k, _)| {
-            format!(
-                "{}.wcs.fits",
-                Path::new(k).file_name().unwrap().to_str().unwrap()
-            )
-        })
+        .map(|(k, _)| format!("{}.wcs.fits", stem(k)))
         .collect();
     assert_eq!(expected.len(), 6, "{statuses:?}");
     let visible: Vec<String> = files_below(&products)
@@ -585,7 +599,7 @@ fn a_product_that_cannot_be_written_is_one_log_warning_and_the_frame_is_still_lo
     let out = dir.path().join("log");
     let products = dir.path().join("products");
     // A directory where frame 1's product would go: it cannot be put in place.
-    std::fs::create_dir_all(products.join("synth_0001.fits.wcs.fits")).unwrap();
+    std::fs::create_dir_all(products.join("synth_0001.wcs.fits")).unwrap();
     sunjitter_ok(&[
         "replay",
         frames.to_str().unwrap(),
@@ -606,8 +620,155 @@ fn a_product_that_cannot_be_written_is_one_log_warning_and_the_frame_is_still_lo
     assert!(notes[0].entry.file.ends_with("synth_0001.fits"));
     assert_eq!(notes[0].entry.message.lines().count(), 1);
     for k in [0, 2] {
-        assert!(products
-            .join(format!("synth_{k:04}.fits.wcs.fits"))
-            .is_file());
+        assert!(products.join(format!("synth_{k:04}.wcs.fits")).is_file());
     }
+}
+
+#[test]
+fn align_replay_and_watch_write_one_wcs_for_one_grid_with_the_roll_in_pc() {
+    // EIT's headers give the roll only as SOHO's SC_ROLL = 180 (no CROTA, no PCi_j), which
+    // astropy and sunpy ignore. The frame put on the reference's grid by each command must
+    // carry the roll as PCi_j and the same WCS; astropy and sunpy are the judges.
+    let reference = "data/real/eit_171_20040301T010016_128.fits";
+    let frame = "data/real/eit_195_20040301T000010_128.fits";
+    let fixed = format!("fixed:{reference}");
+    let dir = tempfile::tempdir().unwrap();
+
+    let paired = dir.path().join("pair.fits");
+    sunjitter_ok(&[
+        "align",
+        reference,
+        frame,
+        "--aligned",
+        paired.to_str().unwrap(),
+    ]);
+
+    let replayed = dir.path().join("replayed");
+    sunjitter_ok(&[
+        "replay",
+        reference,
+        frame,
+        "--reference",
+        &fixed,
+        "--out",
+        dir.path().join("replay_log").to_str().unwrap(),
+        "--aligned",
+        replayed.to_str().unwrap(),
+    ]);
+    assert_eq!(
+        files_below(&replayed),
+        [
+            "eit_171_20040301T010016_128.aligned.fits",
+            "eit_195_20040301T000010_128.aligned.fits"
+        ]
+    );
+
+    let watched = dir.path().join("incoming");
+    std::fs::create_dir_all(&watched).unwrap();
+    let watch_out = dir.path().join("watch_log");
+    let watched_products = dir.path().join("watched");
+    let config = dir.path().join("watch.toml");
+    std::fs::write(&config, QUICK_DAEMON_CONFIG).unwrap();
+    let mut watch = spawn_watch_with(
+        &watched,
+        &watch_out,
+        &config,
+        &[
+            "--reference".as_ref(),
+            fixed.as_ref(),
+            "--aligned".as_ref(),
+            watched_products.as_os_str(),
+        ],
+    );
+    watch.wait_watching();
+    publish_file(&watched, Path::new(frame));
+    watch.wait_until("the frame logged", |_| !logged(&watch_out).is_empty());
+    assert!(watch.terminate().success());
+    assert_eq!(
+        files_below(&watched_products),
+        ["eit_195_20040301T000010_128.aligned.fits"]
+    );
+
+    let product = "eit_195_20040301T000010_128.aligned.fits";
+    let out = std::process::Command::new("python3")
+        .arg("tools/check_aligned_wcs.py")
+        .args(["--input", reference])
+        .arg(&paired)
+        .arg(replayed.join(product))
+        .arg(watched_products.join(product))
+        .output()
+        .expect("python3 runs (the checker needs astropy and sunpy: see .ci/run)");
+    let text = String::from_utf8_lossy(&out.stdout);
+    println!("{text}");
+    assert!(
+        out.status.success(),
+        "checker failed:\n{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("sunpy roll 180 deg"), "{text}");
+    assert!(text.trim_end().ends_with("passed, 0 failed"), "{text}");
+}
+
+#[test]
+fn two_inputs_differing_only_in_extension_never_share_a_product() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = synth(dir.path(), 3);
+    let inputs = dir.path().join("inputs");
+    std::fs::create_dir_all(&inputs).unwrap();
+    std::fs::copy(frames.join("synth_0000.fits"), inputs.join("a.fits")).unwrap();
+    std::fs::copy(frames.join("synth_0001.fits"), inputs.join("b.fits")).unwrap();
+    // `b.fits.gz` holds another frame (synth_0002) under b's stem.
+    let raw = std::fs::read(frames.join("synth_0002.fits")).unwrap();
+    let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    std::io::Write::write_all(&mut gz, &raw).unwrap();
+    std::fs::write(inputs.join("b.fits.gz"), gz.finish().unwrap()).unwrap();
+
+    let out = dir.path().join("log");
+    let products = dir.path().join("products");
+    let config = still_sun_config(dir.path());
+    sunjitter_ok(&[
+        "replay",
+        inputs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--config",
+        config.to_str().unwrap(),
+        "--aligned",
+        products.to_str().unwrap(),
+        "--wcs-only",
+    ]);
+    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    assert_eq!(logs.jitter.len(), 3, "every frame is logged");
+    assert_eq!(files_below(&products), ["a.wcs.fits", "b.wcs.fits"]);
+    // One of b.fits and b.fits.gz has the product; the other a note naming it.
+    let (_, h) = fits::read_image_header(&products.join("b.wcs.fits")).unwrap();
+    let source = h
+        .get("SRCFILE")
+        .and_then(|v| v.as_str())
+        .unwrap()
+        .to_string();
+    let notes: Vec<_> = logs
+        .logs
+        .iter()
+        .filter(|m| m.entry.message.starts_with("product not written"))
+        .collect();
+    assert_eq!(notes.len(), 1, "{:?}", logs.logs);
+    let loser = if source.ends_with("b.fits.gz") {
+        "b.fits"
+    } else {
+        "b.fits.gz"
+    };
+    assert!(
+        source.ends_with("b.fits") || source.ends_with("b.fits.gz"),
+        "{source}"
+    );
+    assert!(notes[0].entry.file.ends_with(loser), "{:?}", notes[0].entry);
+    assert!(
+        notes[0]
+            .entry
+            .message
+            .contains("differs only in its extension"),
+        "{}",
+        notes[0].entry.message
+    );
 }

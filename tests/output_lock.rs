@@ -123,7 +123,9 @@ fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
         let shown = format!(" SJI_1400 {name} {} ", status.as_str().unwrap());
         let lines: Vec<&&str> = frame_lines.iter().filter(|l| l.contains(&shown)).collect();
         assert_eq!(lines.len(), 1, "{shown}: {stderr}");
-        if a.dx_px.is_some() {
+        if m.record.reference_kind == sunjitter::record::ReferenceKind::Itself {
+            assert!(lines[0].contains(" starts a "), "{stderr}");
+        } else if a.dx_px.is_some() {
             assert!(
                 lines[0].contains(" dx ") && lines[0].contains(" px dy "),
                 "{stderr}"

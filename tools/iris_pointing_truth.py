@@ -63,9 +63,22 @@ def sun_centre(header):
 
 
 def main():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument(
+        "--cdelt",
+        type=float,
+        help="give every cube this plate scale (arcsec/px) in place of its CDELT1/CDELT2, as "
+        "`[channels.X] plate_scale_arcsec` does for binned data (tests/plate_scale.rs)",
+    )
+    args = parser.parse_args()
     for name, frames in CUBES:
         with fits.open(REAL + name) as hdul:
             hdr, aux, ah = hdul[0].header, hdul[1].data, hdul[1].header
+            if args.cdelt is not None:
+                hdr["CDELT1"] = args.cdelt
+                hdr["CDELT2"] = args.cdelt
             n, rows = hdr["NAXIS3"], aux.shape[0]
             xcen = hdr.get("XCEN", hdr["CRVAL1"])
             ycen = hdr.get("YCEN", hdr["CRVAL2"])

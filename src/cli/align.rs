@@ -42,20 +42,31 @@ pub fn run(args: &Args) -> Result<i32> {
     let mut inputs = vec![reference_spec.path.as_path(), frame_spec.path.as_path()];
     inputs.extend(args.config.path.as_deref());
     crate::outputs::check_outputs(&outputs, &inputs)?;
-    let cfg = args.config.load(&Default::default())?.engine;
+    let config = args.config.load(&Default::default())?;
+    let read = fits::ReadOptions {
+        plate_scales: config.plate_scales(),
+        ..Default::default()
+    };
     for path in args.aligned.iter().chain(&args.quicklook) {
         crate::error::check_writable(path)?;
     }
     // Read side by side: at 4096² each read faults in tens of MB, one thread each.
     let (reference, frame) = std::thread::scope(|scope| {
-        let reference = scope.spawn(|| fits::read_frame(&reference_spec));
-        let frame = fits::read_frame(&frame_spec);
+        let reference = scope.spawn(|| fits::read_frame_with(&reference_spec, &read));
+        let frame = fits::read_frame_with(&frame_spec, &read);
         let reference = reference
             .join()
             .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
         (reference, frame)
     });
     let (reference, frame) = (reference?, frame?);
+    let note = crate::config::plate_scale_note(
+        &config.channel_plate_scales(),
+        &config.channel_names,
+        &reference.meta.channel,
+        &frame.meta.channel,
+    );
+    let cfg = config.engine;
     // The per-frame products read the images as read; without them their pixels are freed
     // as soon as the engine has its cleaned copies.
     let workspace = std::sync::Arc::new(crate::self_tests::SelfTestCache::workspace_from_env());
@@ -71,6 +82,12 @@ pub fn run(args: &Args) -> Result<i32> {
         )
     };
     let mut result = outcome.result.clone();
+    if let Some(note) = note {
+        if !result.message.is_empty() {
+            result.message.push_str("; ");
+        }
+        result.message.push_str(&note);
+    }
     result.reference = args.reference.clone();
     result.frame = args.frame.clone();
 

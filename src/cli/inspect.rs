@@ -12,10 +12,13 @@
 //!     "start": "2024-05-01T12:00:00.000Z", "end": "…", "span_s": 948.0, "median_cadence_s": 12.0,
 //!     "raw":     { "dx_px": STATS, "dy_px": STATS, "rotation_arcsec": STATS, "scale": STATS },
 //!     "chained": { same } | null,
-//!     "series": "chained" | "raw",          // what periodogram, outliers and plot use
-//!     "periodogram": {
+//!     "series": "chained" | "raw",          // what trend, periodogram, outliers and plot use
+//!     "trend": { "series": "chained", "dx_px": TREND, "dy_px": …, "rotation_arcsec": …,
+//!                "scale": … },
+//!     "periodogram": {                       // null below 20 samples
 //!       "series": "chained", "samples": 79, "span_s": 948.0,
-//!       "frequency_min_hz": 1/span, "frequency_max_hz": 1/(2·median Δt),
+//!       "frequency_min_hz": 3/span (periods with ≥ 3 cycles in the span),
+//!       "frequency_max_hz": 1/(2·median Δt),
 //!       "frequency_step_hz": 1/(oversampling·span), "frequency_resolution_hz": 1/span,
 //!       "oversampling": 5.0, "frequencies": 190,
 //!       "peaks": { "dx_px": [PEAK, …], "dy_px": […], "rotation_arcsec": […], "scale": […] }
@@ -28,10 +31,11 @@
 //! STATS = { "n", "mean", "rms" (about the mean), "min", "max", "peak_to_peak", "median_sigma" }
 //! PEAK  = { "period_s", "frequency_hz", "power" (0–1, fraction of variance),
 //!           "false_alarm_probability" (Baluev 2008) }
+//! TREND = { "per_hour", "sigma_per_hour", "samples" } | null  (straight-line slope, units/h)
 //! ```
 //!
 //! Numbers are `null` where there is nothing to compute. Definitions: [`crate::inspect`]
-//! (series choice, detrending), [`crate::inspect::lombscargle`] (periodogram and its grid:
+//! (series choice, trend, detrending, which periods are listed), [`crate::inspect::lombscargle`] (periodogram and its grid:
 //! "within one frequency bin" means within `frequency_resolution_hz`),
 //! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
 //! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].

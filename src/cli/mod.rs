@@ -21,7 +21,7 @@ use std::sync::Mutex;
 
 /// `--config` of every command that takes one.
 pub const CONFIG_HELP: &str =
-    "Configuration file, TOML as examples/sunjitter.toml (align and simulate use its [engine])";
+    "Configuration file, TOML as examples/sunjitter.toml (align uses its [engine] and channels' plate_scale_arcsec, simulate its [engine])";
 
 /// `--json` of every command.
 pub const JSON_HELP: &str = "Print the result as one JSON document on stdout";
@@ -151,8 +151,9 @@ impl Bar {
             Some(len),
             indicatif::ProgressDrawTarget::hidden(),
         );
+        // `wide_bar` takes what the terminal's width leaves: one line that never wraps.
         if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "[{elapsed_precise}] [{bar:30}] {pos}/{len} {prefix} ({eta}) {msg}",
+            "{elapsed_precise} [{wide_bar}] {pos}/{len} {prefix} {msg} (eta {eta})",
         ) {
             bar.set_style(style.progress_chars("=> "));
         }

@@ -59,9 +59,14 @@ pub fn run(args: &Args) -> Result<i32> {
                 while progress_rx.changed().await.is_ok() {
                     let p = progress_rx.borrow().clone();
                     bar.set_position(p.finished);
+                    let skipped = if p.skipped > 0 {
+                        format!(" {} skipped", p.skipped)
+                    } else {
+                        String::new()
+                    };
                     bar.set_message(format!(
-                        "{} ok, {} degraded, {} failed, {} skipped",
-                        p.ok, p.degraded, p.failed, p.skipped
+                        "{} ok {} degraded {} failed{skipped}",
+                        p.ok, p.degraded, p.failed
                     ));
                 }
             })

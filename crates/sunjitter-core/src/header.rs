@@ -187,6 +187,14 @@ impl Header {
         &self.cards
     }
 
+    /// Give the first card with this keyword `value` (its comment kept), or append one.
+    pub fn set(&mut self, key: &str, value: HeaderValue) {
+        match self.cards.iter_mut().find(|c| c.key == key) {
+            Some(card) => card.value = Some(value),
+            None => self.push(key, value),
+        }
+    }
+
     /// Index of the first card with this keyword.
     pub fn position(&self, key: &str) -> Option<usize> {
         self.cards.iter().position(|c| c.key == key)

@@ -5,7 +5,7 @@
 //! plate scale in arcsec/pixel, roll in degrees in the `CROTA2` sense (solar north points to
 //! pixel direction (sin ρ, cos ρ)), sun centre as 0-based pixel coordinates.
 
-use crate::header::Header;
+use crate::header::{Header, HeaderValue};
 use crate::time::{self, TimeScale};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -100,6 +100,42 @@ pub fn from_header(header: &Header, place: ImagePlace) -> Result<FrameMeta, Stri
         height: place.height,
         bitpix: place.bitpix,
     })
+}
+
+/// Give `h` the plate scale `arcsec` (arcsec/px along axes 1 and 2, positive) in place of its
+/// own, for headers known to state a wrong one (binned data whose `CDELTi` were left at the
+/// native pixel): `CDELTi` in the header's `CUNITi`, signs kept, or the columns of `CDi_j`
+/// scaled to it. `CRPIXi`, `CRVALi` and the roll stay, so the reference pixel keeps its
+/// coordinates and the Sun centre moves accordingly. Returns the plate scale the header gave.
+pub fn set_plate_scale(h: &mut Header, arcsec: [f64; 2]) -> Result<[f64; 2], String> {
+    if !arcsec.iter().all(|v| PLATE_SCALE_ARCSEC.contains(v)) {
+        return Err(format!(
+            "a plate scale of {:e}, {:e} arcsec/px is not physical",
+            arcsec[0], arcsec[1]
+        ));
+    }
+    let unit = [
+        angle_unit_arcsec(h.str("CUNIT1"))?,
+        angle_unit_arcsec(h.str("CUNIT2"))?,
+    ];
+    let old = CelestialWcs::from_header(h)?.cdelt_arcsec;
+    if let Some(cd) = cd_matrix(h) {
+        for (i, row) in cd.iter().enumerate() {
+            for (j, v) in row.iter().enumerate() {
+                let factor = arcsec[j] / old[j].abs();
+                h.set(
+                    &format!("CD{}_{}", i + 1, j + 1),
+                    HeaderValue::Float(v * factor),
+                );
+            }
+        }
+    } else {
+        for (j, key) in ["CDELT1", "CDELT2"].into_iter().enumerate() {
+            let sign = if old[j] < 0.0 { -1.0 } else { 1.0 };
+            h.set(key, HeaderValue::Float(sign * arcsec[j] / unit[j]));
+        }
+    }
+    Ok(old.map(f64::abs))
 }
 
 /// Arcsec per unit of a `CUNITi` value; missing or blank means arcsec (solar convention).
@@ -693,7 +729,6 @@ fn sanitise(text: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::header::HeaderValue;
 
     fn header(cards: &[(&str, HeaderValue)]) -> Header {
         let mut h = Header::new();
@@ -709,6 +744,57 @@ mod tests {
 
     fn s(v: &str) -> HeaderValue {
         HeaderValue::Str(v.into())
+    }
+
+    #[test]
+    fn a_given_plate_scale_replaces_the_headers_and_moves_the_sun_centre_with_it() {
+        // A 10× binned field whose CDELT stayed at the native 0.16635″ (IRIS SJI, binned): the
+        // reference pixel keeps its coordinates, so the disk centre, 505.392″ west and
+        // 279.88″ north of it, is 505.392 / 1.6635 px away along x (linear axes, no roll).
+        let mut h = header(&[
+            ("CRPIX1", f(55.15)),
+            ("CRPIX2", f(54.75)),
+            ("CRVAL1", f(505.392)),
+            ("CRVAL2", f(279.88)),
+            ("CDELT1", f(0.16635)),
+            ("CDELT2", f(0.16635)),
+        ]);
+        let old = set_plate_scale(&mut h, [1.6635, 1.6635]).unwrap();
+        assert_eq!(old, [0.16635, 0.16635]);
+        let wcs = CelestialWcs::from_header(&h).unwrap();
+        assert_eq!(wcs.plate_scale_arcsec(), [1.6635, 1.6635]);
+        let c = wcs.sun_center_px().unwrap();
+        assert!((c[0] - (54.15 - 505.392 / 1.6635)).abs() < 1e-9, "{c:?}");
+        assert!((c[1] - (53.75 - 279.88 / 1.6635)).abs() < 1e-9, "{c:?}");
+
+        // CDELT in degrees with a flipped axis: the sign and the unit are kept.
+        let mut h = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CUNIT1", s("deg")),
+            ("CUNIT2", s("deg")),
+            ("CDELT1", f(-0.5 / 3600.0)),
+            ("CDELT2", f(0.5 / 3600.0)),
+        ]);
+        set_plate_scale(&mut h, [2.0, 2.0]).unwrap();
+        assert!((h.f64("CDELT1").unwrap() + 2.0 / 3600.0).abs() < 1e-15);
+        assert!((h.f64("CDELT2").unwrap() - 2.0 / 3600.0).abs() < 1e-15);
+
+        // A CD matrix (30° roll, 0.6″/px) keeps its roll at the new scale.
+        let (sn, cs) = 30f64.to_radians().sin_cos();
+        let mut h = header(&[
+            ("CRPIX1", f(1.0)),
+            ("CRPIX2", f(1.0)),
+            ("CD1_1", f(0.6 * cs)),
+            ("CD1_2", f(-0.6 * sn)),
+            ("CD2_1", f(0.6 * sn)),
+            ("CD2_2", f(0.6 * cs)),
+        ]);
+        set_plate_scale(&mut h, [1.2, 1.2]).unwrap();
+        let wcs = CelestialWcs::from_header(&h).unwrap();
+        assert!((wcs.plate_scale_arcsec()[0] - 1.2).abs() < 1e-12);
+        assert!((wcs.rotation_deg - 30.0).abs() < 1e-9);
+        assert!(set_plate_scale(&mut h, [0.0, 1.0]).is_err());
     }
 
     #[test]

@@ -18,9 +18,11 @@ use sunjitter_core::{Error, Result};
 ///
 /// Header: the frame's own cards (time, exposure, instrument, observer…), minus whatever
 /// describes its old pixel grid (WCS of axes 1–2, `XCEN`/`YCEN`, `SOLAR_R`, roll keys) and
-/// the data statistics the resampling invalidates; plus the reference's grid cards (its WCS
-/// as the reference had it: `CRPIXi`, `CDELTi`, `CRVALi`, `CTYPEi`, `CUNITi`, `CROTA2` or
-/// `PCi_j`…), plus `HISTORY` saying what was done with which transform.
+/// the data statistics the resampling invalidates; plus the reference's grid cards (its WCS:
+/// `CRPIXi`, `CDELTi`, `CRVALi`, `CTYPEi`, `CUNITi`, and the roll as `PCi_j` whether the
+/// header gave it as `CROTA2`, `SC_ROLL` or a matrix; see [`Grid::of_image`]), plus `HISTORY`
+/// saying what was done with which transform. `replay`/`watch --aligned` write the same WCS
+/// for the same grid.
 pub fn write_aligned(
     path: &Path,
     reference: &Image,
@@ -114,10 +116,11 @@ pub struct Grid {
 }
 
 impl Grid {
-    /// The grid of `image` as its header gives it; where the alignment used a disk-checked
-    /// geometry instead (`used.from_disk`), with that plate scale and Sun centre.
+    /// The grid of `image` as its header gives it, the roll in `PCi_j` (see [`compose_wcs`]);
+    /// where the alignment used a disk-checked geometry instead (`used.from_disk`), with that
+    /// plate scale and Sun centre.
     pub fn of_image(image: &Image, used: Option<UsedGeometry>) -> Result<Grid> {
-        let (_, header) = fits::read_image_header(&image.meta.file)?;
+        let (_, header) = fits::read_image_header_as_read(&image.meta)?;
         Ok(Grid::of_header(
             &header,
             &image.meta,
@@ -150,6 +153,9 @@ impl Grid {
             Some(used) => use_checked_geometry(&mut cards, meta, &used),
             None => Vec::new(),
         };
+        // The roll as the alignment read it, stated in `PCi_j` whichever card gave it
+        // (`CROTA2`, SOHO's `SC_ROLL`): astropy and sunpy read no instrument keys.
+        let cards = compose_wcs(&cards, &Similarity::identity([0.0, 0.0]));
         Grid {
             cards,
             shape,
@@ -208,7 +214,7 @@ fn product_cards(
     extra: &[(String, HeaderValue)],
     resampled: bool,
 ) -> Result<Vec<(String, HeaderValue)>> {
-    let (_, frame_header) = fits::read_image_header(&frame.meta.file)?;
+    let (_, frame_header) = fits::read_image_header_as_read(&frame.meta)?;
     Ok(product_cards_of(
         &frame_header,
         &frame.meta,
@@ -312,9 +318,8 @@ pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(Stri
                 .or_else(|| get("CROTA1"))
                 .or_else(|| get("CROTA"))
                 .or_else(|| get("SC_ROLL"))
-                .unwrap_or(0.0)
-                .to_radians();
-            let (s, c) = rho.sin_cos();
+                .unwrap_or(0.0);
+            let (s, c) = sin_cos_deg(rho);
             let ratio = if cdelt[0] != 0.0 {
                 cdelt[1] / cdelt[0]
             } else {
@@ -351,6 +356,22 @@ pub fn compose_wcs(cards: &[(String, HeaderValue)], m: &Similarity) -> Vec<(Stri
     out.push(("CRPIX2".into(), HeaderValue::Float(new_crpix[1])));
     out.extend(linear.into_iter().map(|(k, v)| (k, HeaderValue::Float(v))));
     out
+}
+
+/// sin and cos of an angle in degrees, exact at multiples of 90° (a roll of 180° gives
+/// `PC1_2 = 0`, not 1.2e-16).
+fn sin_cos_deg(deg: f64) -> (f64, f64) {
+    let quarter = deg / 90.0;
+    if quarter == quarter.round() && quarter.abs() < 1e9 {
+        match (quarter as i64).rem_euclid(4) {
+            0 => (0.0, 1.0),
+            1 => (1.0, 0.0),
+            2 => (0.0, -1.0),
+            _ => (-1.0, 0.0),
+        }
+    } else {
+        deg.to_radians().sin_cos()
+    }
 }
 
 /// Where the reference's header was refused for the disk its image shows, the alignment used

@@ -128,6 +128,9 @@ pub struct ChannelConfig {
     pub model: Option<sunjitter_core::engine::ModelChoice>,
     pub scale_stability: Option<f64>,
     pub roll_stability_arcsec: Option<f64>,
+    /// The channel's true plate scale (arcsec/px) where its headers state another (binned
+    /// data whose `CDELTi` were left at the native pixel); used in place of the header's.
+    pub plate_scale_arcsec: Option<f64>,
 }
 
 /// Command-line settings that override the file.
@@ -244,6 +247,31 @@ impl Config {
             .collect()
     }
 
+    /// `[channels.X] plate_scale_arcsec`, by channel (topic) name.
+    pub fn channel_plate_scales(&self) -> BTreeMap<String, f64> {
+        self.channels
+            .iter()
+            .filter_map(|(name, c)| Some((name.clone(), c.plate_scale_arcsec?)))
+            .collect()
+    }
+
+    /// The plate scales `[channels.X] plate_scale_arcsec` gives, by the channel name headers
+    /// give (`[channel_names]` undone), for the reader.
+    pub fn plate_scales(&self) -> sunjitter_io::fits::PlateScales {
+        let mut by_header = BTreeMap::new();
+        for (name, v) in self.channel_plate_scales() {
+            if !self.channel_names.contains_key(&name) {
+                by_header.insert(name.clone(), v);
+            }
+            for (header, topic) in &self.channel_names {
+                if *topic == name {
+                    by_header.insert(header.clone(), v);
+                }
+            }
+        }
+        sunjitter_io::fits::PlateScales(by_header)
+    }
+
     /// Follow `channel:NAME` links from `channel`; a cycle would make frames wait forever.
     pub fn partner_chain(&self, channel: &str) -> Result<Vec<String>> {
         let mut seen = vec![channel.to_string()];
@@ -297,6 +325,33 @@ impl Config {
         }
         Ok(())
     }
+}
+
+/// What a record's message says when the frame's or the reference's plate scale came from
+/// the configuration (`given`, by topic name) rather than its header; channels as headers name
+/// them, `names` the `[channel_names]` renames.
+pub fn plate_scale_note(
+    given: &BTreeMap<String, f64>,
+    names: &BTreeMap<String, String>,
+    reference_channel: &str,
+    frame_channel: &str,
+) -> Option<String> {
+    let mut said: Vec<String> = Vec::new();
+    for channel in [frame_channel, reference_channel] {
+        let name = names.get(channel).map_or(channel, String::as_str);
+        if let Some(v) = given.get(name) {
+            let text = format!("{v}″/px for {name}");
+            if !said.contains(&text) {
+                said.push(text);
+            }
+        }
+    }
+    (!said.is_empty()).then(|| {
+        format!(
+            "plate scale from the configuration, not the header: {} (plate_scale_arcsec)",
+            said.join(", ")
+        )
+    })
 }
 
 /// `path` with its directory made canonical (the file name itself is kept, so a symbolic
@@ -546,6 +601,34 @@ mod tests {
         assert!(typo.contains("workerz"), "{typo}");
         let policy = Config::from_toml("[reference]\npolicy = \"sometimes\"").unwrap_err();
         assert!(policy.contains("sometimes"), "{policy}");
+    }
+
+    #[test]
+    fn a_channels_plate_scale_is_checked_and_found_under_its_header_name() {
+        let config = Config::from_toml(
+            "[channel_names]\nAIA_304 = \"EUV_304\"\n\
+             [channels.SJI_1400]\nplate_scale_arcsec = 1.6635\n\
+             [channels.EUV_304]\nplate_scale_arcsec = 0.6",
+        )
+        .unwrap();
+        config.validate().unwrap();
+        let scales = config.plate_scales().0;
+        assert_eq!(scales.get("SJI_1400"), Some(&1.6635));
+        assert_eq!(scales.get("AIA_304"), Some(&0.6));
+        // A header naming EUV_304 itself (not renamed) is that channel too.
+        assert_eq!(scales.get("EUV_304"), Some(&0.6));
+        assert_eq!(scales.len(), 3);
+        for bad in ["0", "-1.5", "nan", "1e9"] {
+            let err = Config::from_toml(&format!("[channels.X]\nplate_scale_arcsec = {bad}"))
+                .unwrap()
+                .validate()
+                .unwrap_err();
+            assert_eq!(err.exit_code(), 2);
+            assert!(
+                err.to_string().contains("channels.X.plate_scale_arcsec"),
+                "{err}"
+            );
+        }
     }
 
     #[test]

@@ -18,8 +18,12 @@
 //! (products asked for only after its chain began) keeps its own header's pointing, and the
 //! frames after it are put on it. Names mirror the inputs below a root (the
 //! watched directory, or the deepest directory holding every input of a replay): `DIR/REL`
-//! plus `[N]` for frame N of a cube plus `.aligned.fits` or `.wcs.fits`, with `REL` spelled as
-//! frame keys are (see [`sunjitter_core::text::path`]), so distinct frames never share a product.
+//! without its FITS extension (`.fits`, `.fit`, `.fts`, also gzip- or fpack-compressed), plus
+//! `[N]` for frame N of a cube, plus `.aligned.fits` or `.wcs.fits` (`a/x.fits[3]` →
+//! `DIR/a/x[3].aligned.fits`), with `REL` spelled as frame keys are (see
+//! [`sunjitter_core::text::path`]). Two inputs that differ only in their extension (`x.fits`,
+//! `x.fits.gz`) would share a name: the product belongs to the first frame written there
+//! (its `SRCFILE`/`SRCFRAME` cards say which), and the other frame gets a `/log` note instead.
 
 use crate::reference::{StepContext, StepOutput};
 use std::collections::HashMap;
@@ -62,6 +66,8 @@ pub struct Products {
     mode: Mode,
     /// Grids of `fixed:` references that are not inputs (they have no product to start from).
     fixed: Mutex<HashMap<String, Arc<Grid>>>,
+    /// Product paths written in this run, and the frame each belongs to.
+    claimed: Mutex<HashMap<PathBuf, String>>,
 }
 
 /// The chained-transform cards: scale, rotation (arcsec), dx, dy (px), centre (0-based px).
@@ -85,6 +91,7 @@ impl Products {
                 Mode::Resampled
             },
             fixed: Mutex::new(HashMap::new()),
+            claimed: Mutex::new(HashMap::new()),
         })
     }
 
@@ -103,7 +110,53 @@ impl Products {
         if rel.is_empty() {
             return None;
         }
-        Some(self.dir.join(format!("{rel}{}", self.mode.suffix())))
+        let (file, frame) = match rel.strip_suffix(']').and_then(|r| r.rsplit_once('[')) {
+            Some((file, n)) if !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()) => {
+                (file, format!("[{n}]"))
+            }
+            _ => (rel, String::new()),
+        };
+        let stem = without_fits_extension(file);
+        Some(
+            self.dir
+                .join(format!("{stem}{frame}{}", self.mode.suffix())),
+        )
+    }
+
+    /// Whether the product at `path` is frame `key`'s (by its `SRCFILE` name and `SRCFRAME`);
+    /// `None` when it cannot be read or does not say.
+    fn belongs_to(path: &Path, key: &str) -> Option<bool> {
+        let (_, header) = sunjitter_io::fits::read_image_header(path).ok()?;
+        let source = header.get("SRCFILE")?.as_str()?.to_string();
+        let frame = header.get("SRCFRAME").and_then(HeaderValue::as_i64);
+        let spec = parse_frame_key(key);
+        let name = |p: &Path| p.file_name().map(|n| n.to_string_lossy().into_owned());
+        let own = spec.path.display().to_string();
+        Some(
+            name(Path::new(&source)) == name(Path::new(&own))
+                && frame == spec.frame.map(|f| f as i64),
+        )
+    }
+
+    /// Take `path` for frame `key` in this run. `Err` names the frame that holds it: another
+    /// input of this run, or of an earlier one, whose name differs only in its extension.
+    /// With `take` false, only check (a failed frame writes nothing, so holds no name).
+    fn claim(&self, path: &Path, key: &str, take: bool) -> std::result::Result<(), String> {
+        let mut claimed = self.claimed.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(owner) = claimed.get(path) {
+            return if owner == key {
+                Ok(())
+            } else {
+                Err(sunjitter_core::text::escape(owner).into_owned())
+            };
+        }
+        if path.is_file() && Self::belongs_to(path, key) == Some(false) {
+            return Err("another input of an earlier run".to_string());
+        }
+        if take {
+            claimed.insert(path.to_path_buf(), key.to_string());
+        }
+        Ok(())
     }
 
     /// After frame `key` was processed: write its product, or remove a stale one when the frame
@@ -133,7 +186,17 @@ impl Products {
                 self.root.trim_end_matches('/')
             ));
         };
-        if message.align.status == Status::Failed {
+        let failed = message.align.status == Status::Failed;
+        if let Err(owner) = self.claim(&path, key, !failed) {
+            if failed {
+                return None;
+            }
+            return note(format!(
+                "{} holds the product of {owner}, whose name differs only in its extension",
+                sunjitter_core::text::path(&path)
+            ));
+        }
+        if failed {
             // A product left by a run stopped before it logged this frame must not outlive it.
             let _ = std::fs::remove_file(&path);
             return None;
@@ -189,7 +252,6 @@ impl Products {
                     history.push("pointing is kept, and later frames are put on it".to_string());
                 }
                 let mut grid = Grid::of_image(image, ctx.geometry_used(image)).map_err(reason)?;
-                // Also for the identity: the roll is stated as PCi_j, however the header gave it.
                 grid.cards = compose_wcs(&grid.cards, &t);
                 Arc::new(grid)
             }
@@ -243,6 +305,9 @@ impl Products {
         }
         anchors.iter().find_map(|anchor| {
             let path = self.path_for(anchor).filter(|p| p.is_file())?;
+            if Self::belongs_to(&path, anchor) == Some(false) {
+                return None;
+            }
             self.grid_of_product(&path).ok().map(Arc::new)
         })
     }
@@ -296,10 +361,7 @@ impl Products {
         }
         let reason = |e: Error| e.reason();
         let image = ctx.load(&parse_frame_key(key)).map_err(reason)?;
-        let mut grid = Grid::of_image(&image, ctx.geometry_used(&image)).map_err(reason)?;
-        let identity = Similarity::identity(Similarity::array_center(1, 1));
-        grid.cards = compose_wcs(&grid.cards, &identity);
-        let grid = Arc::new(grid);
+        let grid = Arc::new(Grid::of_image(&image, ctx.geometry_used(&image)).map_err(reason)?);
         lock().insert(key.to_string(), grid.clone());
         Ok(grid)
     }
@@ -342,6 +404,21 @@ impl Products {
         }
         cards
     }
+}
+
+/// `name` without its FITS extension (case-insensitive; kept when nothing would be left).
+fn without_fits_extension(name: &str) -> &str {
+    const EXTENSIONS: [&str; 7] = [
+        ".fits.fz", ".fits.gz", ".fit.gz", ".fts.gz", ".fits", ".fit", ".fts",
+    ];
+    let base_start = name.rfind('/').map_or(0, |i| i + 1);
+    for ext in EXTENSIONS {
+        let cut = name.len().saturating_sub(ext.len());
+        if cut > base_start && name.is_char_boundary(cut) && name[cut..].eq_ignore_ascii_case(ext) {
+            return &name[..cut];
+        }
+    }
+    name
 }
 
 fn is_identity(t: &Similarity) -> bool {
@@ -582,10 +659,22 @@ mod tests {
         let a = p.path_for("/data/in/a/x.fits").unwrap();
         let b = p.path_for("/data/in/b/x.fits").unwrap();
         let c = p.path_for("/data/in/a/x.fits[3]").unwrap();
-        assert!(a.ends_with("a/x.fits.wcs.fits"), "{a:?}");
-        assert!(b.ends_with("b/x.fits.wcs.fits"), "{b:?}");
-        assert!(c.ends_with("a/x.fits[3].wcs.fits"), "{c:?}");
+        assert!(a.ends_with("a/x.wcs.fits"), "{a:?}");
+        assert!(b.ends_with("b/x.wcs.fits"), "{b:?}");
+        assert!(c.ends_with("a/x[3].wcs.fits"), "{c:?}");
         assert_ne!(a, b);
+        for (input, product) in [
+            ("/data/in/y.FITS", "y.wcs.fits"),
+            ("/data/in/y.fits.gz", "y.wcs.fits"),
+            ("/data/in/y.fts", "y.wcs.fits"),
+            ("/data/in/y.fits.fz[2]", "y[2].wcs.fits"),
+            ("/data/in/y.dat", "y.dat.wcs.fits"),
+            ("/data/in/.fits", ".fits.wcs.fits"),
+            ("/data/in/d.fits/z", "d.fits/z.wcs.fits"),
+        ] {
+            let got = p.path_for(input).unwrap();
+            assert_eq!(got, p.dir.join(product), "{input}");
+        }
         assert!(p.path_for("/data/other/x.fits").is_none());
         assert!(p.path_for("/data/input/x.fits").is_none());
     }

@@ -39,6 +39,8 @@ impl Hdu {
 #[derive(Debug, Clone)]
 pub(super) struct Layout {
     pub(super) hdus: Vec<Hdu>,
+    /// Plate scales given for channels, applied to the image's header where it is merged.
+    pub(super) plate_scales: super::read::PlateScales,
 }
 
 impl Layout {
@@ -70,6 +72,7 @@ impl Layout {
                 }
             }
         }
+        self.plate_scales.apply(&mut merged);
         merged
     }
 
@@ -164,7 +167,10 @@ pub(super) fn scan(path: &Path) -> Result<Layout> {
         });
         offset = data_offset + data_len.div_ceil(BLOCK as u64) * BLOCK as u64;
     }
-    Ok(Layout { hdus })
+    Ok(Layout {
+        hdus,
+        plate_scales: Default::default(),
+    })
 }
 
 /// A failed read: a transient one keeps its I/O error (so callers may retry), any other is

@@ -28,8 +28,8 @@ mod write;
 pub use gzip::remove_stale_gunzipped_copies;
 pub use layout::is_incomplete;
 pub use read::{
-    read_frame, read_frame_with, read_image_header, read_meta, read_meta_with, ReadLimits,
-    DEFAULT_MAX_FRAME_PIXELS,
+    read_frame, read_frame_with, read_image_header, read_image_header_as_read, read_meta,
+    read_meta_with, PlateScales, ReadLimits, ReadOptions, DEFAULT_MAX_FRAME_PIXELS,
 };
 pub use spec::{frame_key, parse_frame_key, FrameSpec};
 pub use write::{frame_header_cards, write_image};

@@ -5,39 +5,41 @@ use super::gzip::PlainFile;
 use super::layout::scan;
 use super::pixels::read_pixels;
 use super::spec::FrameSpec;
+use std::collections::BTreeMap;
 use std::path::Path;
 use sunjitter_core::engine::Image;
 use sunjitter_core::header::{Header, ImageGeometry};
-use sunjitter_core::meta::FrameMeta;
+use sunjitter_core::meta::{self, FrameMeta};
 use sunjitter_core::{Error, Result};
 
 /// Read one image (or one frame of a cube) as f32, with its metadata.
 pub fn read_frame(spec: &FrameSpec) -> Result<Image> {
-    read_frame_with(spec, &ReadLimits::default())
+    read_frame_with(spec, &ReadOptions::default())
 }
 
-/// [`read_frame`] with other limits on what the file may claim.
-pub fn read_frame_with(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
-    let plain = PlainFile::of(&spec.path, limits)?;
+/// [`read_frame`] with other limits on what the file may claim, or plate scales of its own.
+pub fn read_frame_with(spec: &FrameSpec, options: &ReadOptions) -> Result<Image> {
+    let plain = PlainFile::of(&spec.path, &options.limits)?;
     let mut image = plain.read(|path| {
         read_plain_frame(
             &FrameSpec {
                 path: path.to_path_buf(),
                 frame: spec.frame,
             },
-            limits,
+            options,
         )
     })?;
     image.meta.file = spec.path.clone();
     Ok(image)
 }
 
-fn read_plain_frame(spec: &FrameSpec, limits: &ReadLimits) -> Result<Image> {
+fn read_plain_frame(spec: &FrameSpec, options: &ReadOptions) -> Result<Image> {
     let path = spec.path.as_path();
-    let layout = scan(path)?;
+    let mut layout = scan(path)?;
+    layout.plate_scales = options.plate_scales.clone();
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
-    limits.check(path, geometry)?;
+    options.limits.check(path, geometry)?;
     let frame = resolve_frame(path, geometry, spec.frame)?;
     let mut meta = layout.base_meta(path, hdu)?;
     meta.frame = frame;
@@ -54,25 +56,29 @@ pub fn read_meta(path: &Path) -> Result<Vec<FrameMeta>> {
     // No pixels are read: any size may be described.
     read_meta_with(
         path,
-        &ReadLimits {
-            max_frame_pixels: u64::MAX,
+        &ReadOptions {
+            limits: ReadLimits {
+                max_frame_pixels: u64::MAX,
+            },
+            ..Default::default()
         },
     )
 }
 
-/// [`read_meta`] with other limits on what the file may claim.
-pub fn read_meta_with(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
-    let plain = PlainFile::of(path, limits)?;
-    let mut metas = plain.read(|plain| read_plain_meta(plain, limits))?;
+/// [`read_meta`] with other limits on what the file may claim, or plate scales of its own.
+pub fn read_meta_with(path: &Path, options: &ReadOptions) -> Result<Vec<FrameMeta>> {
+    let plain = PlainFile::of(path, &options.limits)?;
+    let mut metas = plain.read(|plain| read_plain_meta(plain, options))?;
     metas.iter_mut().for_each(|m| m.file = path.to_path_buf());
     Ok(metas)
 }
 
-fn read_plain_meta(path: &Path, limits: &ReadLimits) -> Result<Vec<FrameMeta>> {
-    let layout = scan(path)?;
+fn read_plain_meta(path: &Path, options: &ReadOptions) -> Result<Vec<FrameMeta>> {
+    let mut layout = scan(path)?;
+    layout.plate_scales = options.plate_scales.clone();
     let hdu = layout.image_hdu(path)?;
     let geometry = hdu.geometry();
-    limits.check(path, geometry)?;
+    options.limits.check(path, geometry)?;
     let base = layout.base_meta(path, hdu)?;
     if !geometry.is_cube() {
         return Ok(vec![base]);
@@ -100,6 +106,51 @@ fn read_plain_image_header(path: &Path) -> Result<(usize, Header)> {
     let layout = scan(path)?;
     let hdu = layout.image_hdu(path)?;
     Ok((hdu.index, layout.merged_header(hdu)))
+}
+
+/// [`read_image_header`] of the file `meta` was read from, its plate scale the one `meta`
+/// has (a plate scale the reading was given for the channel, see [`PlateScales`]), so that
+/// cards copied from it describe the grid the frame was measured on.
+pub fn read_image_header_as_read(meta: &FrameMeta) -> Result<(usize, Header)> {
+    let (index, mut header) = read_image_header(&meta.file)?;
+    let own = meta::CelestialWcs::from_header(&header).map(|w| w.plate_scale_arcsec());
+    let used = meta.plate_scale_arcsec.map(f64::abs);
+    if let Ok(own) = own {
+        let differs = (0..2).any(|j| (own[j].abs() - used[j]).abs() > 1e-12 * used[j]);
+        if differs {
+            meta::set_plate_scale(&mut header, used)
+                .map_err(|reason| Error::bad_header(&meta.file, reason))?;
+        }
+    }
+    Ok((index, header))
+}
+
+/// Plate scales (arcsec/px) given for channels whose headers state a wrong one, by the channel
+/// the header names (`SJI_1400`; before `[channel_names]` renames it): applied to the header
+/// where it is read, so the plate scale, the Sun centre and per-frame pointing all follow it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PlateScales(pub BTreeMap<String, f64>);
+
+impl PlateScales {
+    /// Give `header` its channel's plate scale, if one is given. Returns the header's own
+    /// (arcsec/px) when replaced; a header whose WCS cannot be read is left as it is (reading
+    /// it says why).
+    pub fn apply(&self, header: &mut Header) -> Option<[f64; 2]> {
+        if self.0.is_empty() {
+            return None;
+        }
+        let instrument = meta::instrument(header);
+        let channel = meta::channel(header, instrument.as_deref(), meta::wavelength(header));
+        let scale = *self.0.get(&channel)?;
+        meta::set_plate_scale(header, [scale, scale]).ok()
+    }
+}
+
+/// How frames are read: limits on what a file may claim, and plate scales given for channels.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReadOptions {
+    pub limits: ReadLimits,
+    pub plate_scales: PlateScales,
 }
 
 /// Which frame to read: none for a 2-D image, an index for a cube (a one-frame cube needs none).

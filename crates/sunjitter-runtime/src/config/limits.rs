@@ -108,6 +108,15 @@ pub fn check(config: &Config) -> Result<()> {
             c.scale_stability,
             c.roll_stability_arcsec,
         )?;
+        if let Some(v) = c.plate_scale_arcsec {
+            float(
+                &format!("channels.{name}.plate_scale_arcsec"),
+                v,
+                1e-4,
+                1e4,
+                false,
+            )?;
+        }
     }
     for (from, to) in &config.channel_names {
         check_channel_name("[channel_names] key", from)?;

@@ -221,9 +221,39 @@ pub fn peaks(
     power: &[f64],
     max_peaks: usize,
 ) -> Vec<Peak> {
+    select_peaks(t, y, grid, power, max_peaks, None)
+}
+
+/// [`peaks`] among the maxima at `min_hz` or above (on the grid and once refined) that are
+/// maxima on both sides: a rise towards the grid's end is power leaking from lower
+/// frequencies (a trend), not a period.
+pub fn resolved_peaks(
+    t: &[f64],
+    y: &[f64],
+    grid: &FrequencyGrid,
+    power: &[f64],
+    max_peaks: usize,
+    min_hz: f64,
+) -> Vec<Peak> {
+    select_peaks(t, y, grid, power, max_peaks, Some(min_hz))
+}
+
+fn select_peaks(
+    t: &[f64],
+    y: &[f64],
+    grid: &FrequencyGrid,
+    power: &[f64],
+    max_peaks: usize,
+    interior_from_hz: Option<f64>,
+) -> Vec<Peak> {
     let n = power.len();
     let mut candidates: Vec<usize> = (0..n)
         .filter(|&j| {
+            if let Some(min_hz) = interior_from_hz {
+                if j == 0 || j + 1 == n || grid.frequency(j) < min_hz {
+                    return false;
+                }
+            }
             let left = j == 0 || power[j] > power[j - 1];
             let right = j + 1 == n || power[j] >= power[j + 1];
             left && right && power[j] > 0.0
@@ -250,9 +280,11 @@ pub fn peaks(
                 }
             }
         }
-        if chosen
-            .iter()
-            .any(|c| (c.frequency_hz - f).abs() < grid.resolution_hz())
+        // Refined below the lowest frequency allowed: not a period the span holds that often.
+        if interior_from_hz.is_some_and(|min_hz| f < min_hz)
+            || chosen
+                .iter()
+                .any(|c| (c.frequency_hz - f).abs() < grid.resolution_hz())
         {
             continue;
         }

@@ -9,8 +9,15 @@
 //! - `rms` is about the mean; `median_sigma` ignores σ = 0 (frames aligned to themselves).
 //! - The *pointing series* used for the periodogram, the outliers and the plot is `chained`
 //!   when at least half the frames with a raw value also have a chained one, else `raw`.
+//! - Trend: the least-squares straight line of each parameter of the pointing series, its
+//!   slope per hour with a 1σ from the scatter about the line ([`Trend`]). A drift is
+//!   reported as a trend, never as a period.
 //! - Periodogram: [`lombscargle`] on the pointing series of the frames where all four
-//!   parameters are present, after removing a straight-line fit (drift is not jitter).
+//!   parameters are present, after removing that line (drift is not jitter). A period is
+//!   listed only when the series holds at least [`MIN_PERIOD_SAMPLES`] samples, spans at least
+//!   [`MIN_CYCLES`] of its cycles (frequency ≥ `MIN_CYCLES / T`, T the span; a 3.7-hour
+//!   series lists nothing longer than 1.2 hours) and is a maximum on both sides (a rise
+//!   towards long periods is what is left of a trend, not a period).
 //! - Outliers: [`stats::outliers`] (leave-one-out local quadratic baseline) beyond 5σ.
 
 pub mod consistency;
@@ -88,6 +95,14 @@ impl Param {
         }
     }
 }
+
+/// A period is listed only when the series spans at least this many of its cycles: fewer
+/// cannot tell a period from a trend or a single excursion.
+pub const MIN_CYCLES: f64 = 3.0;
+/// ... and holds at least this many samples (a sinusoid on a straight line has five
+/// parameters; a false-alarm probability from fewer samples than four per parameter is not
+/// to be trusted).
+pub const MIN_PERIOD_SAMPLES: usize = 20;
 
 /// Analysis settings (defaults are the documented ones).
 #[derive(Debug, Clone, PartialEq)]
@@ -188,6 +203,27 @@ pub struct ParamPeaks {
     pub scale: Vec<Peak>,
 }
 
+/// A straight-line trend of one parameter: slope per hour, in the parameter's units (scale:
+/// per hour, unitless), with its 1σ from the scatter about the line (`sqrt(Σr²/(n−2) /
+/// Σ(t−t̄)²)`; jitter correlated in time makes it an underestimate).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Trend {
+    pub per_hour: f64,
+    pub sigma_per_hour: f64,
+    /// Samples in the fit.
+    pub samples: usize,
+}
+
+/// The trends of the four parameters of the pointing series (`null` with fewer than 3 samples).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParamTrends {
+    pub series: SeriesKind,
+    pub dx_px: Option<Trend>,
+    pub dy_px: Option<Trend>,
+    pub rotation_arcsec: Option<Trend>,
+    pub scale: Option<Trend>,
+}
+
 /// The periodogram's grid and peaks. "Within one frequency bin" means within
 /// `frequency_resolution_hz` = 1/`span_s`; the grid is `oversampling` times finer.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -196,6 +232,8 @@ pub struct PeriodogramReport {
     /// Samples used: non-failed frames with all four parameters.
     pub samples: usize,
     pub span_s: f64,
+    /// The lowest frequency searched for periods, [`MIN_CYCLES`] / `span_s` (the grid itself
+    /// starts at 1 / `span_s`).
     pub frequency_min_hz: f64,
     /// Pseudo-Nyquist, 1/(2 · median Δt).
     pub frequency_max_hz: f64,
@@ -244,9 +282,11 @@ pub struct ChannelReport {
     pub raw: ParamStats,
     /// `null` when no frame has chained values.
     pub chained: Option<ParamStats>,
-    /// The series the periodogram, outliers and plot use.
+    /// The series the trend, periodogram, outliers and plot use.
     pub series: SeriesKind,
-    /// `null` with fewer than 5 usable samples.
+    pub trend: ParamTrends,
+    /// `null` with fewer than [`MIN_PERIOD_SAMPLES`] usable samples, or a span shorter than
+    /// [`MIN_CYCLES`] of the shortest period the cadence resolves.
     pub periodogram: Option<PeriodogramReport>,
     pub outliers: Vec<Outlier>,
 }
@@ -351,20 +391,44 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
         })
         .collect();
     let t: Vec<f64> = usable.iter().map(|u| u.0).collect();
+    let trend_of = |p: Param| {
+        let (t, y): (Vec<f64>, Vec<f64>) = frames
+            .iter()
+            .filter_map(|f| {
+                let v = p.get(&f.record, series).0.filter(|x| x.is_finite())?;
+                Some(((f.log_time_ns - t0) as f64 * 1e-9, v))
+            })
+            .unzip();
+        trend(&t, &y)
+    };
+    let trend = ParamTrends {
+        series,
+        dx_px: trend_of(Param::Dx),
+        dy_px: trend_of(Param::Dy),
+        rotation_arcsec: trend_of(Param::Rotation),
+        scale: trend_of(Param::Scale),
+    };
     let mut periodogram = None;
     let mut spectrum = None;
-    if let Some(grid) = FrequencyGrid::for_times(&t, opts.oversampling, opts.max_frequencies) {
+    let grid = (t.len() >= MIN_PERIOD_SAMPLES)
+        .then(|| FrequencyGrid::for_times(&t, opts.oversampling, opts.max_frequencies))
+        .flatten()
+        .filter(|g| g.max_hz() > MIN_CYCLES / g.span_s);
+    if let Some(grid) = grid {
+        let min_hz = MIN_CYCLES / grid.span_s;
         let ys: Vec<Vec<f64>> = (0..4)
             .map(|k| detrend(&t, &usable.iter().map(|u| u.1[k]).collect::<Vec<_>>()))
             .collect();
         let refs: Vec<&[f64]> = ys.iter().map(|y| y.as_slice()).collect();
         let power = lombscargle::periodogram(&t, &refs, &grid);
-        let pk = |k: usize| lombscargle::peaks(&t, &ys[k], &grid, &power[k], opts.max_peaks);
+        let pk = |k: usize| {
+            lombscargle::resolved_peaks(&t, &ys[k], &grid, &power[k], opts.max_peaks, min_hz)
+        };
         periodogram = Some(PeriodogramReport {
             series,
             samples: t.len(),
             span_s: grid.span_s,
-            frequency_min_hz: grid.min_hz,
+            frequency_min_hz: min_hz,
             frequency_max_hz: grid.max_hz(),
             frequency_step_hz: grid.step_hz,
             frequency_resolution_hz: grid.resolution_hz(),
@@ -377,7 +441,13 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
                 scale: pk(3),
             },
         });
-        spectrum = Some(((0..grid.count).map(|j| grid.frequency(j)).collect(), power));
+        // The part searched for periods.
+        let first = (0..grid.count)
+            .find(|&j| grid.frequency(j) >= min_hz)
+            .unwrap_or(0);
+        let freqs: Vec<f64> = (first..grid.count).map(|j| grid.frequency(j)).collect();
+        let power: Vec<Vec<f64>> = power.into_iter().map(|p| p[first..].to_vec()).collect();
+        spectrum = Some((freqs, power));
     }
 
     let mut outliers = Vec::new();
@@ -428,6 +498,7 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
         raw,
         chained,
         series,
+        trend,
         periodogram,
         outliers,
     };
@@ -436,6 +507,37 @@ fn analyse_channel(name: &str, frames: Vec<LoggedFrame>, opts: &InspectOptions) 
         frames,
         spectrum,
     }
+}
+
+/// The least-squares straight line of `y(t)` (t in seconds), as a [`Trend`] per hour.
+fn trend(t: &[f64], y: &[f64]) -> Option<Trend> {
+    let n = t.len();
+    if n < 3 {
+        return None;
+    }
+    let nf = n as f64;
+    let (mt, my) = (t.iter().sum::<f64>() / nf, y.iter().sum::<f64>() / nf);
+    let stt: f64 = t.iter().map(|v| (v - mt).powi(2)).sum();
+    if stt <= 0.0 {
+        return None;
+    }
+    let slope = t
+        .iter()
+        .zip(y)
+        .map(|(a, b)| (a - mt) * (b - my))
+        .sum::<f64>()
+        / stt;
+    let residual: f64 = t
+        .iter()
+        .zip(y)
+        .map(|(a, b)| (b - my - slope * (a - mt)).powi(2))
+        .sum();
+    let sigma = (residual / (nf - 2.0) / stt).sqrt();
+    Some(Trend {
+        per_hour: slope * 3600.0,
+        sigma_per_hour: sigma * 3600.0,
+        samples: n,
+    })
 }
 
 /// `y` minus its least-squares straight line in `t`.
@@ -529,6 +631,21 @@ pub fn render_text(report: &Report) -> String {
             }
             let _ = writeln!(s);
         }
+        let tr = &c.trend;
+        let slope = |t: &Option<Trend>, k: f64, unit: &str| {
+            t.map_or("-".to_string(), |t| {
+                sunjitter_core::text::value_pm(t.per_hour * k, Some(t.sigma_per_hour * k), unit)
+            })
+        };
+        let _ = writeln!(
+            s,
+            "  trend ({} series, straight line, per hour): dx {}, dy {}, rotation {}, scale {}",
+            series_name(tr.series),
+            slope(&tr.dx_px, 1.0, " px"),
+            slope(&tr.dy_px, 1.0, " px"),
+            slope(&tr.rotation_arcsec, 1.0, "″"),
+            slope(&tr.scale, 1e6, " ppm"),
+        );
         match &c.periodogram {
             Some(p) => {
                 let fmt = |peaks: &[Peak]| -> String {
@@ -550,16 +667,25 @@ pub fn render_text(report: &Report) -> String {
                 };
                 let _ = writeln!(
                     s,
-                    "  periods ({} series, {} samples, bin {:.3e} Hz):",
+                    "  periods ({} series less its trend, {} samples; searched from {:.1} s, \
+                     a third of the span, down to {:.1} s; bin {:.3e} Hz):",
                     series_name(p.series),
                     p.samples,
+                    1.0 / p.frequency_min_hz,
+                    1.0 / p.frequency_max_hz,
                     p.frequency_resolution_hz
                 );
                 let _ = writeln!(s, "    dx: {}", fmt(&p.peaks.dx_px));
                 let _ = writeln!(s, "    dy: {}", fmt(&p.peaks.dy_px));
             }
             None => {
-                let _ = writeln!(s, "  periods: too few samples");
+                let _ = writeln!(
+                    s,
+                    "  periods: none listed (a period needs {MIN_PERIOD_SAMPLES} samples and \
+                     {MIN_CYCLES:.0} cycles in the span; {} samples over {:.0} s)",
+                    t_samples(c),
+                    c.span_s
+                );
             }
         }
         if c.outliers.is_empty() {
@@ -647,6 +773,15 @@ fn render_log(s: &mut String, log: &LogSummary) {
     if log.unaligned.len() > 10 {
         let _ = writeln!(s, "  … {} more in --json", log.unaligned.len() - 10);
     }
+}
+
+/// Samples of the pointing series with a value (the periodogram's, at most).
+fn t_samples(c: &ChannelReport) -> usize {
+    let stats = match c.series {
+        SeriesKind::Chained => c.chained.as_ref().unwrap_or(&c.raw),
+        SeriesKind::Raw => &c.raw,
+    };
+    stats.dx_px.n
 }
 
 fn series_name(k: SeriesKind) -> &'static str {
@@ -795,6 +930,113 @@ mod tests {
             text.contains("SYNTH_171: 85 frames (83 ok, 1 degraded, 1 failed)"),
             "{text}"
         );
+    }
+
+    /// Deterministic noise, uniform in ±`amp` (splitmix64 of `k`).
+    fn noise(k: u64, amp: f64) -> f64 {
+        let mut z = k.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        let x = (z >> 11) as f64 / (1u64 << 53) as f64;
+        amp * (2.0 * x - 1.0)
+    }
+
+    /// `n` frames at `cadence` s with dx = f(t), dy = g(t) plus noise of 0.02 px.
+    fn series(n: u64, cadence: f64, f: impl Fn(f64) -> (f64, f64)) -> ChannelReport {
+        let frames: Vec<LoggedFrame> = (0..n)
+            .map(|k| {
+                let t = cadence * k as f64;
+                let (dx, dy) = f(t);
+                let (dx, dy) = (dx + noise(2 * k, 0.02), dy + noise(2 * k + 1, 0.02));
+                frame("C", k, t, dx, dy, Status::Ok)
+            })
+            .collect();
+        analyse(&frames, &InspectOptions::default())
+            .remove(0)
+            .report
+    }
+
+    #[test]
+    fn a_period_is_listed_only_with_three_cycles_in_the_span_and_twenty_samples() {
+        let tau = 2.0 * std::f64::consts::PI;
+        // 60 frames at 60 s: T = 3540 s.
+        let span = 3540.0;
+        for (cycles, listed) in [(4.0, true), (2.9, false), (2.0, false), (1.5, false)] {
+            let period = span / cycles;
+            let c = series(60, 60.0, |t| (0.3 * (tau * t / period).sin(), 0.0));
+            let p = c.periodogram.as_ref().unwrap();
+            assert!((p.frequency_min_hz - 3.0 / span).abs() < 1e-12);
+            let found = p
+                .peaks
+                .dx_px
+                .iter()
+                .any(|pk| (pk.frequency_hz - 1.0 / period).abs() < p.frequency_resolution_hz);
+            assert_eq!(found, listed, "{cycles} cycles: {:?}", p.peaks.dx_px);
+            assert!(p.peaks.dx_px.iter().all(|pk| pk.period_s <= span / 3.0));
+            if listed {
+                assert!(p.peaks.dx_px[0].false_alarm_probability < 1e-6);
+            } else {
+                // Nothing else is passed off as significant either.
+                assert!(
+                    p.peaks
+                        .dx_px
+                        .iter()
+                        .all(|pk| pk.false_alarm_probability > 0.01),
+                    "{cycles} cycles: {:?}",
+                    p.peaks.dx_px
+                );
+            }
+        }
+        // Six 2-hour cycles in 12 h, but only 11 samples: nothing is listed, and the text says why.
+        let c = series(11, 4320.0, |t| (0.3 * (tau * t / 7200.0).sin(), 0.0));
+        assert!(c.periodogram.is_none());
+        let text = render_text(&Report {
+            files: vec![],
+            channels: vec![c],
+            log: LogSummary::default(),
+        });
+        assert!(
+            text.contains("periods: none listed (a period needs 20 samples and 3 cycles"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_drift_is_reported_as_a_trend_with_its_sigma_not_as_a_period() {
+        // 3.7 h at 270 s (50 frames), as the demo: dy drifts −0.3 px/h; dx curves (a
+        // quadratic drift of 0.5 px over the run), which a straight line does not remove.
+        let span = 49.0 * 270.0;
+        let c = series(50, 270.0, |t| (0.5 * (t / span).powi(2), -0.3 * t / 3600.0));
+        let dy = c.trend.dy_px.unwrap();
+        assert!(
+            (dy.per_hour + 0.3).abs() < 3.0 * dy.sigma_per_hour,
+            "{dy:?}"
+        );
+        // Noise uniform in ±0.02 px: σ of the slope ≈ 0.0115 / √Σ(t−t̄)² per s.
+        let expected = 0.02 / 3f64.sqrt() / (50.0 * (span * span) / 12.0).sqrt() * 3600.0;
+        assert!(
+            dy.sigma_per_hour > 0.5 * expected && dy.sigma_per_hour < 2.0 * expected,
+            "{dy:?} vs {expected}"
+        );
+        assert_eq!(dy.samples, 50);
+        let p = c.periodogram.as_ref().unwrap();
+        for (name, peaks) in [("dx", &p.peaks.dx_px), ("dy", &p.peaks.dy_px)] {
+            assert!(
+                peaks.iter().all(|pk| pk.false_alarm_probability > 0.01),
+                "{name}: {peaks:?}"
+            );
+        }
+        let text = render_text(&Report {
+            files: vec![],
+            channels: vec![c],
+            log: LogSummary::default(),
+        });
+        assert!(
+            text.contains("trend (chained series, straight line, per hour): dx "),
+            "{text}"
+        );
+        assert!(text.contains("px, dy -0.29"), "{text}");
     }
 
     #[test]

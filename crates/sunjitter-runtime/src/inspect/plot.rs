@@ -1,19 +1,23 @@
 //! `inspect --plot OUT.png|OUT.svg`: one figure read at a glance. A title with the time range,
-//! a legend strip, then one panel per channel: a row of four subplots (dx and dy in px,
-//! rotation in ″, scale in ppm from 1) against a shared UTC time axis whose tick labels carry
-//! the date where it is needed. Each subplot shows the raw (frame → its reference) and, when
-//! logged, the chained (to the first reference) series with their ±1σ bands; degraded frames
-//! ringed in orange, failed frames as red crosses along the floor, outliers as black
-//! triangles. Below, the Lomb–Scargle periodogram (power against period, dx solid, dy dashed)
-//! with the strongest periods labelled and its legend beside the plot. Text uses the embedded
-//! DejaVu Sans, so no system font is needed.
+//! a legend strip, then one panel per channel, each on its own UTC time axis whose tick labels
+//! carry the date where it is needed: a row of four subplots, dx and dy in px with arcsec on
+//! a second axis at the channel's plate scale, rotation in ″, ′ or ° as its size asks, scale
+//! in ppm from 1. Each subplot shows the raw (frame → its reference) and, when logged, the
+//! chained (to the first reference) series with their ±1σ bands; dashed violet lines where a
+//! frame starts a reference (a new keyframe), degraded frames ringed in orange, failed frames
+//! as red crosses along the floor, outliers as black triangles. Below, the Lomb–Scargle
+//! periodogram of the periods `inspect` searches (at least three cycles in the span; power
+//! against period, dx solid, dy dashed), the strongest listed periods labelled where no
+//! label covers another, its legend beside the plot. Time ticks are spaced so that their
+//! labels never touch. Text uses the embedded DejaVu Sans, so no system font is needed.
 
 use super::{ChannelAnalysis, Param, SeriesKind, PARAMS};
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
-use sunjitter_core::record::Status;
+use sunjitter_core::record::{ReferenceKind, Status};
 use sunjitter_core::{Error, Result};
 
 use sunjitter_io::font::{self, FAMILY};
@@ -24,13 +28,17 @@ const LEGEND_H: u32 = 40;
 const ROW_H: u32 = 340;
 const CAPTION_H: u32 = 30;
 const SPECTRUM_H: u32 = 400;
+const NO_SPECTRUM_H: u32 = 60;
 /// Width of the periodogram's legend column, right of its plot.
 const SPECTRUM_LEGEND_W: u32 = 320;
 const Y_LABEL_W: u32 = 88;
+/// The arcsec axis right of the dx and dy subplots (kept on all four, so they line up).
+const RIGHT_LABEL_W: u32 = 76;
 const RIGHT_MARGIN: u32 = 16;
-/// Narrowest tick spacing (px) for `HH:MM` labels; wider when dated labels may be neighbours.
-const TICK_SPACING_PX: f64 = 90.0;
-const DATED_TICK_SPACING_PX: f64 = 130.0;
+/// Room (px) between neighbouring time tick labels.
+const TICK_GAP_PX: f64 = 14.0;
+/// Time tick labels: size of their font.
+const TICK_FONT: u32 = 15;
 
 const CHANNEL_COLOURS: [RGBColor; 6] = [
     RGBColor(31, 119, 180),
@@ -44,12 +52,19 @@ const RAW: RGBColor = RGBColor(110, 110, 110);
 const CHAINED: RGBColor = RGBColor(31, 119, 180);
 const DEGRADED: RGBColor = RGBColor(255, 127, 14);
 const FAILED: RGBColor = RGBColor(214, 39, 40);
+const NEW_REFERENCE: RGBColor = RGBColor(148, 103, 189);
 const PANEL_FRAME: RGBColor = RGBColor(190, 190, 190);
 
-/// Figure size for `channels` channels: fixed width, one row per channel.
-pub fn figure_size(channels: usize) -> (u32, u32) {
-    let rows = channels.max(1) as u32;
-    (WIDTH, TITLE_H + LEGEND_H + rows * ROW_H + SPECTRUM_H + 10)
+/// The figure's size: fixed width, one row per channel, and the periodogram (one line saying
+/// why there is none, where no channel has one).
+pub fn figure_size(analyses: &[ChannelAnalysis]) -> (u32, u32) {
+    let rows = analyses.len().max(1) as u32;
+    let spectrum = if analyses.iter().any(|a| a.spectrum.is_some()) {
+        SPECTRUM_H
+    } else {
+        NO_SPECTRUM_H
+    };
+    (WIDTH, TITLE_H + LEGEND_H + rows * ROW_H + spectrum + 10)
 }
 
 /// Draw the figure to `path`; the extension (`.png` or `.svg`) picks the format.
@@ -60,7 +75,7 @@ pub fn write_plot(analyses: &[ChannelAnalysis], path: &Path) -> Result<()> {
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     let fail = |e: String| Error::output(path, e);
-    let size = figure_size(analyses.len());
+    let size = figure_size(analyses);
     match ext.as_deref() {
         Some("png") => {
             let root = BitMapBackend::new(path, size).into_drawing_area();
@@ -88,31 +103,99 @@ struct Sample {
     outlier: bool,
 }
 
-fn to_plot_units(p: Param, v: f64) -> f64 {
-    match p {
-        Param::Scale => (v - 1.0) * 1e6,
-        _ => v,
+/// How a channel's values are drawn: the rotation's unit, and the plate scale for the
+/// arcsec axis of dx and dy.
+#[derive(Debug, Clone, Copy)]
+struct Units {
+    /// Arcsec per unit of the rotation axis (1, 60 or 3600) and its symbol.
+    rotation: (f64, &'static str),
+    /// Arcsec per px of the reference grid, where the log says (`dx_arcsec` / `dx_px`).
+    plate_scale: Option<f64>,
+}
+
+impl Units {
+    fn of(a: &ChannelAnalysis) -> Units {
+        let largest = a
+            .frames
+            .iter()
+            .flat_map(|f| {
+                [SeriesKind::Raw, SeriesKind::Chained]
+                    .map(|k| Param::Rotation.get(&f.record, k).0.unwrap_or(0.0).abs())
+            })
+            .filter(|v| v.is_finite())
+            .fold(0.0f64, f64::max);
+        // Arcsec up to 2′, arcmin up to 2°, then degrees: tick labels of a few digits.
+        let rotation = if largest < 120.0 {
+            (1.0, "″")
+        } else if largest < 7200.0 {
+            (60.0, "′")
+        } else {
+            (3600.0, "°")
+        };
+        Units {
+            rotation,
+            plate_scale: plate_scale(a),
+        }
+    }
+
+    fn value(&self, p: Param, v: f64) -> f64 {
+        match p {
+            Param::Scale => (v - 1.0) * 1e6,
+            Param::Rotation => v / self.rotation.0,
+            _ => v,
+        }
+    }
+
+    fn sigma(&self, p: Param, s: f64) -> f64 {
+        match p {
+            Param::Scale => s * 1e6,
+            Param::Rotation => s / self.rotation.0,
+            _ => s,
+        }
+    }
+
+    fn label(&self, p: Param) -> String {
+        match p {
+            Param::Dx => "dx [px]".into(),
+            Param::Dy => "dy [px]".into(),
+            Param::Rotation => format!("rotation [{}]", self.rotation.1),
+            Param::Scale => "scale - 1 [ppm]".into(),
+        }
     }
 }
 
-fn sigma_units(p: Param, s: f64) -> f64 {
-    match p {
-        Param::Scale => s * 1e6,
-        _ => s,
+/// The channel's plate scale (arcsec/px) as its records used it: the median of
+/// `dx_arcsec / dx_px` and `dy_arcsec / dy_px` over frames with a shift.
+fn plate_scale(a: &ChannelAnalysis) -> Option<f64> {
+    let mut ratios: Vec<f64> = Vec::new();
+    for f in &a.frames {
+        let r = &f.record;
+        let pairs = [
+            (r.align.dx_arcsec, r.align.dx_px),
+            (r.align.dy_arcsec, r.align.dy_px),
+            (r.chained_dx_arcsec, r.chained_dx_px),
+            (r.chained_dy_arcsec, r.chained_dy_px),
+        ];
+        for (arcsec, px) in pairs {
+            if let (Some(arcsec), Some(px)) = (arcsec, px) {
+                let ratio = (arcsec / px).abs();
+                if px.abs() > 1e-9 && ratio.is_finite() && ratio > 0.0 {
+                    ratios.push(ratio);
+                }
+            }
+        }
     }
-}
-
-fn label(p: Param) -> &'static str {
-    match p {
-        Param::Dx => "dx [px]",
-        Param::Dy => "dy [px]",
-        Param::Rotation => "rotation [″]",
-        Param::Scale => "scale - 1 [ppm]",
-    }
+    super::stats::median(&ratios)
 }
 
 /// The values of `p` in series `kind`, and the times of frames without one.
-fn samples(a: &ChannelAnalysis, p: Param, kind: SeriesKind, t0: i64) -> (Vec<Sample>, Vec<f64>) {
+fn samples(
+    a: &ChannelAnalysis,
+    p: Param,
+    kind: SeriesKind,
+    t0: i64,
+    units: &Units,
+) -> (Vec<Sample>, Vec<f64>) {
     let mut out = Vec::new();
     let mut failed = Vec::new();
     for f in &a.frames {
@@ -121,8 +204,8 @@ fn samples(a: &ChannelAnalysis, p: Param, kind: SeriesKind, t0: i64) -> (Vec<Sam
         match v.filter(|x| x.is_finite()) {
             Some(v) => out.push(Sample {
                 t,
-                v: to_plot_units(p, v),
-                sigma: sigma_units(p, s.filter(|x| x.is_finite()).unwrap_or(0.0)),
+                v: units.value(p, v),
+                sigma: units.sigma(p, s.filter(|x| x.is_finite()).unwrap_or(0.0)),
                 status: f.record.align.status,
                 outlier: a.report.outliers.iter().any(|o| {
                     o.series == kind
@@ -155,8 +238,9 @@ fn runs(s: &[Sample], failed: &[f64], cadence: f64) -> Vec<std::ops::Range<usize
 }
 
 /// Tick labels of a time axis: `YYYY-MM-DD HH:MM` on the first tick and wherever the UTC date
-/// changes, `HH:MM` elsewhere (with seconds when ticks are less than a minute apart).
-fn time_labels(t0_ns: i64, ticks: &[f64], step: f64) -> Vec<String> {
+/// changes, `HH:MM` elsewhere (with seconds when ticks are less than a minute apart). An axis
+/// within one UTC day (`one_day`) has its date in its title: `HH:MM` everywhere.
+fn time_labels(t0_ns: i64, ticks: &[f64], step: f64, one_day: bool) -> Vec<String> {
     let mut prev_day = None;
     ticks
         .iter()
@@ -168,7 +252,7 @@ fn time_labels(t0_ns: i64, ticks: &[f64], step: f64) -> Vec<String> {
                 &iso[11..16]
             };
             let day = iso[..10].to_string();
-            let dated = prev_day.as_ref() != Some(&day);
+            let dated = !one_day && prev_day.as_ref() != Some(&day);
             prev_day = Some(day);
             if dated {
                 format!("{} {clock}", &iso[..10])
@@ -218,6 +302,7 @@ fn fit_text<DB: DrawingBackend>(
 
 /// An f64 axis (linear or log10) with the tick values we choose: round UTC clock times,
 /// 1-2-5 periods (plotters' own f64 ticks are 1-2-5 multiples, e.g. 12:01:40).
+#[derive(Debug, Clone)]
 struct TickedAxis {
     lo: f64,
     hi: f64,
@@ -365,6 +450,7 @@ enum Mark {
     Ring,
     Cross,
     Triangle,
+    Vertical,
 }
 
 fn draw_mark<DB: DrawingBackend>(
@@ -394,6 +480,15 @@ fn draw_mark<DB: DrawingBackend>(
         Mark::Ring => area.draw(&Circle::new((x + 15, y), 6, DEGRADED.stroke_width(3))),
         Mark::Cross => area.draw(&Cross::new((x + 15, y), 6, FAILED.stroke_width(3))),
         Mark::Triangle => area.draw(&TriangleMarker::new((x + 15, y), 8, BLACK.filled())),
+        Mark::Vertical => {
+            for (a, b) in [(-9, -4), (-1, 3), (6, 9)] {
+                area.draw(&PathElement::new(
+                    vec![(x + 15, y + a), (x + 15, y + b)],
+                    NEW_REFERENCE.stroke_width(2),
+                ))?;
+            }
+            Ok(())
+        }
     }
 }
 
@@ -444,12 +539,6 @@ where
         return Ok(());
     };
     let span = (t_end - t0) as f64 * 1e-9;
-    // A short or single-frame log still gets a minute of axis, centred on its data.
-    let x_range = if span < 60.0 {
-        (0.5 * span - 30.0, 0.5 * span + 30.0)
-    } else {
-        (-0.01 * span, 1.01 * span)
-    };
     let (width, _) = root.dim_in_pixel();
 
     let (title_area, rest) = root.split_vertically(TITLE_H);
@@ -493,24 +582,108 @@ where
     if analyses.iter().any(|a| !a.report.outliers.is_empty()) {
         legend.push((Mark::Triangle, "outlier > 5σ".to_string()));
     }
+    if analyses.iter().any(|a| !new_references(a, 0).is_empty()) {
+        legend.push((Mark::Vertical, "new reference (keyframe)".to_string()));
+    }
     draw_legend(&legend_area, &legend, (30, LEGEND_H as i32 / 2), false).map_err(e)?;
 
     if !analyses.is_empty() {
         let rows = rows_area.split_evenly((analyses.len(), 1));
         for (ci, (row, a)) in rows.iter().zip(analyses).enumerate() {
-            draw_channel(row, a, ci, t0, x_range).map_err(e)?;
+            draw_channel(row, a, ci).map_err(e)?;
         }
     }
     draw_spectrum(&spectrum_area, analyses).map_err(e)
 }
 
-/// One channel's panel: a caption line, then dx, dy, rotation and scale side by side.
+/// Times (s from `t0`) of the frames that start a reference after the channel's first frame.
+fn new_references(a: &ChannelAnalysis, t0: i64) -> Vec<f64> {
+    let first = a.frames.first().map(|f| f.log_time_ns);
+    a.frames
+        .iter()
+        .filter(|f| {
+            f.record.reference_kind == ReferenceKind::Itself
+                && f.record.align.status != Status::Failed
+                && Some(f.log_time_ns) != first
+        })
+        .map(|f| (f.log_time_ns - t0) as f64 * 1e-9)
+        .collect()
+}
+
+/// A channel's time axis: its own span (a short or single-frame log gets a minute, centred
+/// on its data), and ticks on round UTC times whose labels, in `style`, never touch.
+struct TimeAxis {
+    lo: f64,
+    hi: f64,
+    ticks: Vec<f64>,
+    labels: Vec<String>,
+    step: f64,
+    /// `time (UTC)`, with the date when the axis lies within one UTC day.
+    title: String,
+}
+
+fn time_axis<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    t0: i64,
+    span: f64,
+    plot_w: f64,
+    style: &TextStyle,
+) -> TimeAxis {
+    let (lo, hi) = if span < 60.0 {
+        (0.5 * span - 30.0, 0.5 * span + 30.0)
+    } else {
+        (-0.01 * span, 1.01 * span)
+    };
+    let day = |x: f64| {
+        sunjitter_core::time::format_iso_utc(t0 + (x * 1e9).round() as i64)[..10].to_string()
+    };
+    let one_day = day(lo) == day(hi);
+    let title = if one_day {
+        format!("time (UTC), {}", day(lo))
+    } else {
+        "time (UTC)".to_string()
+    };
+    let width = |t: &str| {
+        area.estimate_text_size(t, style)
+            .map_or(8.0 * t.len() as f64, |(w, _)| w as f64)
+    };
+    let mut max_ticks = (plot_w / 60.0).max(1.0) as usize;
+    loop {
+        let (ticks, step) = time_ticks(t0, lo, hi, max_ticks);
+        let labels = time_labels(t0, &ticks, step, one_day);
+        let px = |t: f64| (t - lo) / (hi - lo) * plot_w;
+        let apart = ticks
+            .windows(2)
+            .zip(labels.windows(2))
+            .all(|(t, l)| px(t[1]) - px(t[0]) >= 0.5 * (width(&l[0]) + width(&l[1])) + TICK_GAP_PX);
+        // The end labels must not run off the plot either.
+        let inside = match (ticks.first(), ticks.last(), labels.first(), labels.last()) {
+            (Some(&a), Some(&b), Some(la), Some(lb)) => {
+                px(a) + Y_LABEL_W as f64 >= 0.5 * width(la)
+                    && plot_w - px(b) + RIGHT_LABEL_W as f64 >= 0.5 * width(lb)
+            }
+            _ => true,
+        };
+        if (apart && inside) || max_ticks <= 1 {
+            return TimeAxis {
+                lo,
+                hi,
+                ticks,
+                labels,
+                step,
+                title,
+            };
+        }
+        max_ticks -= 1;
+    }
+}
+
+/// One channel's panel: a caption line, then dx, dy, rotation and scale side by side, on the
+/// channel's own time axis.
 fn draw_channel<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     a: &ChannelAnalysis,
     ci: usize,
-    t0: i64,
-    (x_lo, x_hi): (f64, f64),
 ) -> std::result::Result<(), DrawingAreaErrorKind<DB::ErrorType>>
 where
     DB::ErrorType: 'static,
@@ -525,6 +698,7 @@ where
     let colour = CHANNEL_COLOURS[ci % CHANNEL_COLOURS.len()];
     caption_area.draw(&Rectangle::new([(4, 6), (20, 22)], colour.filled()))?;
     let r = &a.report;
+    let units = Units::of(a);
     // The end's date only when it differs from the start's.
     let start = r.start.get(..19).unwrap_or(&r.start).replace('T', " ");
     let end = r.end.get(..19).unwrap_or(&r.end).replace('T', " ");
@@ -534,7 +708,7 @@ where
         end
     };
     let caption = format!(
-        "{}: {} frame{} ({} ok, {} degraded, {} failed), {start} to {end} UTC{}",
+        "{}: {} frame{} ({} ok, {} degraded, {} failed), {start} to {end} UTC{}{}",
         r.channel,
         r.frames,
         if r.frames == 1 { "" } else { "s" },
@@ -543,6 +717,9 @@ where
         r.failed,
         r.median_cadence_s
             .map_or(String::new(), |c| format!(", cadence {}", duration(c))),
+        units
+            .plate_scale
+            .map_or(String::new(), |p| format!(", {} ″/px", significant(p, 4))),
     );
     let style = TextStyle::from((FAMILY, 19).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
     let caption = fit_text(&caption_area, &caption, &style, w.saturating_sub(60));
@@ -553,19 +730,21 @@ where
     } else {
         vec![SeriesKind::Raw]
     };
-    let cadence = r.median_cadence_s.unwrap_or(x_hi - x_lo);
-    let day =
-        |x: f64| sunjitter_core::time::format_iso_utc(t0 + (x * 1e9) as i64)[..10].to_string();
-    let spacing = if day(x_lo) == day(x_hi) {
-        TICK_SPACING_PX
-    } else {
-        DATED_TICK_SPACING_PX
+    let Some(t0) = a.frames.first().map(|f| f.log_time_ns) else {
+        return Ok(());
     };
+    let span = a
+        .frames
+        .last()
+        .map_or(0.0, |f| (f.log_time_ns - t0) as f64 * 1e-9);
+    let cadence = r.median_cadence_s.unwrap_or(span.max(60.0));
+    let restarts = new_references(a, t0);
+    let tick_style = TextStyle::from((FAMILY, TICK_FONT).into_font());
     for (panel, p) in plots.split_evenly((1, 4)).iter().zip(PARAMS) {
         let series: Vec<(SeriesKind, Vec<Sample>, Vec<f64>)> = kinds
             .iter()
             .map(|&k| {
-                let (s, missing) = samples(a, p, k, t0);
+                let (s, missing) = samples(a, p, k, t0, &units);
                 (k, s, missing)
             })
             .collect();
@@ -573,15 +752,32 @@ where
         let plot_w = panel
             .dim_in_pixel()
             .0
-            .saturating_sub(Y_LABEL_W + RIGHT_MARGIN) as f64;
-        let (ticks, step) = time_ticks(t0, x_lo, x_hi, (plot_w / spacing) as usize);
-        let labels = time_labels(t0, &ticks, step);
-        let mut chart = ChartBuilder::on(panel)
-            .margin_right(RIGHT_MARGIN)
+            .saturating_sub(Y_LABEL_W + RIGHT_LABEL_W + RIGHT_MARGIN) as f64;
+        let TimeAxis {
+            lo: x_lo,
+            hi: x_hi,
+            ticks,
+            labels,
+            step,
+            title,
+        } = time_axis(panel, t0, span, plot_w, &tick_style);
+        let x_axis = TickedAxis::linear(x_lo, x_hi, ticks.clone());
+        let arcsec = units
+            .plate_scale
+            .filter(|_| matches!(p, Param::Dx | Param::Dy));
+        let mut builder = ChartBuilder::on(panel);
+        builder
             .margin_top(6)
             .x_label_area_size(50)
-            .y_label_area_size(Y_LABEL_W)
-            .build_cartesian_2d(TickedAxis::linear(x_lo, x_hi, ticks.clone()), lo..hi)?;
+            .y_label_area_size(Y_LABEL_W);
+        // The same plot width with or without the arcsec axis: the subplots line up.
+        match arcsec {
+            Some(_) => builder
+                .margin_right(RIGHT_MARGIN)
+                .right_y_label_area_size(RIGHT_LABEL_W),
+            None => builder.margin_right(RIGHT_MARGIN + RIGHT_LABEL_W),
+        };
+        let chart = builder.build_cartesian_2d(x_axis.clone(), lo..hi)?;
         let fmt_x = |x: &f64| {
             ticks
                 .iter()
@@ -589,75 +785,152 @@ where
                 .map_or(String::new(), |i| labels[i].clone())
         };
         let fmt_y = |y: &f64| tick_label(*y, hi - lo);
-        chart
-            .configure_mesh()
-            .y_labels(5)
-            .x_label_formatter(&fmt_x)
-            .y_label_formatter(&fmt_y)
-            .y_desc(label(p))
-            .x_desc("time (UTC)")
-            .label_style((FAMILY, 15))
-            .axis_desc_style((FAMILY, 17))
-            .light_line_style(RGBColor(238, 238, 238))
-            .bold_line_style(RGBColor(215, 215, 215))
-            .axis_style(BLACK)
-            .draw()?;
-        let floor = lo + 0.04 * (hi - lo);
-        for (kind, s, missing) in &series {
-            let (colour, width, radius) = match kind {
-                SeriesKind::Raw => (RAW, 1, 2),
-                SeriesKind::Chained => (CHAINED, 2, 3),
-            };
-            for run in runs(s, missing, cadence) {
-                let run = &s[run];
-                if run.len() == 1 {
-                    // A lone sample: an error bar, not a zero-width band.
-                    let x = &run[0];
-                    chart.draw_series(std::iter::once(PathElement::new(
-                        vec![(x.t, x.v - x.sigma), (x.t, x.v + x.sigma)],
-                        colour.mix(0.45).stroke_width(1),
-                    )))?;
-                } else if run.iter().any(|x| x.sigma > 0.0) {
-                    let band: Vec<(f64, f64)> = run
-                        .iter()
-                        .map(|x| (x.t, x.v + x.sigma))
-                        .chain(run.iter().rev().map(|x| (x.t, x.v - x.sigma)))
-                        .collect();
-                    chart.draw_series(std::iter::once(Polygon::new(
-                        band,
-                        colour.mix(0.18).filled(),
-                    )))?;
-                }
-                chart.draw_series(LineSeries::new(
-                    run.iter().map(|x| (x.t, x.v)),
-                    colour.stroke_width(width),
-                ))?;
+        let mesh = |chart: &mut Chart<'_, DB>| {
+            chart
+                .configure_mesh()
+                .y_labels(5)
+                .x_label_formatter(&fmt_x)
+                .y_label_formatter(&fmt_y)
+                .y_desc(units.label(p))
+                .x_desc(title.as_str())
+                .label_style((FAMILY, TICK_FONT))
+                .axis_desc_style((FAMILY, 17))
+                .light_line_style(RGBColor(238, 238, 238))
+                .bold_line_style(RGBColor(215, 215, 215))
+                .axis_style(BLACK)
+                .draw()
+        };
+        match arcsec {
+            Some(scale) => {
+                // The secondary axis takes the right label area before the mesh is drawn, so
+                // the px labels stay on the left.
+                let mut dual = chart.set_secondary_coord(x_axis, lo * scale..hi * scale);
+                mesh(&mut dual)?;
+                let fmt = |y: &f64| tick_label(*y, (hi - lo) * scale);
+                let name = if p == Param::Dx {
+                    "dx [″]"
+                } else {
+                    "dy [″]"
+                };
+                dual.configure_secondary_axes()
+                    .y_labels(5)
+                    .y_label_formatter(&fmt)
+                    .label_style((FAMILY, TICK_FONT))
+                    .axis_style(BLACK)
+                    .draw()?;
+                // Its title reads upwards, as the left one does (plotters turns it downwards).
+                let (_, rows) = dual.plotting_area().get_pixel_range();
+                let (base_x, base_y) = panel.get_base_pixel();
+                let (w, _) = panel.dim_in_pixel();
+                let style = TextStyle::from((FAMILY, 17).into_font())
+                    .transform(FontTransform::Rotate270)
+                    .pos(Pos::new(HPos::Center, VPos::Top));
+                let x = base_x + w as i32 - RIGHT_MARGIN as i32 - 22;
+                let y = (rows.start + rows.end) / 2;
+                panel.draw_text(name, &style, (x - base_x, y - base_y))?;
+                draw_series(&mut dual, a, &series, &restarts, t0, (lo, hi), cadence)?;
             }
-            chart.draw_series(
-                s.iter()
-                    .map(|x| Circle::new((x.t, x.v), radius, colour.filled())),
-            )?;
+            None => {
+                let mut chart = chart;
+                mesh(&mut chart)?;
+                draw_series(&mut chart, a, &series, &restarts, t0, (lo, hi), cadence)?
+            }
         }
-        // Status and outlier marks on the series the analysis used.
-        if let Some((_, s, _)) = series.iter().find(|(k, _, _)| *k == r.series) {
-            chart.draw_series(
-                s.iter()
-                    .filter(|x| x.status == Status::Degraded)
-                    .map(|x| Circle::new((x.t, x.v), 7, DEGRADED.stroke_width(2))),
-            )?;
-            chart.draw_series(
-                s.iter()
-                    .filter(|x| x.outlier)
-                    .map(|x| TriangleMarker::new((x.t, x.v), 9, BLACK.filled())),
-            )?;
-        }
-        let failed = a
-            .frames
-            .iter()
-            .filter(|f| f.record.align.status == Status::Failed)
-            .map(|f| (f.log_time_ns - t0) as f64 * 1e-9);
-        chart.draw_series(failed.map(|t| Cross::new((t, floor), 6, FAILED.stroke_width(2))))?;
     }
+    Ok(())
+}
+
+/// `v` with at most `digits` significant digits (no trailing zeros).
+fn significant(v: f64, digits: i32) -> String {
+    let decimals = (digits - 1 - v.abs().log10().floor() as i32).clamp(0, 12) as usize;
+    let s = format!("{v:.decimals$}");
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
+type Chart<'a, DB> = ChartContext<'a, DB, Cartesian2d<TickedAxis, RangedCoordf64>>;
+
+/// One subplot's content: new-reference lines, the series with their σ bands, the status
+/// and outlier marks, the failed frames along the floor.
+fn draw_series<DB: DrawingBackend>(
+    chart: &mut Chart<'_, DB>,
+    a: &ChannelAnalysis,
+    series: &[(SeriesKind, Vec<Sample>, Vec<f64>)],
+    restarts: &[f64],
+    t0: i64,
+    (lo, hi): (f64, f64),
+    cadence: f64,
+) -> std::result::Result<(), DrawingAreaErrorKind<DB::ErrorType>>
+where
+    DB::ErrorType: 'static,
+{
+    let r = &a.report;
+    for &t in restarts {
+        chart.draw_series(DashedLineSeries::new(
+            [(t, lo), (t, hi)],
+            6,
+            4,
+            NEW_REFERENCE.stroke_width(1),
+        ))?;
+    }
+    let floor = lo + 0.04 * (hi - lo);
+    for (kind, s, missing) in series {
+        let (colour, width, radius) = match kind {
+            SeriesKind::Raw => (RAW, 1, 2),
+            SeriesKind::Chained => (CHAINED, 2, 3),
+        };
+        for run in runs(s, missing, cadence) {
+            let run = &s[run];
+            if run.len() == 1 {
+                // A lone sample: an error bar, not a zero-width band.
+                let x = &run[0];
+                chart.draw_series(std::iter::once(PathElement::new(
+                    vec![(x.t, x.v - x.sigma), (x.t, x.v + x.sigma)],
+                    colour.mix(0.45).stroke_width(1),
+                )))?;
+            } else if run.iter().any(|x| x.sigma > 0.0) {
+                let band: Vec<(f64, f64)> = run
+                    .iter()
+                    .map(|x| (x.t, x.v + x.sigma))
+                    .chain(run.iter().rev().map(|x| (x.t, x.v - x.sigma)))
+                    .collect();
+                chart.draw_series(std::iter::once(Polygon::new(
+                    band,
+                    colour.mix(0.18).filled(),
+                )))?;
+            }
+            chart.draw_series(LineSeries::new(
+                run.iter().map(|x| (x.t, x.v)),
+                colour.stroke_width(width),
+            ))?;
+        }
+        chart.draw_series(
+            s.iter()
+                .map(|x| Circle::new((x.t, x.v), radius, colour.filled())),
+        )?;
+    }
+    // Status and outlier marks on the series the analysis used.
+    if let Some((_, s, _)) = series.iter().find(|(k, _, _)| *k == r.series) {
+        chart.draw_series(
+            s.iter()
+                .filter(|x| x.status == Status::Degraded)
+                .map(|x| Circle::new((x.t, x.v), 7, DEGRADED.stroke_width(2))),
+        )?;
+        chart.draw_series(
+            s.iter()
+                .filter(|x| x.outlier)
+                .map(|x| TriangleMarker::new((x.t, x.v), 9, BLACK.filled())),
+        )?;
+    }
+    let failed = a
+        .frames
+        .iter()
+        .filter(|f| f.record.align.status == Status::Failed)
+        .map(|f| (f.log_time_ns - t0) as f64 * 1e-9);
+    chart.draw_series(failed.map(|t| Cross::new((t, floor), 6, FAILED.stroke_width(2))))?;
     Ok(())
 }
 
@@ -699,8 +972,12 @@ where
     let area = area.margin(10, 0, 0, 0);
     if with_spectrum.is_empty() {
         area.draw(&Text::new(
-            "periodogram: too few samples",
-            (140, 60),
+            format!(
+                "periodogram: none (a period needs {} samples and {:.0} cycles in the span)",
+                super::MIN_PERIOD_SAMPLES,
+                super::MIN_CYCLES
+            ),
+            (140, 16),
             (FAMILY, 24),
         ))?;
         return Ok(());
@@ -716,6 +993,12 @@ where
         .filter_map(|(_, _, s)| s.0.first())
         .fold(f64::INFINITY, |a, b| a.min(*b));
     let (p_lo, p_hi) = (1.0 / f_max, 1.0 / f_min);
+    // Room above strong peaks for their labels.
+    let strongest = with_spectrum
+        .iter()
+        .flat_map(|(_, _, s)| s.1.iter().take(2).flatten())
+        .fold(0.0f64, |a, b| a.max(*b));
+    let top = if strongest > 0.75 { 1.3 } else { 1.05 };
     let mut chart = ChartBuilder::on(&plot_area)
         .margin_left(10)
         .margin_right(RIGHT_MARGIN)
@@ -723,7 +1006,8 @@ where
         .x_label_area_size(56)
         .y_label_area_size(Y_LABEL_W)
         .caption(
-            "Lomb-Scargle periodogram of each channel's analysed series (straight-line trend removed)",
+            "Lomb-Scargle periodogram of each channel's analysed series less its trend \
+             (periods with at least 3 cycles in the span)",
             (FAMILY, 21),
         )
         .build_cartesian_2d(
@@ -732,7 +1016,7 @@ where
                 p_hi * 1.05,
                 period_ticks(p_lo * 0.95, p_hi * 1.05),
             ),
-            0.0..1.05,
+            0.0..top,
         )?;
     chart
         .configure_mesh()
@@ -744,6 +1028,7 @@ where
         .light_line_style(RGBColor(238, 238, 238))
         .draw()?;
     let mut legend = Vec::new();
+    let mut to_label: Vec<(RGBColor, &str, super::lombscargle::Peak)> = Vec::new();
     for (ci, a, (freqs, power)) in with_spectrum {
         let colour = CHANNEL_COLOURS[ci % CHANNEL_COLOURS.len()];
         let pts = |k: usize| -> Vec<(f64, f64)> {
@@ -770,26 +1055,15 @@ where
             format!("{} dy ({series})", a.report.channel),
         ));
         if let Some(p) = &a.report.periodogram {
-            for peak in p
-                .peaks
-                .dx_px
-                .iter()
-                .take(1)
-                .chain(p.peaks.dy_px.iter().take(1))
-            {
-                chart.draw_series(std::iter::once(Circle::new(
-                    (peak.period_s, peak.power),
-                    5,
-                    colour.filled(),
-                )))?;
-                chart.draw_series(std::iter::once(Text::new(
-                    format!("{:.1} s", peak.period_s),
-                    (peak.period_s * 1.03, (peak.power + 0.02).min(1.0)),
-                    (FAMILY, 18).into_font().color(&colour),
-                )))?;
+            let strongest = [("dx", &p.peaks.dx_px), ("dy", &p.peaks.dy_px)];
+            for (name, peaks) in strongest {
+                if let Some(peak) = peaks.first() {
+                    to_label.push((colour, name, peak.clone()));
+                }
             }
         }
     }
+    label_peaks(&mut chart, &plot_area, to_label)?;
     // Long channel names are cut to the legend column.
     let style = TextStyle::from((FAMILY, 17).into_font());
     let max_w = SPECTRUM_LEGEND_W.saturating_sub(60);
@@ -798,6 +1072,91 @@ where
         .map(|(m, t)| (m, fit_text(&legend_area, &t, &style, max_w)))
         .collect();
     draw_legend(&legend_area, &legend, (10, 60), true)
+}
+
+/// A box in backend pixels: left, top, right, bottom.
+type PixelBox = (i32, i32, i32, i32);
+
+fn overlaps(a: PixelBox, b: PixelBox) -> bool {
+    a.0 < b.2 && b.0 < a.2 && a.1 < b.3 && b.1 < a.3
+}
+
+/// Mark each peak and label it (`dx 4349 s, FAP 0.28`, `dy 119.7 s, FAP 1.2e-9`) beside it, strongest first, where the
+/// label covers no other label or mark and stays inside the plot: right or left of the peak,
+/// then stepped upwards (with a leader line). A label with no such place is left out (the
+/// text summary lists every period).
+fn label_peaks<DB: DrawingBackend>(
+    chart: &mut Chart<'_, DB>,
+    area: &DrawingArea<DB, Shift>,
+    mut peaks: Vec<(RGBColor, &str, super::lombscargle::Peak)>,
+) -> std::result::Result<(), DrawingAreaErrorKind<DB::ErrorType>>
+where
+    DB::ErrorType: 'static,
+{
+    peaks.sort_by(|a, b| b.2.power.total_cmp(&a.2.power));
+    let (xr, yr) = chart.plotting_area().get_pixel_range();
+    let mut taken: Vec<PixelBox> = peaks
+        .iter()
+        .map(|(_, _, pk)| {
+            let (x, y) = chart.backend_coord(&(pk.period_s, pk.power));
+            (x - 7, y - 7, x + 7, y + 7)
+        })
+        .collect();
+    for (colour, _, pk) in &peaks {
+        chart.draw_series(std::iter::once(Circle::new(
+            (pk.period_s, pk.power),
+            5,
+            colour.filled(),
+        )))?;
+    }
+    for (colour, name, pk) in &peaks {
+        // Four significant digits: 119.7 s, 4349 s.
+        let decimals = (3 - pk.period_s.abs().log10().floor() as i32).clamp(0, 3) as usize;
+        let text = format!(
+            "{name} {:.decimals$} s, FAP {}",
+            pk.period_s,
+            super::probability(pk.false_alarm_probability)
+        );
+        let style = TextStyle::from((FAMILY, 17).into_font()).color(colour);
+        let (w, h) = area.estimate_text_size(&text, &style)?;
+        let (w, h) = (w as i32, h as i32);
+        let (ax, ay) = chart.backend_coord(&(pk.period_s, pk.power));
+        let mut candidates = Vec::new();
+        for step in 0..12 {
+            let up = -h - 6 - step * (h + 4);
+            candidates.push((10, up, step));
+            candidates.push((-w - 10, up, step));
+        }
+        for step in 0..12 {
+            let down = 6 + step * (h + 4);
+            candidates.push((10, down, step));
+            candidates.push((-w - 10, down, step));
+        }
+        let place = candidates.into_iter().find(|&(dx, dy, _)| {
+            let b = (ax + dx, ay + dy, ax + dx + w, ay + dy + h);
+            b.0 >= xr.start
+                && b.2 <= xr.end
+                && b.1 >= yr.start
+                && b.3 <= yr.end
+                && !taken.iter().any(|t| overlaps(*t, b))
+        });
+        let Some((dx, dy, step)) = place else {
+            continue;
+        };
+        taken.push((ax + dx, ay + dy, ax + dx + w, ay + dy + h));
+        let at = (pk.period_s, pk.power);
+        if step > 0 {
+            let end = (if dx > 0 { dx } else { dx + w }, dy + h);
+            chart.draw_series(std::iter::once(
+                EmptyElement::at(at)
+                    + PathElement::new(vec![(0, 0), end], colour.mix(0.6).stroke_width(1)),
+            ))?;
+        }
+        chart.draw_series(std::iter::once(
+            EmptyElement::at(at) + Text::new(text, (dx, dy), style),
+        ))?;
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -809,6 +1168,10 @@ mod tests {
     /// Two channels from 2024-05-01 12:00 UTC for 15 h at 15-min cadence (so the series
     /// crosses midnight into 2024-05-02), and a one-frame channel.
     fn three_channels() -> Vec<ChannelAnalysis> {
+        analyse(&three_channels_frames(), &InspectOptions::default())
+    }
+
+    fn three_channels_frames() -> Vec<LoggedFrame> {
         let mut frames: Vec<LoggedFrame> = Vec::new();
         for k in 0..60u64 {
             let t = 900.0 * k as f64;
@@ -817,14 +1180,14 @@ mod tests {
             frames.push(frame("AIA_304", k, t, 0.1 * w, 0.4 * w, Status::Ok));
         }
         frames.push(frame("LONE", 0, 1800.0, 0.0, 0.0, Status::Ok));
-        analyse(&frames, &InspectOptions::default())
+        frames
     }
 
     fn render_svg(a: &[ChannelAnalysis]) -> String {
         font::register();
         let mut svg = String::new();
         {
-            let root = SVGBackend::with_string(&mut svg, figure_size(a.len())).into_drawing_area();
+            let root = SVGBackend::with_string(&mut svg, figure_size(a)).into_drawing_area();
             draw(&root, a).unwrap();
             root.present().unwrap();
         }
@@ -852,7 +1215,7 @@ mod tests {
     fn every_channel_gets_its_own_row_of_four_subplots() {
         font::register();
         let a = three_channels();
-        let (w, h) = figure_size(a.len());
+        let (w, h) = figure_size(&a);
         let mut buf = vec![0u8; (w * h * 3) as usize];
         {
             let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
@@ -884,13 +1247,168 @@ mod tests {
         assert_eq!(rows_of_four.len(), 3, "axis rows at {rows_of_four:?}");
     }
 
+    /// A backend that records the box of every horizontal text drawn, from the embedded
+    /// font's own layout (rotated axis titles are left out).
+    struct TextBoxes {
+        size: (u32, u32),
+        boxes: std::rc::Rc<std::cell::RefCell<Vec<(String, PixelBox)>>>,
+    }
+
+    impl DrawingBackend for TextBoxes {
+        type ErrorType = std::io::Error;
+        fn get_size(&self) -> (u32, u32) {
+            self.size
+        }
+        fn ensure_prepared(
+            &mut self,
+        ) -> std::result::Result<(), plotters_backend::DrawingErrorKind<std::io::Error>> {
+            Ok(())
+        }
+        fn present(
+            &mut self,
+        ) -> std::result::Result<(), plotters_backend::DrawingErrorKind<std::io::Error>> {
+            Ok(())
+        }
+        fn draw_pixel(
+            &mut self,
+            _: plotters_backend::BackendCoord,
+            _: plotters_backend::BackendColor,
+        ) -> std::result::Result<(), plotters_backend::DrawingErrorKind<std::io::Error>> {
+            Ok(())
+        }
+        fn draw_text<S: plotters_backend::BackendTextStyle>(
+            &mut self,
+            text: &str,
+            style: &S,
+            pos: plotters_backend::BackendCoord,
+        ) -> std::result::Result<(), plotters_backend::DrawingErrorKind<std::io::Error>> {
+            if !matches!(style.transform(), plotters_backend::FontTransform::None) {
+                return Ok(());
+            }
+            let ((x0, y0), (x1, y1)) = style
+                .layout_box(text)
+                .map_err(|e| plotters_backend::DrawingErrorKind::FontError(Box::new(e)))?;
+            let (w, h) = (x1 - x0, y1 - y0);
+            let x = match style.anchor().h_pos {
+                plotters_backend::text_anchor::HPos::Left => pos.0,
+                plotters_backend::text_anchor::HPos::Center => pos.0 - w / 2,
+                plotters_backend::text_anchor::HPos::Right => pos.0 - w,
+            };
+            let y = match style.anchor().v_pos {
+                plotters_backend::text_anchor::VPos::Top => pos.1,
+                plotters_backend::text_anchor::VPos::Center => pos.1 - h / 2,
+                plotters_backend::text_anchor::VPos::Bottom => pos.1 - h,
+            };
+            self.boxes
+                .borrow_mut()
+                .push((text.to_string(), (x, y, x + w, y + h)));
+            Ok(())
+        }
+    }
+
+    /// Every text drawn for `a`, and the pairs that cover each other.
+    fn text_overlaps(a: &[ChannelAnalysis]) -> (Vec<String>, Vec<(String, String)>) {
+        font::register();
+        let boxes = std::rc::Rc::new(std::cell::RefCell::new(Vec::new()));
+        let backend = TextBoxes {
+            size: figure_size(a),
+            boxes: boxes.clone(),
+        };
+        draw(&backend.into_drawing_area(), a).unwrap();
+        let boxes = boxes.borrow();
+        let boxes: Vec<&(String, PixelBox)> =
+            boxes.iter().filter(|(t, _)| !t.trim().is_empty()).collect();
+        let mut clashes = Vec::new();
+        for (i, (ta, ba)) in boxes.iter().enumerate() {
+            for (tb, bb) in &boxes[i + 1..] {
+                if overlaps(*ba, *bb) {
+                    clashes.push((ta.clone(), tb.clone()));
+                }
+            }
+        }
+        (boxes.iter().map(|(t, _)| t.clone()).collect(), clashes)
+    }
+
+    #[test]
+    fn no_label_covers_another_with_close_periods_or_frames_that_share_one_time() {
+        let tau = 2.0 * std::f64::consts::PI;
+        // Two channels over 3.6 h at 250 s with periods 10 % apart at equal power (their peak
+        // labels want the same place), and a channel of five frames at one time.
+        let mut frames: Vec<LoggedFrame> = Vec::new();
+        for k in 0..53u64 {
+            let t = 250.0 * k as f64;
+            let a = (tau * t / 2600.0).sin();
+            let b = (tau * t / 2860.0).sin();
+            frames.push(frame("SJI_1400", k, t, 0.3 * a, 0.3 * a, Status::Ok));
+            frames.push(frame("SJI_2796", k, t + 10.0, 0.3 * b, 0.3 * b, Status::Ok));
+        }
+        for k in 0..5u64 {
+            frames.push(frame("STILL", k, 600.0, 0.01 * k as f64, 0.0, Status::Ok));
+        }
+        let a = analyse(&frames, &InspectOptions::default());
+        let (texts, clashes) = text_overlaps(&a);
+        assert!(clashes.is_empty(), "overlapping labels: {clashes:?}");
+        let labels: Vec<&String> = texts.iter().filter(|t| t.contains("FAP")).collect();
+        assert_eq!(
+            labels.len(),
+            4,
+            "every strongest period labelled: {texts:?}"
+        );
+        // The one-time channel's axis: a minute about it, its date in the axis title.
+        assert!(texts.iter().any(|t| t == "12:10:00"), "{texts:?}");
+        assert!(
+            texts.iter().any(|t| t == "time (UTC), 2024-05-01"),
+            "{texts:?}"
+        );
+
+        let (_, clashes) = text_overlaps(&three_channels());
+        assert!(clashes.is_empty(), "overlapping labels: {clashes:?}");
+    }
+
+    #[test]
+    fn units_follow_the_data_arcsec_beside_px_and_rotation_by_its_size() {
+        let mut frames: Vec<LoggedFrame> = Vec::new();
+        for k in 0..30u64 {
+            let mut f = frame("BIG", k, 60.0 * k as f64, 0.1, 0.2, Status::Ok);
+            // A roll of up to 29 arcmin, and every 10th frame a new keyframe.
+            f.record.chained_rotation_arcsec = Some(60.0 * k as f64);
+            if k % 10 == 0 {
+                f.record.reference_kind = ReferenceKind::Itself;
+            }
+            frames.push(f);
+        }
+        let a = analyse(&frames, &InspectOptions::default());
+        let units = Units::of(&a[0]);
+        assert_eq!(units.rotation.1, "′");
+        assert_eq!(units.plate_scale, Some(0.6));
+        assert_eq!(units.value(Param::Rotation, 1740.0), 29.0);
+        assert_eq!(
+            new_references(&a[0], a[0].frames[0].log_time_ns),
+            [600.0, 1200.0]
+        );
+        let svg = render_svg(&a);
+        for text in [
+            "rotation [′]",
+            "dx [″]",
+            "dy [″]",
+            "0.6 ″/px",
+            "new reference (keyframe)",
+        ] {
+            assert!(svg.contains(text), "SVG lacks {text:?}");
+        }
+        let small = analyse(&three_channels_frames(), &InspectOptions::default());
+        assert_eq!(Units::of(&small[0]).rotation.1, "″");
+    }
+
     #[test]
     fn ticks_fall_on_round_utc_times_within_the_range() {
         // 2024-05-01 12:00:00 UTC plus 100 s; a 3.7-h range allows 4 ticks: hourly.
         let t0 = 1_714_564_800_000_000_000 + 100_000_000_000;
         let (ticks, step) = time_ticks(t0, 0.0, 13_320.0, 4);
         assert_eq!(step, 3600.0);
-        let labels = time_labels(t0, &ticks, step);
+        let labels = time_labels(t0, &ticks, step, false);
         assert_eq!(labels, ["2024-05-01 13:00", "14:00", "15:00"]);
+        let labels = time_labels(t0, &ticks, step, true);
+        assert_eq!(labels, ["13:00", "14:00", "15:00"]);
     }
 }

@@ -276,9 +276,14 @@ impl RecordSink for MonitoredSink {
 }
 
 /// The operator's line for one logged frame: channel, file name, status, the shift with its
-/// σ, and for a frame that is not `ok` the first of its reasons, e.g.
-/// `SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy 0.054 ± 0.096 px`.
+/// σ against the frame's reference and chained to the channel's first reference, and for a
+/// frame that is not `ok` the first of its reasons, e.g.
+/// `SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy 0.054 ± 0.096 px; chained dx 1.23 ± 0.14 px
+/// dy -0.54 ± 0.14 px`. A frame that starts a reference (its own transform the identity)
+/// says so instead of its zero shift: `starts a chain` (the channel's first reference, or
+/// the first after failures) or `starts a reference` (a new keyframe) with where it sits.
 pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
+    use sunjitter_core::text::value_pm;
     let a = &message.align;
     let spec = sunjitter_io::fits::parse_frame_key(&a.frame);
     let mut file = match spec.path.file_name() {
@@ -297,10 +302,39 @@ pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
         "{} {file} {status}",
         sunjitter_core::text::escape(&message.channel)
     );
-    if let (Some(dx), Some(dy)) = (a.dx_px, a.dy_px) {
-        let dx = sunjitter_core::text::value_pm(dx, a.sigma_dx_px, " px");
-        let dy = sunjitter_core::text::value_pm(dy, a.sigma_dy_px, " px");
-        line.push_str(&format!(" dx {dx} dy {dy}"));
+    let shift = |dx: f64, sx: Option<f64>, dy: f64, sy: Option<f64>| {
+        format!(
+            "dx {} dy {}",
+            value_pm(dx, sx, " px"),
+            value_pm(dy, sy, " px")
+        )
+    };
+    let chained = match (message.chained_dx_px, message.chained_dy_px) {
+        (Some(dx), Some(dy)) => Some((
+            dx,
+            dy,
+            shift(
+                dx,
+                message.sigma_chained_dx_px,
+                dy,
+                message.sigma_chained_dy_px,
+            ),
+        )),
+        _ => None,
+    };
+    let starts = message.reference_kind == sunjitter_core::record::ReferenceKind::Itself;
+    if a.status != FrameStatus::Failed && starts {
+        match &chained {
+            Some((dx, dy, _)) if *dx == 0.0 && *dy == 0.0 => line.push_str(" starts a chain"),
+            Some((_, _, text)) => line.push_str(&format!(" starts a reference; chained {text}")),
+            None => line.push_str(" starts a reference"),
+        }
+    } else if let (Some(dx), Some(dy)) = (a.dx_px, a.dy_px) {
+        line.push(' ');
+        line.push_str(&shift(dx, a.sigma_dx_px, dy, a.sigma_dy_px));
+        if let Some((_, _, text)) = &chained {
+            line.push_str(&format!("; chained {text}"));
+        }
     }
     let reason = a.message.split("; ").next().unwrap_or_default().trim();
     if a.status != FrameStatus::Ok && !reason.is_empty() {
@@ -497,7 +531,7 @@ impl StatusWriter {
 #[cfg(test)]
 mod tests {
     use super::frame_line;
-    use sunjitter_core::record::{FrameAlignment, Status};
+    use sunjitter_core::record::{FrameAlignment, ReferenceKind, Status};
 
     fn message(key: &str, status: Status, message: &str) -> FrameAlignment {
         let mut align =
@@ -507,20 +541,38 @@ mod tests {
             (align.dx_px, align.sigma_dx_px) = (Some(0.07701), Some(0.09573));
             (align.dy_px, align.sigma_dy_px) = (Some(-0.0537), Some(0.0957));
         }
-        FrameAlignment::unchained(
+        let mut m = FrameAlignment::unchained(
             align,
             "SJI_1400".into(),
             String::new(),
             1,
-            sunjitter_core::record::ReferenceKind::Keyframe,
-        )
+            ReferenceKind::Keyframe,
+        );
+        if status != Status::Failed {
+            (m.chained_dx_px, m.sigma_chained_dx_px) = (Some(1.2341), Some(0.1402));
+            (m.chained_dy_px, m.sigma_chained_dy_px) = (Some(-0.5409), Some(0.1411));
+        }
+        m
+    }
+
+    /// A frame that starts a reference: its own transform the identity with σ 0.
+    fn starting(chained: (f64, f64), sigma: f64) -> FrameAlignment {
+        let mut m = message("/in/f0050.fits", Status::Ok, "");
+        m.reference_kind = ReferenceKind::Itself;
+        m.align.reference = m.align.frame.clone();
+        (m.align.dx_px, m.align.dy_px) = (Some(0.0), Some(0.0));
+        (m.align.sigma_dx_px, m.align.sigma_dy_px) = (Some(0.0), Some(0.0));
+        (m.chained_dx_px, m.chained_dy_px) = (Some(chained.0), Some(chained.1));
+        (m.sigma_chained_dx_px, m.sigma_chained_dy_px) = (Some(sigma), Some(sigma));
+        m
     }
 
     #[test]
-    fn a_frame_line_names_channel_file_status_and_shift_with_sigma() {
+    fn a_frame_line_names_channel_file_status_and_shift_with_sigma_raw_and_chained() {
         assert_eq!(
             frame_line(&message("/in/f0123.fits", Status::Ok, "")),
-            "SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px"
+            "SJI_1400 f0123.fits ok dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px; \
+             chained dx 1.23 ± 0.14 px dy -0.54 ± 0.14 px"
         );
         assert_eq!(
             frame_line(&message(
@@ -528,7 +580,8 @@ mod tests {
                 Status::Degraded,
                 "weak common structure (correlation 0.210); low histogram similarity 0.400"
             )),
-            "SJI_1400 cube.fits[7] degraded dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px \
+            "SJI_1400 cube.fits[7] degraded dx 0.077 ± 0.096 px dy -0.054 ± 0.096 px; \
+             chained dx 1.23 ± 0.14 px dy -0.54 ± 0.14 px \
              (weak common structure (correlation 0.210))"
         );
         assert_eq!(
@@ -538,6 +591,19 @@ mod tests {
                 "no common structure"
             )),
             "SJI_1400 f0124.fits failed (no common structure)"
+        );
+    }
+
+    #[test]
+    fn a_frame_that_starts_a_reference_says_so_and_where_it_sits() {
+        assert_eq!(
+            frame_line(&starting((0.0, 0.0), 0.0)),
+            "SJI_1400 f0050.fits ok starts a chain"
+        );
+        assert_eq!(
+            frame_line(&starting((1.2341, -0.5409), 0.1402)),
+            "SJI_1400 f0050.fits ok starts a reference; \
+             chained dx 1.23 ± 0.14 px dy -0.54 ± 0.14 px"
         );
     }
 

@@ -12,17 +12,21 @@ use sunjitter_core::meta::FrameMeta;
 use sunjitter_core::Result;
 use sunjitter_io::fits::FrameSpec;
 
-/// The FITS reader, with the configured limits on what a file may claim.
-#[derive(Debug, Clone, Copy, Default)]
+/// The FITS reader, with the configured limits on what a file may claim and the plate
+/// scales given for channels.
+#[derive(Debug, Clone, Default)]
 pub struct FitsReader {
-    pub limits: sunjitter_io::fits::ReadLimits,
+    pub options: sunjitter_io::fits::ReadOptions,
 }
 
 impl FitsReader {
     pub fn from_config(config: &Config) -> FitsReader {
         FitsReader {
-            limits: sunjitter_io::fits::ReadLimits {
-                max_frame_pixels: config.daemon.max_frame_pixels,
+            options: sunjitter_io::fits::ReadOptions {
+                limits: sunjitter_io::fits::ReadLimits {
+                    max_frame_pixels: config.daemon.max_frame_pixels,
+                },
+                plate_scales: config.plate_scales(),
             },
         }
     }
@@ -30,10 +34,10 @@ impl FitsReader {
 
 impl FrameReader for FitsReader {
     fn read_meta(&self, path: &Path) -> Result<Vec<FrameMeta>> {
-        sunjitter_io::fits::read_meta_with(path, &self.limits)
+        sunjitter_io::fits::read_meta_with(path, &self.options)
     }
     fn read_frame(&self, spec: &FrameSpec) -> Result<Image> {
-        sunjitter_io::fits::read_frame_with(spec, &self.limits)
+        sunjitter_io::fits::read_frame_with(spec, &self.options)
     }
 }
 
@@ -113,6 +117,7 @@ impl EngineAligner {
             channels: ChannelEngine {
                 by_channel: config.channel_settings(),
                 names: config.channel_names.clone(),
+                plate_scales: config.channel_plate_scales(),
             },
             ..EngineAligner::new(config.engine.clone())
         }
@@ -210,8 +215,15 @@ impl EngineAligner {
         let key = ReferenceKey::of(reference);
         let prepared = self.prepared_as(reference, key.clone(), position);
         self.used_by(channel, key);
-        let (outcome, kept) =
+        let (mut outcome, kept) =
             prepared.align_keeping(frame, &settings.unwrap_or(self.config.channel_settings()));
+        if let Some(note) = self.channels.plate_scale_note(&reference.meta, &frame.meta) {
+            let message = &mut outcome.result.message;
+            if !message.is_empty() {
+                message.push_str("; ");
+            }
+            message.push_str(&note);
+        }
         if let Some(work) = kept {
             let mut last = match self.last_frames.lock() {
                 Ok(g) => g,
@@ -249,12 +261,25 @@ impl Aligner for EngineAligner {
     }
 }
 
-/// Channels whose engine settings are their own, by topic name, and the header channel →
-/// topic name map that finds them.
+/// Channels whose engine settings or plate scale are their own, by topic name, and the
+/// header channel → topic name map that finds them.
 #[derive(Debug, Default)]
 struct ChannelEngine {
     by_channel: std::collections::BTreeMap<String, sunjitter_core::engine::ChannelSettings>,
     names: std::collections::BTreeMap<String, String>,
+    /// `[channels.X] plate_scale_arcsec` (the reader applied them; the message says so).
+    plate_scales: std::collections::BTreeMap<String, f64>,
+}
+
+impl ChannelEngine {
+    fn plate_scale_note(&self, reference: &FrameMeta, frame: &FrameMeta) -> Option<String> {
+        crate::config::plate_scale_note(
+            &self.plate_scales,
+            &self.names,
+            &reference.channel,
+            &frame.channel,
+        )
+    }
 }
 
 #[cfg(test)]
