@@ -214,11 +214,11 @@ fn two_channels_of_one_telescope_agree_within_their_sigma_and_scale_and_roll_hol
         }
         let (lo, hi) = (&a[i - 1], &a[i]);
         let w = (t - lo.0) / (hi.0 - lo.0);
-        let at = |k: usize, f: fn(&(f64, [f64; 2], [f64; 2])) -> [f64; 2]| {
-            f(lo)[k] + w * (f(hi)[k] - f(lo)[k])
-        };
+        let lerp = |a: f64, b: f64| a + w * (b - a);
         diffs.push(std::array::from_fn::<_, 2, _>(|k| {
-            (v[k] - at(k, |x| x.1), s[k].hypot(at(k, |x| x.2)))
+            let value = lerp(lo.1[k], hi.1[k]);
+            let sigma = lerp(lo.2[k], hi.2[k]);
+            (v[k] - value, s[k].hypot(sigma))
         }));
     }
     assert!(diffs.len() >= 60, "{} common samples", diffs.len());

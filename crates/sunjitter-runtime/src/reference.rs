@@ -391,14 +391,14 @@ impl ChannelState {
         state.reference = Some(slot);
         // The keyframe before it, through which the next one is reached too.
         if state.policy.policy == PolicySpec::Keyframe {
-            state.previous_keyframe = restored.previous_reference.as_ref().and_then(|(p, t)| {
+            state.previous_keyframe = restored.previous_reference.as_ref().map(|(p, t)| {
                 let key = p.key();
                 let mut slot = RefSlot::named(&key, *t, p.chain);
                 if slot.chain.is_none() {
                     slot.chain_hint = own_message(&key);
                 }
                 let cross = change.cross_covariance.as_deref().and_then(unflat);
-                Some((slot, cross))
+                (slot, cross)
             });
         }
         if state.policy.policy == PolicySpec::Keyframe {

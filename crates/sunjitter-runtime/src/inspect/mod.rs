@@ -995,6 +995,7 @@ mod tests {
             files: vec![],
             channels: vec![c],
             log: LogSummary::default(),
+            consistency: Default::default(),
         });
         assert!(
             text.contains("periods: none listed (a period needs 20 samples and 3 cycles"),
@@ -1031,6 +1032,7 @@ mod tests {
             files: vec![],
             channels: vec![c],
             log: LogSummary::default(),
+            consistency: Default::default(),
         });
         assert!(
             text.contains("trend (chained series, straight line, per hour): dx "),
