@@ -22,6 +22,14 @@ impl Source {
         }
     }
 
+    /// The file the configuration is read from, which no output may overwrite.
+    pub fn path(&self) -> Option<&std::path::Path> {
+        match self {
+            Source::File(path) => Some(path),
+            _ => None,
+        }
+    }
+
     /// The configuration with `overrides`, checked as the command line checks it.
     pub fn load(&self, overrides: &Overrides) -> Result<Config> {
         let json = match self {

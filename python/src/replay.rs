@@ -61,12 +61,14 @@ pub fn replay(
             reference: reference.as_deref().map(str::parse).transpose()?,
             recursive,
         };
-        let mut config = config.load(&overrides)?;
+        let source = config;
+        let mut config = source.load(&overrides)?;
         config.canonicalize_fixed_paths()?;
         let replay = ReplayRun::open(ReplayRequest {
             paths: &paths,
             out: &out,
             config,
+            config_path: source.path(),
             products: Request {
                 dir: aligned.as_deref(),
                 wcs_only,
