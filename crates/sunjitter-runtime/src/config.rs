@@ -410,6 +410,12 @@ pub struct Thresholds {
     pub jump_px: Option<f64>,
     pub jump_arcsec: Option<f64>,
     pub sigma_px: Option<f64>,
+    /// A frame's fitted scale or roll this many σ from what its headers say (a telescope's
+    /// plate scale and roll hold: a change is the instrument's, or structure evolving).
+    pub header_sigmas: Option<f64>,
+    /// A keyframe reached two ways whose two chains are this many σ apart in any parameter
+    /// (`/reference` `closure`): the channel's σ do not hold.
+    pub closure_sigmas: Option<f64>,
     /// Raised when this many frames in a row are failed or degraded.
     pub consecutive_bad: Option<u32>,
     /// Raised when this many frames in a row are failed (no result at all).
@@ -433,6 +439,8 @@ impl Thresholds {
             jump_px: self.jump_px.or(fallback.jump_px),
             jump_arcsec: self.jump_arcsec.or(fallback.jump_arcsec),
             sigma_px: self.sigma_px.or(fallback.sigma_px),
+            header_sigmas: self.header_sigmas.or(fallback.header_sigmas),
+            closure_sigmas: self.closure_sigmas.or(fallback.closure_sigmas),
             consecutive_bad: self.consecutive_bad.or(fallback.consecutive_bad),
             consecutive_failed: self.consecutive_failed.or(fallback.consecutive_failed),
             lag_s: self.lag_s.or(fallback.lag_s),

@@ -411,6 +411,8 @@ fn thresholds(at: &str, t: &super::Thresholds) -> Result<()> {
         ("jump_px", t.jump_px),
         ("jump_arcsec", t.jump_arcsec),
         ("sigma_px", t.sigma_px),
+        ("header_sigmas", t.header_sigmas),
+        ("closure_sigmas", t.closure_sigmas),
         ("lag_s", t.lag_s),
         ("silence_s", t.silence_s),
     ] {

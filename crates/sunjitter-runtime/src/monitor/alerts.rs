@@ -13,6 +13,10 @@
 //! - `rms_*`: RMS distance of the last `rms_window_frames` positions from their mean (the
 //!   jitter about the mean pointing; evaluated once the window is full);
 //! - `sigma_px`: the larger of `sigma_dx_px`, `sigma_dy_px`;
+//! - `header_sigmas`: the larger of |scale − header's| / σ and |roll − header's| / σ (from
+//!   `header_residual`), where the frame's model fitted them;
+//! - `closure_sigmas`: the largest |difference| / σ of a keyframe's closure, fed from the
+//!   `/reference` messages ([`AlertEngine::reference`]), resolved by the next keyframe that closes;
 //! - `consecutive_bad`: failed or degraded frames in a row (raised at N, resolved by an ok one);
 //! - `consecutive_failed`: failed frames in a row (raised at N, resolved by one with a result);
 //! - `lag_s`: file taken by the daemon → alignment finished;
@@ -24,7 +28,7 @@
 use crate::config::{AlertsConfig, Thresholds, DEFAULT_RMS_WINDOW};
 use std::collections::{BTreeMap, VecDeque};
 use sunjitter_core::record::{FrameAlignment, Status};
-use sunjitter_io::sink::Alert;
+use sunjitter_io::sink::{Alert, ReferenceChange};
 
 /// One alert event, with the MCAP `log_time` it is logged at.
 #[derive(Debug, Clone, PartialEq)]
@@ -213,6 +217,16 @@ impl AlertEngine {
         };
         w.judge(&mut events, &at, "sigma_px", t.sigma_px, sigma, above);
 
+        let header = header_sigmas(a);
+        w.judge(
+            &mut events,
+            &at,
+            "header_sigmas",
+            t.header_sigmas,
+            header,
+            above,
+        );
+
         if let Some(last) = w.last_position {
             let d = (position.0 - last.0, position.1 - last.1);
             let jump_arcsec = to_arcsec(d, scale).map(|(x, y)| x.hypot(y));
@@ -261,6 +275,35 @@ impl AlertEngine {
         events
     }
 
+    /// One `/reference` message: a keyframe reached two ways gives `closure_sigmas`.
+    pub fn reference(&mut self, change: &ReferenceChange, log_time_ns: i64) -> Vec<AlertEvent> {
+        let mut events = Vec::new();
+        let Some(closure) = &change.closure else {
+            return events;
+        };
+        let key = match change.cube_frame {
+            Some(n) => format!("{}[{n}]", change.file),
+            None => change.file.clone(),
+        };
+        let w = self.watch(&change.channel);
+        let threshold = w.thresholds.closure_sigmas;
+        let z = closure.z().iter().fold(0.0f64, |m, z| m.max(z.abs()));
+        let at = At {
+            channel: &change.channel,
+            frame: Some(&key),
+            time_ns: log_time_ns,
+        };
+        w.judge(
+            &mut events,
+            &at,
+            "closure_sigmas",
+            threshold,
+            Some(z),
+            above,
+        );
+        events
+    }
+
     /// The passing of time (call every second or so): `silence_s`.
     pub fn tick(&mut self, wall_ns: i64) -> Vec<AlertEvent> {
         let mut events = Vec::new();
@@ -283,6 +326,20 @@ impl AlertEngine {
 
 fn above(value: f64, threshold: f64) -> bool {
     value > threshold
+}
+
+/// How many σ the fitted scale or roll is from the headers' (`None` where neither was fitted
+/// with a σ).
+fn header_sigmas(a: &sunjitter_core::record::AlignResult) -> Option<f64> {
+    let h = a.header_residual.as_ref()?;
+    let z = |d: f64, s: Option<f64>| s.filter(|s| *s > 0.0).map(|s| d.abs() / s);
+    match (
+        z(h.scale - 1.0, a.sigma_scale),
+        z(h.rotation_arcsec, a.sigma_rotation_arcsec),
+    ) {
+        (Some(a), Some(b)) => Some(a.max(b)),
+        (a, b) => a.or(b),
+    }
 }
 
 fn ratio(arcsec: Option<f64>, px: Option<f64>) -> Option<f64> {
@@ -308,6 +365,8 @@ fn unit_of(kind: &str) -> &'static str {
         "px"
     } else if kind.ends_with("_arcsec") {
         "arcsec"
+    } else if kind.ends_with("_sigmas") {
+        "σ"
     } else if kind.ends_with("_s") {
         "s"
     } else {
@@ -328,6 +387,8 @@ fn describe(kind: &str) -> &'static str {
         "rms_px" | "rms_arcsec" => "jitter RMS",
         "jump_px" | "jump_arcsec" => "jump between frames",
         "sigma_px" => "1-σ error",
+        "header_sigmas" => "scale or roll against the headers'",
+        "closure_sigmas" => "keyframe closure",
         "consecutive_bad" => "failed or degraded frames in a row",
         "consecutive_failed" => "failed frames in a row",
         "lag_s" => "ingest lag",
@@ -700,5 +761,90 @@ mod tests {
         let err = bad.validate().unwrap_err();
         assert_eq!(err.exit_code(), 2);
         assert!(err.to_string().contains("alerts.defaults.lag_s"), "{err}");
+    }
+
+    #[test]
+    fn scale_off_the_headers_and_a_keyframe_that_does_not_close_raise_alerts() {
+        use sunjitter_core::record::TransformFields;
+        use sunjitter_io::sink::ReferenceClosure;
+        let mut engine = engine(Thresholds {
+            header_sigmas: Some(4.0),
+            closure_sigmas: Some(3.0),
+            ..Default::default()
+        });
+        // Scale 5e-4 from the headers' with σ 1e-4 (5σ), then 2e-4 (2σ).
+        let frames: Vec<FrameAlignment> = [5e-4, 2e-4]
+            .iter()
+            .enumerate()
+            .map(|(i, off)| {
+                let mut f = record(i as u64, Status::Ok, 0.1, 0.1, 0.05);
+                f.align.sigma_scale = Some(1e-4);
+                f.align.sigma_rotation_arcsec = Some(10.0);
+                f.align.header_residual = Some(TransformFields {
+                    scale: 1.0 + off,
+                    rotation_arcsec: 5.0,
+                    dx_px: 0.0,
+                    dy_px: 0.0,
+                });
+                f
+            })
+            .collect();
+        let seen = feed(&mut engine, &frames);
+        let header = |state: &str| {
+            (0..2).find(|&i| seen.contains(&(i, "header_sigmas".into(), state.into())))
+        };
+        assert_eq!(
+            (header("raised"), header("resolved")),
+            (Some(0), Some(1)),
+            "{seen:?}"
+        );
+
+        // A keyframe 0.5 px from its second chain with σ 0.1 px (5σ), then one 0.1 px off.
+        let change = |dx: f64| ReferenceChange {
+            channel: "A".into(),
+            file: "k.fits".into(),
+            cube_frame: Some(7),
+            obs_time: "2014-03-29T14:09:38Z".into(),
+            reason: "refresh".into(),
+            reference_kind: sunjitter_core::record::ReferenceKind::Keyframe,
+            sequence: 3,
+            replaces: Some("j.fits".into()),
+            closure: Some(ReferenceClosure {
+                through: "i.fits".into(),
+                difference: TransformFields {
+                    scale: 0.0,
+                    rotation_arcsec: 0.0,
+                    dx_px: dx,
+                    dy_px: 0.0,
+                },
+                sigma: TransformFields {
+                    scale: 1e-4,
+                    rotation_arcsec: 60.0,
+                    dx_px: 0.1,
+                    dy_px: 0.1,
+                },
+            }),
+            cross_covariance: None,
+            chain: None,
+        };
+        let raised = engine.reference(&change(0.5), 100 * S);
+        assert_eq!(raised.len(), 1, "{raised:?}");
+        let a = &raised[0].alert;
+        assert_eq!(
+            (a.kind.as_str(), a.state.as_str()),
+            ("closure_sigmas", "raised")
+        );
+        assert!((a.value - 5.0).abs() < 1e-9, "{a:?}");
+        assert_eq!(
+            (a.unit.as_str(), a.frame.as_deref()),
+            ("σ", Some("k.fits[7]"))
+        );
+        let resolved = engine.reference(&change(0.1), 200 * S);
+        assert_eq!(resolved.len(), 1);
+        assert_eq!(resolved[0].alert.state, "resolved");
+        // A new keyframe with no second chain leaves the alert as it is.
+        let mut none = change(0.5);
+        none.closure = None;
+        assert!(engine.reference(&none, 300 * S).is_empty());
     }
 }

@@ -243,6 +243,14 @@ impl RecordSink for MonitoredSink {
                 .frame(message, *log_time_ns, publish_time_ns, lag_s);
             self.raise(events);
         }
+        if let Record::Reference {
+            change,
+            log_time_ns,
+        } = record
+        {
+            let events = self.alerts.reference(change, *log_time_ns);
+            self.raise(events);
+        }
         if let Err(e) = self.write_extras(false) {
             tracing::warn!("alerts wait to be logged: {e}");
         }
