@@ -92,6 +92,13 @@ fn closure_of_frame_triples_holds_within_their_sigma() {
     for (cube, frames) in [(SJI_1400, 54), (SJI_2796, 72)] {
         let (within, n) = closure(cube, &triples(frames));
         assert!(n >= 12, "{cube}: {n} triples with three answers");
+        eprintln!(
+            "{cube}: within 2σ of {n} triples: scale {:.0} %, rotation {:.0} %, dx {:.0} %, dy {:.0} %",
+            100.0 * within[0],
+            100.0 * within[1],
+            100.0 * within[2],
+            100.0 * within[3]
+        );
         for (p, w) in ["scale", "rotation", "dx", "dy"].iter().zip(within) {
             assert!(
                 w >= 0.8,

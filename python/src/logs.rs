@@ -8,6 +8,7 @@ use pyo3::types::{PyList, PyString};
 use serde_json::Value;
 use std::path::PathBuf;
 use sunjitter_core::{Error, Result};
+use sunjitter_io::sink::ReferenceChange;
 use sunjitter_runtime::inspect::{self, csv, InspectOptions, LogSummary};
 
 /// A JSON value as the Python object `json.loads` would give.
@@ -25,25 +26,29 @@ fn value_to_py<'py>(py: Python<'py>, v: &Value) -> PyResult<Bound<'py, PyAny>> {
     })
 }
 
-/// [`read_log`]'s answer: column names, each column's cells, the files read, the `/log` tally.
-type LogTable<'py> = (Vec<String>, Bound<'py, PyList>, Vec<String>, String);
+/// [`read_log`]'s answer: column names, each column's cells, the files read, the `/log` tally,
+/// the `/reference` messages.
+type LogTable<'py> = (Vec<String>, Bound<'py, PyList>, Vec<String>, String, String);
 
-/// The logs' table, column by column: `(columns, values, files, log)`, where `values[i]` is
-/// column i's cells, `files` the MCAP files read (in order) and `log` the `/log` tally (JSON).
+/// The logs' table, column by column: `(columns, values, files, log, references)`, where
+/// `values[i]` is column i's cells, `files` the MCAP files read (in order), `log` the `/log`
+/// tally (JSON) and `references` the `/reference` messages (JSON: their keyframe closures).
 #[pyfunction]
 pub fn read_log<'py>(py: Python<'py>, paths: Vec<PathBuf>) -> PyResult<LogTable<'py>> {
-    let work = move || -> Result<(csv::Table, Vec<String>, String)> {
+    let work = move || -> Result<(csv::Table, Vec<String>, String, String)> {
         let files = inspect::log_files(&paths)?;
-        let (frames, log) = inspect::read_frames(&files)?;
+        let (frames, references, log) = inspect::read_frames_and_references(&files)?;
         let analyses = inspect::analyse(&frames, &InspectOptions::default());
         let table = csv::table(&analyses)
             .map_err(|e| Error::Usage(format!("cannot tabulate the log: {e}")))?;
         let names = files.iter().map(|p| p.display().to_string()).collect();
         let log = serde_json::to_string(&log)
             .map_err(|e| Error::Usage(format!("cannot encode the /log tally: {e}")))?;
-        Ok((table, names, log))
+        let references = serde_json::to_string(&references)
+            .map_err(|e| Error::Usage(format!("cannot encode the /reference messages: {e}")))?;
+        Ok((table, names, log, references))
     };
-    let (table, files, log) =
+    let (table, files, log, references) =
         wait::run(py, "read_log", work, OnInterrupt::Abandon, |_| Ok(()))?.py_err()?;
     let columns = PyList::empty(py);
     for i in 0..table.columns.len() {
@@ -53,7 +58,7 @@ pub fn read_log<'py>(py: Python<'py>, paths: Vec<PathBuf>) -> PyResult<LogTable<
         }
         columns.append(cells)?;
     }
-    Ok((table.columns, columns, files, log))
+    Ok((table.columns, columns, files, log, references))
 }
 
 /// A Python cell as JSON: None, bool, int, float (NaN: null) or str.
@@ -85,6 +90,7 @@ pub fn summary(
     values: Vec<Bound<'_, PyList>>,
     files: Vec<String>,
     log: Option<String>,
+    references: Option<String>,
 ) -> PyResult<String> {
     if values.len() != columns.len() {
         return Err(pyo3::exceptions::PyValueError::new_err(
@@ -125,9 +131,15 @@ pub fn summary(
             .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?,
         None => LogSummary::default(),
     };
+    let references: Vec<ReferenceChange> = match references {
+        Some(text) => serde_json::from_str(&text)
+            .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))?,
+        None => Vec::new(),
+    };
     wait::detached(py, "summary", move || {
         let analyses = inspect::analyse(&frames, &InspectOptions::default());
-        let report = inspect::report(&files, &analyses, log);
+        let mut report = inspect::report(&files, &analyses, log);
+        report.consistency = inspect::consistency::consistency(&frames, &references);
         serde_json::to_string(&report)
     })?
     .map_err(|e| pyo3::exceptions::PyValueError::new_err(e.to_string()))

@@ -13,6 +13,7 @@ from ._sunjitter import summary as _summary
 #: ``DataFrame.attrs`` keys: the logs read, and their ``/log`` tally (``inspect --json``'s ``log``).
 FILES_ATTR = "sunjitter_files"
 LOG_ATTR = "sunjitter_log"
+REFERENCES_ATTR = "sunjitter_references"
 
 
 def _paths(paths: Any) -> list[str]:
@@ -56,11 +57,12 @@ def read_log(path: str | os.PathLike[str] | Iterable[str | os.PathLike[str]]) ->
     """
     import pandas as pd
 
-    columns, values, files, log = _read_log(_paths(path))
+    columns, values, files, log, references = _read_log(_paths(path))
     frame = pd.DataFrame({name: _column(name, cells) for name, cells in zip(columns, values)})
     frame = frame[columns] if columns else frame
     frame.attrs[FILES_ATTR] = files
     frame.attrs[LOG_ATTR] = log
+    frame.attrs[REFERENCES_ATTR] = references
     return frame
 
 
@@ -85,7 +87,9 @@ def summary(df: Any) -> dict[str, Any]:
     """``sunjitter inspect --json``'s statistics of the frames in ``df`` (a :func:`read_log`
     DataFrame, or rows of one), computed by the same code: per channel the frame counts, RMS
     and peak-to-peak of each parameter (raw and chained), median σ, the jitter periodogram's
-    peaks and the 5σ outliers. For a whole log it is ``inspect --json``'s document.
+    peaks and the 5σ outliers; then ``consistency``: the models fitted, each channel's keyframe
+    closures (from the log's ``/reference`` messages, kept with the DataFrame), and every two
+    channels of one instrument compared. For a whole log it is ``inspect --json``'s document.
 
     >>> s = sunjitter.summary(df)
     >>> s["channels"][0]["chained"]["dx_px"]["rms"]
@@ -94,4 +98,5 @@ def summary(df: Any) -> dict[str, Any]:
     values = [_cells(df[c], c) for c in columns]
     files = list(df.attrs.get(FILES_ATTR, []))
     log = df.attrs.get(LOG_ATTR)
-    return json.loads(_summary(columns, values, files, log))
+    references = df.attrs.get(REFERENCES_ATTR)
+    return json.loads(_summary(columns, values, files, log, references))

@@ -36,12 +36,13 @@ def align(
 def read_frame(spec: str) -> tuple[npt.NDArray[np.float32], Cards]: ...
 def read_log(
     paths: list[str],
-) -> tuple[list[str], list[list[Any]], list[str], str]: ...
+) -> tuple[list[str], list[list[Any]], list[str], str, str]: ...
 def summary(
     columns: list[str],
     values: list[list[Any]],
     files: list[str],
     log: str | None,
+    references: str | None,
 ) -> str: ...
 def replay(
     paths: list[str],

@@ -7,7 +7,7 @@
 use super::LoggedFrame;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use sunjitter_core::record::Status;
+use sunjitter_core::record::{ReferenceKind, Status};
 use sunjitter_io::sink::ReferenceChange;
 
 /// A fitted value this many σ from the headers' disagrees with them.
@@ -61,7 +61,15 @@ pub struct PairConsistency {
     pub within_1sigma: [f64; 2],
     /// Median combined 1σ (dx, dy), px.
     pub median_sigma_px: [f64; 2],
+    /// Each channel measured on its own; `false` when one is aligned to another channel's
+    /// frames (`reference_kind` `channel`), which shares its errors and proves nothing.
+    #[serde(default = "yes")]
+    pub independent: bool,
     pub warnings: Vec<String>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// Everything `inspect` checks across a log's frames and reference changes.
@@ -191,6 +199,12 @@ fn pair(
     b_name: &str,
     b: &[&LoggedFrame],
 ) -> Option<PairConsistency> {
+    let follows = |frames: &[&LoggedFrame]| {
+        frames
+            .iter()
+            .any(|f| f.record.reference_kind == ReferenceKind::Channel)
+    };
+    let independent = !follows(a) && !follows(b);
     let (a, b) = (chained(a), chained(b));
     let (t0, t1) = (a.first()?.0, a.last()?.0);
     // Each sample of b inside a's span, with a interpolated linearly to its time.
@@ -248,7 +262,7 @@ fn pair(
     let mut warnings = Vec::new();
     let axes = ["dx", "dy"];
     for k in 0..2 {
-        if within_1sigma[k] < PAIR_MIN_WITHIN {
+        if independent && within_1sigma[k] < PAIR_MIN_WITHIN {
             warnings.push(format!(
                 "{} and {b_name} disagree in chained {}: {:.3} px RMS with {:.0} % within \
                  their combined 1σ (median {:.3} px); through one telescope their σ are too \
@@ -267,6 +281,7 @@ fn pair(
         rms_px,
         within_1sigma,
         median_sigma_px,
+        independent,
         warnings,
     })
 }
@@ -274,7 +289,7 @@ fn pair(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use sunjitter_core::record::{AlignResult, FrameAlignment, ReferenceKind};
+    use sunjitter_core::record::{AlignResult, FrameAlignment};
 
     fn frame(channel: &str, t_s: f64, dx: f64, dy: f64, sigma: f64) -> LoggedFrame {
         let align: AlignResult = serde_json::from_value(serde_json::json!({
@@ -350,6 +365,15 @@ mod tests {
         }
         let c = consistency(&frames, &[]);
         assert_eq!(c.pairs[0].warnings.len(), 2, "{:?}", c.pairs[0]);
+        assert!(c.pairs[0].independent);
+
+        // One channel aligned to the other's frames: no independent check, no warning.
+        for f in frames.iter_mut().filter(|f| f.record.channel == "SJI_2796") {
+            f.record.reference_kind = ReferenceKind::Channel;
+        }
+        let c = consistency(&frames, &[]);
+        assert!(!c.pairs[0].independent);
+        assert!(c.pairs[0].warnings.is_empty(), "{:?}", c.pairs[0]);
     }
 
     #[test]

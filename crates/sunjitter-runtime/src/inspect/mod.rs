@@ -752,6 +752,13 @@ fn render_consistency(s: &mut String, c: &consistency::Consistency) {
             p.rms_px[1],
             100.0 * p.within_1sigma[1]
         );
+        if !p.independent {
+            let _ = writeln!(
+                s,
+                "  (one is aligned to the other's frames: they share errors, so this is no \
+                 independent check; replay each channel against its own keyframe for one)"
+            );
+        }
         for w in &p.warnings {
             let _ = writeln!(s, "  WARNING: {}", escape(w));
         }
