@@ -1,5 +1,7 @@
 //! Thin binary: parse the command line, run the library, map errors to exit codes.
 
+mod allocator;
+
 use clap::{Parser, Subcommand};
 use std::io::Write;
 use sunjitter::cli;
@@ -27,7 +29,9 @@ Environment:
   SUNJITTER_LOG        what is logged to stderr (default info; e.g. warn, sunjitter_core=debug)
   SUNJITTER_CACHE_DIR  where references' self-tests are kept between runs
                        (default $XDG_CACHE_HOME/sunjitter or ~/.cache/sunjitter; empty: nowhere)
-  NO_COLOR             no colour in the log";
+  NO_COLOR             no colour in the log
+  SUNJITTER_PORTABLE_KERNELS
+                       1: the portable numeric kernels on any CPU, not the AVX2 ones";
 
 #[derive(Debug, Subcommand)]
 enum Command {
@@ -81,7 +85,7 @@ fn escaped_fields() -> impl for<'w> tracing_subscriber::fmt::FormatFields<'w> {
 }
 
 fn main() {
-    sunjitter::tune_allocator();
+    allocator::tune();
     // Colour only for a person at a terminal, and never when NO_COLOR is set (no-color.org).
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
         && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
