@@ -3,20 +3,23 @@
 //! flow or a seed for the refinement, the refinement, the flow's interpolation check, the
 //! quality of the match and the verdict.
 
+use super::config::ChannelSettings;
 use super::config::EngineConfig;
 use super::fine::{
-    fine_alignment, flow_reach_px, grown, max_motion_px, Crop, FineResult, FlowRegion, PassStart,
+    fine_alignment, flow_reach_px, max_motion_px, Crop, FineResult, FlowRegion, PassStart,
     UNSETTLED_PASS_FACTOR,
 };
-use super::prepared::{made_once, FrameWork, Matched, ReferenceWork, Workspace};
+use super::prepared::{made_once, FrameWork, Matched, PreparedReference, ReferenceWork};
+use super::region::grown;
 use super::seed::{
     binned_alignment, final_level, seed_level, seed_slack_px, Binned, BinnedRun, FINAL_ANTIALIAS,
 };
 use super::verdict::{verdict, Evidence, Refinement, Verdict};
+use super::workspace::Workspace;
 use super::{
     check_usable, cleaned_from, derotate, flow_check, geometry_check, photometry, quality,
 };
-use super::{model, refine, AlignOutcome, SigmaMethod};
+use super::{model, refine, AlignOutcome, Image, Pixels, SigmaMethod};
 use crate::flow::Roi;
 use crate::geometry::{sigmas, Similarity};
 use crate::meta::FrameMeta;
@@ -26,6 +29,90 @@ use ndarray::{s, Array2, ArrayView2};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
+
+impl PreparedReference {
+    /// Align `frame` to the prepared reference.
+    pub fn align(&self, frame: &Image) -> AlignOutcome {
+        self.align_with(frame, &self.cfg.channel_settings())
+    }
+
+    /// Align `frame` with its channel's own settings.
+    pub fn align_with(&self, frame: &Image, settings: &ChannelSettings) -> AlignOutcome {
+        self.align_inner(
+            &frame.meta,
+            Pixels::from(frame.data.view()),
+            settings,
+            false,
+        )
+        .0
+    }
+
+    /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
+    /// as a reference would repeat (`None` when the alignment failed).
+    pub fn align_keeping(
+        &self,
+        frame: &Image,
+        settings: &ChannelSettings,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), settings, true)
+    }
+
+    fn align_inner(
+        &self,
+        frame_meta: &FrameMeta,
+        frame_data: Pixels<'_>,
+        settings: &ChannelSettings,
+        keep: bool,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        let started = Instant::now();
+        // Against an unusable reference the frame is not worth cleaning.
+        let own = self
+            .work
+            .as_ref()
+            .map_err(Clone::clone)
+            .and_then(|_| FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction));
+        self.align_own(frame_meta, own, settings, keep, started)
+    }
+
+    /// [`PreparedReference::align_inner`] from the frame's own preparation, made beforehand
+    /// (`Err`: the frame is unusable).
+    pub(super) fn align_own(
+        &self,
+        frame_meta: &FrameMeta,
+        own: Result<FrameOwn, String>,
+        settings: &ChannelSettings,
+        keep: bool,
+        started: Instant,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        let first = self
+            .aligned
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            == 0;
+        let cfg = self.cfg.for_channel(settings);
+        let result = match &self.work {
+            Ok(work) => {
+                own.and_then(|own| align_frame(work, frame_meta, own, &cfg, keep, &self.workspace))
+            }
+            Err(reason) => Err(reason.clone()),
+        };
+        let (result, kept) = match result {
+            Ok((outcome, kept)) => (Ok(outcome), kept),
+            Err(e) => (Err(e), None),
+        };
+        // A reference that serves many frames (a keyframe, a fixed file) keeps its own
+        // self-test: its cases are handed on only along a chain.
+        let kept = kept.map(|k| FrameWork {
+            self_test: k.self_test.filter(|_| first),
+            ..k
+        });
+        let mut outcome = result.unwrap_or_else(|reason| {
+            AlignOutcome::failed(&self.file, &crate::text::path(&frame_meta.file), &reason)
+        });
+        outcome.reference_geometry = self.geometry();
+        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+        (outcome, kept)
+    }
+}
 
 /// The frame's own preparation, which needs nothing of the reference: cleaned, and its disk
 /// checked against its header. A caller holding both images makes it while the reference is

@@ -15,9 +15,10 @@
 //! would see far less error than the pair's own).
 
 use super::config::EngineConfig;
-use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, PassStart, FLOW_TAPER_PX};
-use super::prepared::Workspace;
+use super::fine::{fine_alignment, flow_reach_px, FlowRegion, PassStart, FLOW_TAPER_PX};
+use super::region::mask_roi;
 use super::seed::Binned;
+use super::workspace::Workspace;
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
 use ndarray::{s, Array2, ArrayView2, Zip};

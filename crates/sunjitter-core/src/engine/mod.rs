@@ -22,9 +22,11 @@ mod photometry;
 mod prepared;
 pub mod quality;
 pub mod refine;
+mod region;
 mod seed;
 mod sigma;
 mod verdict;
+mod workspace;
 
 use crate::geometry::{Covariance4, Similarity};
 use crate::meta::FrameMeta;
@@ -33,14 +35,12 @@ use crate::record::{AlignResult, Status, TransformFields};
 use ndarray::{Array2, ArrayView2};
 use std::time::Instant;
 
+pub use config::RefineMode;
 pub use config::{ChannelSettings, EngineConfig};
 pub use model::{Model, ModelChoice, ModelPrior};
-pub use prepared::{FrameWork, PreparedReference, Workspace};
-pub use refine::RefineMode;
+pub use prepared::{FrameWork, PreparedReference};
 pub use sigma::SigmaMethod;
-// `refine` reads these as `super::`.
-use fine::erode;
-pub(crate) use fine::gaussian_reach;
+pub use workspace::Workspace;
 
 /// An image's pixels as the engine takes them: its own (cleaned in place) or borrowed.
 pub type Pixels<'a> = ndarray::CowArray<'a, f32, ndarray::Ix2>;

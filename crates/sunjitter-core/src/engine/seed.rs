@@ -3,10 +3,10 @@
 
 use super::config::EngineConfig;
 use super::fine::{
-    auto_levels, fine_alignment, flow_reach_px, grown, mask_roi, Crop, FineResult, FlowRegion,
-    PassStart,
+    auto_levels, fine_alignment, flow_reach_px, Crop, FineResult, FlowRegion, PassStart,
 };
-use super::prepared::Workspace;
+use super::region::{grown, mask_roi};
+use super::workspace::Workspace;
 use super::{derotate, quality};
 use crate::flow::Roi;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
@@ -14,26 +14,12 @@ use crate::preprocess::{self, BlockMeans};
 use ndarray::{s, Array2, ArrayView2, Axis};
 use rayon::prelude::*;
 
-/// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
-/// memory grow with the pixel count while the refinement only needs a start near its answer,
-/// and a seed this size gives the same refined answer as one at full resolution. Not less: the
-/// refinement's reweighting settles on slightly different weights from a coarser start. And a
-/// seed that converged on its level, not one pass: on undersampled images the refinement's
-/// answer depends on its start (docs/validation.md#seed-flow-on-binned-copies-converged).
-pub(super) const SEED_EXTENT_PX: usize = 700;
-
 /// How far a seed on `level` may be from the full-resolution flow, px: a level-1 finish's RMS
 /// flow error, growing with each further level, and none at full resolution
 /// (docs/validation.md#flow-finished-at-full-resolution).
 pub(super) fn seed_slack_px(level: usize) -> f64 {
     0.05 * ((1usize << level.min(16)) - 1) as f64
 }
-
-/// Default mask extent, px, at the pyramid level where a final flow answer is measured
-/// (between channels, or with the refinement off). Twice the seed's: the flow's own σ there are
-/// far below its interpolation term, and the cost stays that of a 2048² frame on larger ones
-/// (docs/validation.md#between-channels-the-answer-on-binned-copies).
-pub(super) const FINAL_EXTENT_PX: usize = 1400;
 
 /// Gaussian σ, in units of the binning factor, both images are smoothed by before they are
 /// binned for a final answer. A 2×2 mean alone passes 38 % of the amplitude at 3/8 cycles per
