@@ -5,6 +5,7 @@ mod allocator;
 use clap::{Parser, Subcommand};
 use std::io::Write;
 use sunjitter::cli;
+use sunjitter::error::ExitCode;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -103,12 +104,12 @@ fn main() {
         Ok(cli) => cli,
         Err(e) => {
             let code = if e.use_stderr() {
-                sunjitter::error::exit::BAD_INPUT
+                ExitCode::BadInput
             } else {
-                sunjitter::error::exit::OK
+                ExitCode::Ok
             };
             let _ = e.print();
-            std::process::exit(code);
+            std::process::exit(code.code());
         }
     };
     // Decompressed copies a killed run left behind (their names carry the dead process's id).
@@ -125,7 +126,7 @@ fn main() {
         Command::Status(a) => cli::status::run(a),
     };
     match outcome {
-        Ok(code) => std::process::exit(code),
+        Ok(code) => std::process::exit(code.code()),
         Err(e) => {
             // Not eprintln!: a stderr that cannot be written (a full disk) must not turn the
             // error into a panic.
@@ -134,7 +135,7 @@ fn main() {
                 "sunjitter: {}",
                 sunjitter::text::escape(&e.to_string())
             );
-            std::process::exit(e.exit_code());
+            std::process::exit(e.exit_code().code());
         }
     }
 }

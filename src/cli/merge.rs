@@ -24,7 +24,7 @@ shard missing, given twice, unfinished or made from other inputs or configuratio
 and nothing is written; a merge run again replaces its own earlier output, which stays
 whole until the new one takes its place.";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<crate::error::ExitCode> {
     let mut shards = args
         .shards
         .iter()
@@ -58,5 +58,5 @@ pub fn run(args: &Args) -> Result<i32> {
         });
         println!("{doc}");
     }
-    Ok(crate::error::exit::OK)
+    Ok(crate::error::ExitCode::Ok)
 }

@@ -1,6 +1,7 @@
 //! One module per subcommand: its arguments (clap), its `EXAMPLES` and its `run`.
-//! `run` returns the process exit code for work that ran (0 or 1); errors carry their own
-//! code through [`crate::Error::exit_code`].
+//! `run` returns the [`ExitCode`](crate::error::ExitCode) of work that ran (`Ok` or `Failed`);
+//! errors carry their own through [`crate::Error::exit_code`], and `main` maps both to the
+//! process's status.
 //!
 //! Flags that several commands take are defined here once, so that each means and reads the
 //! same everywhere: [`PipelineArgs`] (`watch`, `replay`), [`CONFIG_HELP`] and [`JSON_HELP`].

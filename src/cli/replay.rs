@@ -1,7 +1,7 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
 use super::watch::{effective_config, runtime, termination};
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::pipeline::Progress;
 use crate::replay::{ReplayRequest, ReplayRun};
 use crate::Result;
@@ -34,7 +34,7 @@ Examples:
 Past one machine: run --shard K/N for K = 0…N−1 (e.g. a Slurm job array, examples/slurm/),
 each into its own --out, then join them with `sunjitter merge`.";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let config = effective_config(&args.run)?;
     super::ensure_open_files(super::MIN_OPEN_FILES)?;
     let replay = ReplayRun::open(ReplayRequest {
@@ -122,8 +122,8 @@ pub fn run(args: &Args) -> Result<i32> {
     // and not one frame gave a measurement.
     let measured = progress.ok + progress.degraded;
     Ok(if total > 0 && measured == 0 {
-        exit::FAILED
+        ExitCode::Failed
     } else {
-        exit::OK
+        ExitCode::Ok
     })
 }

@@ -1,7 +1,7 @@
 //! `sunjitter watch DIR --out OUT`: the daemon.
 
 use crate::config::{Config, Overrides};
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::monitor::{Monitor, MonitorSetup};
 use crate::outputs::check_outputs_outside;
 use crate::pipeline::{EngineAligner, FitsReader, Progress, RunParts};
@@ -49,7 +49,7 @@ pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
     Ok(config)
 }
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let live = args.live.as_deref().map(parse_live_address).transpose()?;
     let config = effective_config(&args.run)?;
     let clients = if live.is_some() {
@@ -138,7 +138,7 @@ pub fn run(args: &Args) -> Result<i32> {
     if args.output.json {
         println!("{}", progress.summary_json(&args.run.out));
     }
-    Ok(exit::OK)
+    Ok(ExitCode::Ok)
 }
 
 /// `--live ADDR:PORT` (a host name is resolved; its first address is used).

@@ -426,12 +426,7 @@ fn is_identity(t: &Similarity) -> bool {
 }
 
 fn status_text(m: &FrameAlignment) -> String {
-    match m.align.status {
-        Status::Ok => "ok",
-        Status::Degraded => "degraded",
-        Status::Failed => "failed",
-    }
-    .to_string()
+    m.align.status.as_str().to_string()
 }
 
 /// `HISTORY` lines: what was applied, from which measurement. Short lines (one card each).
@@ -709,7 +704,11 @@ mod tests {
             out.join("p"),
         ] {
             let err = check_dir(&bad, &out, &inputs, &[]).unwrap_err();
-            assert_eq!(err.exit_code(), 2, "{err}");
+            assert_eq!(
+                err.exit_code(),
+                sunjitter_core::error::ExitCode::BadInput,
+                "{err}"
+            );
             assert_eq!(err.to_string().lines().count(), 1, "{err}");
         }
         check_dir(&t.path().join("products"), &out, &inputs, &[]).unwrap();

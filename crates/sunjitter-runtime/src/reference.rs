@@ -1357,7 +1357,10 @@ mod tests {
             PolicySpec::Fixed("x.fits".into())
         );
         for bad in ["", "fixed:", "channel:", "nearest"] {
-            assert_eq!(bad.parse::<PolicySpec>().unwrap_err().exit_code(), 2);
+            assert_eq!(
+                bad.parse::<PolicySpec>().unwrap_err().exit_code(),
+                sunjitter_core::error::ExitCode::BadInput
+            );
         }
         assert_eq!(parse_frame_key("/a/cube.fits[12]").frame, Some(12));
         assert_eq!(parse_frame_key("/a/odd[name].fits").frame, None);

@@ -693,7 +693,11 @@ mod tests {
             "0/100001",
         ] {
             let e = bad.parse::<ShardSpec>().unwrap_err();
-            assert_eq!(e.exit_code(), 2, "{bad}");
+            assert_eq!(
+                e.exit_code(),
+                sunjitter_core::error::ExitCode::BadInput,
+                "{bad}"
+            );
         }
     }
 

@@ -294,11 +294,7 @@ pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
     if let Some(n) = spec.frame {
         file.push_str(&format!("[{n}]"));
     }
-    let status = match a.status {
-        FrameStatus::Ok => "ok",
-        FrameStatus::Degraded => "degraded",
-        FrameStatus::Failed => "failed",
-    };
+    let status = a.status.as_str();
     let mut line = format!(
         "{} {file} {status}",
         sunjitter_core::text::escape(&message.channel)
