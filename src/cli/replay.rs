@@ -39,7 +39,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     super::ensure_open_files(super::MIN_OPEN_FILES)?;
     let replay = ReplayRun::open(ReplayRequest {
         paths: &args.paths,
-        out: &args.run.out,
+        out: &args.run.out.dir,
         config,
         config_path: args.run.config.path.as_deref(),
         products: args.run.products(),
@@ -83,12 +83,12 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     match &shard {
         None if progress.frames == 0 && progress.skipped == 0 && earlier > 0 => eprintln!(
             "sunjitter: all {earlier} frames already logged in {} (nothing left to measure)",
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
         ),
         None => eprintln!(
             "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped{}",
             progress.frames,
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
             progress.ok,
             progress.degraded,
             progress.failed,
@@ -106,7 +106,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
             plan.start,
             plan.end,
             plan.total,
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
             plan.owned.len(),
             progress.frames,
             progress.ok,
@@ -116,7 +116,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         ),
     }
     if args.output.json {
-        println!("{}", progress.summary_json(&args.run.out));
+        println!("{}", progress.summary_json(&args.run.out.dir));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.
