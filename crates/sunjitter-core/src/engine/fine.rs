@@ -105,19 +105,34 @@ pub(super) fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
     (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What every flow run of one alignment shares: the window, the frame's extra smoothing, the
+/// Sun's rotation carried, the settings and the working memory.
+#[derive(Clone, Copy)]
+pub(super) struct FlowSetup<'a> {
+    pub(super) winsize: usize,
+    /// Gaussian σ that brings the frame to the reference's resolution, px.
+    pub(super) frame_smoothing_px: f64,
+    pub(super) carried: Option<&'a derotate::Carried>,
+    pub(super) cfg: &'a EngineConfig,
+    pub(super) workspace: &'a Workspace,
+}
+
+/// Flow passes from `start` until the update is negligible or `max_passes` have run.
 pub(super) fn fine_alignment(
     reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     region: FlowRegion,
     start: PassStart,
-    winsize: usize,
-    frame_smoothing_px: f64,
     max_passes: usize,
-    carried: Option<&derotate::Carried>,
-    cfg: &EngineConfig,
-    workspace: &Workspace,
+    setup: FlowSetup,
 ) -> Result<FineResult, FineError> {
+    let FlowSetup {
+        winsize,
+        frame_smoothing_px,
+        carried,
+        cfg,
+        workspace,
+    } = setup;
     let (h, w) = reference.dim();
     let mask = region.mask;
     let center = Similarity::array_center(w, h);

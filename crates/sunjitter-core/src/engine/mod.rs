@@ -6,16 +6,19 @@
 //! residual motion towards zero, where the flow's gain errors (a window measures a little
 //! less than the true rotation or scale) do not matter; the σ come from the last pass.
 //!
-//! Modules, one per stage: `config` (settings), `prepared` (the reference's share, kept for
-//! every frame, and shared working memory), `align` (one alignment's stages), `fine` (flow
-//! passes and their crops), `seed` (the flow on binned copies), `verdict` (status and
-//! reasons), and the checks and corrections they call.
+//! Modules, one per stage: `config` (settings), `workspace` (working memory shared between
+//! alignments), `prepared` (the reference's share, kept for every frame), `frame` (the frame's
+//! own preparation, the coarse transform, the Sun's rotation, intensities), `seed` (the flow on
+//! binned copies), `fine` (flow passes and their crops), `refine` (the intensity refinement),
+//! `sigma`, `verdict` (status and reasons), `align` (one alignment through them), and the
+//! checks and corrections they call (`region`: masks, crops and filter reaches).
 
 mod align;
 mod config;
 pub mod derotate;
 mod fine;
 mod flow_check;
+mod frame;
 mod geometry_check;
 mod model;
 mod photometry;
@@ -151,10 +154,10 @@ fn prepared_side_by_side(
     frame: &FrameMeta,
     data: Pixels<'_>,
     cfg: &EngineConfig,
-) -> (PreparedReference, Result<align::FrameOwn, String>) {
+) -> (PreparedReference, Result<frame::FrameOwn, String>) {
     rayon::join(
         || PreparedReference::of_pixels(reference.0, reference.1, cfg),
-        || align::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
+        || frame::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
     )
 }
 
@@ -162,7 +165,7 @@ fn prepared_side_by_side(
 fn aligned_pair(
     prepared: PreparedReference,
     frame: &FrameMeta,
-    own: Result<align::FrameOwn, String>,
+    own: Result<frame::FrameOwn, String>,
     cfg: &EngineConfig,
     started: Instant,
 ) -> AlignOutcome {

@@ -3,11 +3,10 @@
 
 use super::config::EngineConfig;
 use super::fine::{
-    auto_levels, fine_alignment, flow_reach_px, Crop, FineResult, FlowRegion, PassStart,
+    auto_levels, fine_alignment, flow_reach_px, Crop, FineResult, FlowRegion, FlowSetup, PassStart,
 };
+use super::quality;
 use super::region::{grown, mask_roi};
-use super::workspace::Workspace;
-use super::{derotate, quality};
 use crate::flow::Roi;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
 use crate::preprocess::{self, BlockMeans};
@@ -207,21 +206,18 @@ pub(super) enum BinnedRun {
 /// The flow stage on `binned` copies, as a seed or as the flow's final answer (`run`): the
 /// result in full-grid terms (transform, covariances, inliers, sampling mask), its warped
 /// frame on the binned grid. Between channels `disk` is the reference's disk (centre, radius
-/// px, full grid), whose limb the flow's windows must stay clear of.
-#[allow(clippy::too_many_arguments)]
+/// px, full grid), whose limb the flow's windows must stay clear of. `frame`: its pixels and
+/// block means, when it has them.
 pub(super) fn binned_alignment(
     binned: &Binned,
     grid: (usize, usize),
-    frame: &Array2<f32>,
-    frame_means: Option<&BlockMeans>,
+    frame: (&Array2<f32>, Option<&BlockMeans>),
     run: BinnedRun,
     disk: Option<([f64; 2], f64)>,
-    winsize: usize,
-    frame_smoothing_px: f64,
-    carried: Option<&derotate::Carried>,
-    cfg: &EngineConfig,
-    workspace: &Workspace,
+    setup: FlowSetup,
 ) -> Result<FineResult, String> {
+    let (frame, frame_means) = frame;
+    let cfg = setup.cfg;
     let factor = 1usize << binned.level;
     let b = factor as f64;
     // The reference's grid (the frame may be of another size).
@@ -241,17 +237,19 @@ pub(super) fn binned_alignment(
         ),
         BinnedRun::Final(seed) => (PassStart::Seed(binned.to_binned(&seed)), cfg.clone()),
     };
+    let carried = setup.carried.map(|c| c.binned(factor));
     let mut fine = fine_alignment(
         binned.reference.view(),
         &small_frame,
-        binned.region(disk, winsize, cfg),
+        binned.region(disk, setup.winsize, cfg),
         start,
-        winsize,
-        frame_smoothing_px / b,
         run_cfg.max_passes,
-        carried.map(|c| c.binned(factor)).as_ref(),
-        &run_cfg,
-        workspace,
+        FlowSetup {
+            frame_smoothing_px: setup.frame_smoothing_px / b,
+            carried: carried.as_ref(),
+            cfg: &run_cfg,
+            ..setup
+        },
     )
     .map_err(|e| e.to_string())?;
     let unbinned = |t: &Similarity, cov: &Covariance4| -> (Similarity, Covariance4) {
