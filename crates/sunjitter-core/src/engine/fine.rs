@@ -174,16 +174,20 @@ pub(super) fn fine_alignment(
         );
         (crop, s)
     });
-    let (mut estimate, seeded) = match start {
+    let (estimate, seeded) = match start {
         PassStart::Coarse(t) => (t.recentered(center), false),
         PassStart::Seed(t) => (t.recentered(center), true),
     };
-    let mut solver: Option<Farneback> = workspace.take();
-    let mut pass = 0;
-    let mut last_moved: Option<f64> = None;
-    let mut last_crop: Option<Crop> = None;
+    let mut state = PassState {
+        pass: 0,
+        estimate,
+        solver: workspace.take(),
+        last_moved: None,
+        last_crop: None,
+    };
     loop {
-        pass += 1;
+        state.pass += 1;
+        let pass = state.pass;
         let pass_started = Instant::now();
         let whole_pyramid = pass == 1 && !seeded;
         let pass_levels = if whole_pyramid { levels } else { 0 };
@@ -192,7 +196,7 @@ pub(super) fn fine_alignment(
         let (ch, cw) = (crop.rows.len(), crop.cols.len());
         let warped = warp_pass(
             &spline,
-            &estimate,
+            &state.estimate,
             &crop,
             shifts.as_ref(),
             carried,
@@ -229,9 +233,9 @@ pub(super) fn fine_alignment(
             region.sample_within,
             (x0, y0),
         );
-        let mut s = configured_solver(solver.take(), &params, &options)?;
+        let mut s = configured_solver(state.solver.take(), &params, &options)?;
         // The same reference crop as the last pass's: its expansion is kept.
-        if last_crop.as_ref() == Some(&crop) {
+        if state.last_crop.as_ref() == Some(&crop) {
             s.next_prev_unchanged();
         }
         // The flow is read only on the sampling lattice's rows.
@@ -245,8 +249,8 @@ pub(super) fn fine_alignment(
         let flow = s
             .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
-        solver = Some(s);
-        last_crop = Some(crop.clone());
+        state.solver = Some(s);
+        state.last_crop = Some(crop.clone());
         let flow_at = pass_started.elapsed();
 
         let mut points = grid_median_sample(
@@ -264,33 +268,35 @@ pub(super) fn fine_alignment(
             .map_err(|source| FineError::Fit { pass, source })?;
         tracing::debug!(pass, ?warped_at, ?flow_at, fitted_at = ?pass_started.elapsed(), crop = ?(cw, ch), "fine pass");
         let update = fit.transform;
-        let previous = estimate;
-        estimate = estimate.after(&update);
+        let previous = state.estimate;
+        state.estimate = state.estimate.after(&update);
         // Converged when what is left is negligible, or lost in this pass's own noise.
         let moved = max_motion_px(&update, radius);
         let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
-        let left = left_after(moved, seeded.then_some(last_moved).flatten());
+        let left = left_after(moved, seeded.then_some(state.last_moved).flatten());
         let converged = left < cfg.convergence_px.max(0.1 * noise);
-        last_moved = Some(moved);
-        tracing::debug!(pass, moved, noise, estimate = ?estimate.params(), "fine pass estimate");
+        state.last_moved = Some(moved);
+        tracing::debug!(pass, moved, noise, estimate = ?state.estimate.params(), "fine pass estimate");
         if converged || pass >= max_passes.max(1) {
-            if let Some(solver) = solver.take() {
+            if let Some(solver) = state.solver.take() {
                 workspace.give(solver);
             }
-            let last = LastPass {
-                pass,
+            let step = PassStep {
                 previous,
                 update,
-                estimate,
                 moved,
                 converged,
+            };
+            let measured = PassMeasurement {
                 fit,
                 points,
                 warped,
                 crop,
                 sample_mask,
             };
-            return Ok(last.result(center, winsize, cfg));
+            return Ok(FineResult::of_last_pass(
+                &state, step, measured, center, winsize, cfg,
+            ));
         }
     }
 }
@@ -435,16 +441,28 @@ fn sample_mask(
     sample_mask
 }
 
-/// The fine stage's last pass, from which its answer is made.
-struct LastPass {
+/// The fine passes' state from one pass to the next: where the estimate is, the solver (its
+/// buffers, and its expansion of the reference crop), and what the last pass moved and read.
+struct PassState {
     pass: usize,
-    /// The estimate the pass started from, the update it measured and their composition.
+    estimate: Similarity,
+    solver: Option<Farneback>,
+    last_moved: Option<f64>,
+    last_crop: Option<Crop>,
+}
+
+/// A pass's step: the estimate it started from, the update it measured, the update's largest
+/// motion within the mask (px), and whether the passes converged with it.
+struct PassStep {
     previous: Similarity,
     update: Similarity,
-    estimate: Similarity,
-    /// The update's largest motion within the mask, px.
     moved: f64,
     converged: bool,
+}
+
+/// What a pass measured: the fit to its sampled vectors, the frame warped onto its crop and
+/// where it sampled.
+struct PassMeasurement {
     fit: SimilarityFit,
     points: Vec<crate::sampling::Correspondence>,
     warped: Array2<f32>,
@@ -452,21 +470,30 @@ struct LastPass {
     sample_mask: Array2<bool>,
 }
 
-impl LastPass {
-    fn result(self, center: [f64; 2], winsize: usize, cfg: &EngineConfig) -> FineResult {
-        let LastPass {
-            pass,
+impl FineResult {
+    /// The fine stage's answer from its last pass: the step's covariance composed into the
+    /// estimate's, widened by the step when the passes did not converge.
+    fn of_last_pass(
+        state: &PassState,
+        step: PassStep,
+        measured: PassMeasurement,
+        center: [f64; 2],
+        winsize: usize,
+        cfg: &EngineConfig,
+    ) -> FineResult {
+        let PassStep {
             previous,
             update,
-            estimate,
             moved,
             converged,
+        } = step;
+        let PassMeasurement {
             fit,
             points,
             warped,
             crop,
             sample_mask,
-        } = self;
+        } = measured;
         let (x0, y0) = (crop.cols.start, crop.rows.start);
         let inliers = fit.inlier_points(&points);
         let uabjm = fit.covariance;
@@ -494,14 +521,14 @@ impl LastPass {
         let sample_box = crate::sampling::mask_bounding_box(sample_mask.view())
             .map(|(a, b, c, d)| (a + x0, b + y0, c + x0, d + y0));
         FineResult {
-            transform: estimate,
+            transform: state.estimate,
             covariance: cov,
             uabjm_covariance: ucov,
             points: points.len(),
             fit,
             warped: Some(warped),
             crop,
-            passes: pass,
+            passes: state.pass,
             converged,
             unsettled_px,
             seed_level: None,
