@@ -15,6 +15,12 @@
 //! (frame 1 as another channel shows it: blurred by 1.5 px, intensities bent by a power 0.8,
 //! another channel name; the flow's answer is final).
 
+// The binary's allocator and its settings: measured as the command line runs. Only `tune`
+// is used here; the module's checks run with the binary's tests.
+#[allow(dead_code, unused_imports)]
+#[path = "../src/allocator.rs"]
+mod allocator;
+
 use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
@@ -82,7 +88,7 @@ fn other_channel(frame: &Image) -> Image {
 }
 
 fn cold(c: &mut Criterion) {
-    sunjitter::tune_allocator();
+    allocator::tune();
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
         let name = format!("cold_{size}");
@@ -127,7 +133,7 @@ fn cold(c: &mut Criterion) {
 }
 
 fn bench(c: &mut Criterion) {
-    sunjitter::tune_allocator();
+    allocator::tune();
     let cfg = EngineConfig::default();
     for size in [1024usize, 2048, 4096] {
         if !selected(&format!("end_to_end_{size}")) {

@@ -11,6 +11,12 @@
 //! peak RSS (VmHWM from /proc/self/status, i.e. for the whole run), the rayon thread count and
 //! the load average (the machine may be shared: compare CPU times when wall times are noisy).
 
+// The binary's allocator and its settings: measured as the command line runs. Only `tune`
+// is used here; the module's checks run with the binary's tests.
+#[allow(dead_code, unused_imports)]
+#[path = "../src/allocator.rs"]
+mod allocator;
+
 use std::path::PathBuf;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use sunjitter::engine::{EngineConfig, PreparedReference};
@@ -62,7 +68,7 @@ fn summary(name: &str, v: &[f64]) {
 }
 
 fn main() -> anyhow::Result<()> {
-    sunjitter::tune_allocator();
+    allocator::tune();
     // Stage timings: SUNJITTER_LOG=sunjitter=debug.
     if let Ok(filter) = tracing_subscriber::EnvFilter::try_from_env("SUNJITTER_LOG") {
         tracing_subscriber::fmt()

@@ -26,6 +26,12 @@
 //! CROSS.fits). Prints one JSON line per case with the wall and CPU seconds (all threads,
 //! /proc/self/stat) of every repeat.
 
+// The binary's allocator and its settings: measured as the command line runs. Only `tune`
+// is used here; the module's checks run with the binary's tests.
+#[allow(dead_code, unused_imports)]
+#[path = "../src/allocator.rs"]
+mod allocator;
+
 use std::sync::Arc;
 use std::time::Instant;
 use sunjitter::engine::{
@@ -48,7 +54,7 @@ fn cpu_seconds() -> f64 {
 }
 
 fn main() -> anyhow::Result<()> {
-    sunjitter::tune_allocator();
+    allocator::tune();
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.len() < 2 {
         anyhow::bail!("usage: bench_pair PREV.fits NEXT.fits [REPEATS] [CASES] [CROSS.fits]");

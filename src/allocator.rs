@@ -1,4 +1,7 @@
-//! The process allocator: mimalloc, keeping freed frame-sized pages for reuse, in small pages.
+//! The process allocator, chosen by the binary: mimalloc, keeping freed frame-sized pages for
+//! reuse, in small pages. The library crates leave the allocator to whoever links them.
+
+use libmimalloc_sys::mi_option_t;
 
 // Frames are tens of MB and every alignment allocates a few dozen such arrays. glibc maps and
 // unmaps each one, and on a virtual machine faulting fresh pages in can cost as much CPU as
@@ -6,7 +9,59 @@
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// Set the allocator up for frame-sized arrays; the binary calls it first thing, and so do the
+/// The mimalloc options this process sets, by their names in `mimalloc.h` (`mi_option_…`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum MiOption {
+    /// `mi_option_purge_delay`: ms before freed memory goes back to the system; -1 never.
+    PurgeDelay,
+    /// `mi_option_allow_thp`: whether the heap may use transparent huge pages.
+    AllowThp,
+}
+
+impl MiOption {
+    #[cfg(test)]
+    const ALL: [MiOption; 2] = [MiOption::PurgeDelay, MiOption::AllowThp];
+
+    /// Its index in the mimalloc v3 header vendored by the pinned libmimalloc-sys (`gcc -E` of
+    /// `mimalloc.h`: the 16th and 44th enumerators), whose Rust bindings do not name these.
+    /// The tests check each index against the option its environment variable sets.
+    fn index(self) -> mi_option_t {
+        match self {
+            MiOption::PurgeDelay => 15,
+            MiOption::AllowThp => 43,
+        }
+    }
+
+    /// The environment variable that sets it when the process starts; it governs when set.
+    fn variable(self) -> &'static str {
+        match self {
+            MiOption::PurgeDelay => "MIMALLOC_PURGE_DELAY",
+            MiOption::AllowThp => "MIMALLOC_ALLOW_THP",
+        }
+    }
+
+    #[cfg(test)]
+    fn get(self) -> std::ffi::c_long {
+        // SAFETY: reads a plain integer option; mimalloc synchronises option access.
+        unsafe { libmimalloc_sys::mi_option_get(self.index()) }
+    }
+
+    fn set(self, value: std::ffi::c_long) {
+        // SAFETY: sets a plain integer option; mimalloc synchronises option access.
+        unsafe { libmimalloc_sys::mi_option_set(self.index(), value) }
+    }
+
+    /// Sets it unless the environment does.
+    fn set_unless_given(self, value: std::ffi::c_long) -> bool {
+        let given = std::env::var_os(self.variable()).is_some();
+        if !given {
+            self.set(value);
+        }
+        !given
+    }
+}
+
+/// Set the allocator up for frame-sized arrays; `main` calls it first thing, and so do the
 /// benchmarks. Idempotent. Two settings, each left to the environment when it sets it:
 ///
 /// - Freed pages are kept for reuse instead of being returned to the system 10 ms after they
@@ -17,17 +72,12 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 ///   kernel compacts memory to make a huge page at the fault (`defrag` = `madvise`, a common
 ///   default), a cold alignment spends more system time on it than its TLB saves
 ///   (docs/validation.md#small-pages).
-pub fn tune_allocator() {
+pub fn tune() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
-        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
-            // SAFETY: sets a plain integer option; mimalloc synchronises option access.
-            unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
-        }
-        if std::env::var_os("MIMALLOC_ALLOW_THP").is_none() {
-            // No further `madvise(MADV_HUGEPAGE)` on the memory mimalloc maps from now on ...
-            // SAFETY: as above.
-            unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_ALLOW_THP, 0) };
+        MiOption::PurgeDelay.set_unless_given(-1);
+        // No further `madvise(MADV_HUGEPAGE)` on the memory mimalloc maps from now on ...
+        if MiOption::AllowThp.set_unless_given(0) {
             // ... and none for what it mapped before `main` (its first arena), nor where the
             // system's setting is `always`: what mimalloc itself does when the option is set
             // in the environment, which it reads only at start-up.
@@ -40,35 +90,59 @@ pub fn tune_allocator() {
     });
 }
 
-/// `mi_option_purge_delay` in the mimalloc v3 header vendored by libmimalloc-sys 0.1.49
-/// (`gcc -E` of `mimalloc.h`: the 16th enumerator), whose Rust bindings do not name it.
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-
-/// `mi_option_allow_thp` in the same header (the 44th enumerator).
-const MI_OPTION_ALLOW_THP: libmimalloc_sys::mi_option_t = 43;
-
 #[cfg(test)]
 mod tests {
+    use super::MiOption;
+
+    /// Set in a child process to the variable whose option it reads back.
+    const PROBE: &str = "SUNJITTER_ALLOCATOR_PROBE";
+
+    #[test]
+    fn each_option_is_the_one_its_variable_sets() {
+        if let Some(variable) = std::env::var_os(PROBE) {
+            let option = MiOption::ALL
+                .into_iter()
+                .find(|o| variable == o.variable())
+                .unwrap();
+            assert_eq!(option.get(), 7, "{option:?}");
+            return;
+        }
+        // mimalloc reads `MIMALLOC_<NAME>` into the option of that name: a child started with
+        // the variable set reads it back through the index.
+        let this = std::env::current_exe().unwrap();
+        let name = "allocator::tests::each_option_is_the_one_its_variable_sets";
+        for option in MiOption::ALL {
+            let status = std::process::Command::new(&this)
+                .args(["--exact", name, "--test-threads=1"])
+                .env(PROBE, option.variable())
+                .env(option.variable(), "7")
+                .stdout(std::process::Stdio::null())
+                .status()
+                .unwrap();
+            assert!(
+                status.success(),
+                "{option:?} is not option {}",
+                option.index()
+            );
+        }
+    }
+
     #[test]
     fn freed_memory_is_kept_once_asked() {
-        if std::env::var_os("MIMALLOC_PURGE_DELAY").is_some() {
+        if std::env::var_os(MiOption::PurgeDelay.variable()).is_some() {
             return; // the environment governs
         }
-        super::tune_allocator();
-        // SAFETY: reads a plain integer option.
-        let delay = unsafe { libmimalloc_sys::mi_option_get(super::MI_OPTION_PURGE_DELAY) };
-        assert_eq!(delay, -1);
+        super::tune();
+        assert_eq!(MiOption::PurgeDelay.get(), -1);
     }
 
     #[test]
     fn huge_pages_are_off_once_asked() {
-        if std::env::var_os("MIMALLOC_ALLOW_THP").is_some() {
+        if std::env::var_os(MiOption::AllowThp.variable()).is_some() {
             return; // the environment governs
         }
-        super::tune_allocator();
-        // SAFETY: reads a plain integer option.
-        let allowed = unsafe { libmimalloc_sys::mi_option_get(super::MI_OPTION_ALLOW_THP) };
-        assert_eq!(allowed, 0);
+        super::tune();
+        assert_eq!(MiOption::AllowThp.get(), 0);
         // The kernel's own word for the process.
         #[cfg(target_os = "linux")]
         {

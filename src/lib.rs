@@ -13,7 +13,8 @@
 //!   pipeline ([`pipeline`]) → daemon and replay ([`daemon`], [`replay`], [`shard`], [`merge`]) →
 //!   [`monitor`], [`products`] → [`inspect`].
 //!
-//! This crate is the command line ([`cli`]) and the process: the allocator and exit codes.
+//! This crate is the command line ([`cli`]) and the process (`src/main.rs`: the allocator and
+//! exit codes).
 //! It re-exports the three crates' modules under one name for the binary, tests and examples.
 
 pub use sunjitter_core::{
@@ -26,10 +27,8 @@ pub use sunjitter_runtime::{
     replay, runs, shard,
 };
 
-pub mod allocator;
 pub mod cli;
 
-pub use allocator::tune_allocator;
 pub use error::{Error, Result};
 pub use geometry::Similarity;
 pub use meta::FrameMeta;

@@ -1,8 +1,11 @@
 //! Thin binary: parse the command line, run the library, map errors to exit codes.
 
+mod allocator;
+
 use clap::{Parser, Subcommand};
 use std::io::Write;
 use sunjitter::cli;
+use sunjitter::error::ExitCode;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -27,7 +30,9 @@ Environment:
   SUNJITTER_LOG        what is logged to stderr (default info; e.g. warn, sunjitter_core=debug)
   SUNJITTER_CACHE_DIR  where references' self-tests are kept between runs
                        (default $XDG_CACHE_HOME/sunjitter or ~/.cache/sunjitter; empty: nowhere)
-  NO_COLOR             no colour in the log";
+  NO_COLOR             no colour in the log
+  SUNJITTER_PORTABLE_KERNELS
+                       1: the portable numeric kernels on any CPU, not the AVX2 ones";
 
 #[derive(Debug, Subcommand)]
 enum Command {
@@ -81,7 +86,7 @@ fn escaped_fields() -> impl for<'w> tracing_subscriber::fmt::FormatFields<'w> {
 }
 
 fn main() {
-    sunjitter::tune_allocator();
+    allocator::tune();
     // Colour only for a person at a terminal, and never when NO_COLOR is set (no-color.org).
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
         && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
@@ -99,12 +104,12 @@ fn main() {
         Ok(cli) => cli,
         Err(e) => {
             let code = if e.use_stderr() {
-                sunjitter::error::exit::BAD_INPUT
+                ExitCode::BadInput
             } else {
-                sunjitter::error::exit::OK
+                ExitCode::Ok
             };
             let _ = e.print();
-            std::process::exit(code);
+            std::process::exit(code.code());
         }
     };
     // Decompressed copies a killed run left behind (their names carry the dead process's id).
@@ -121,7 +126,7 @@ fn main() {
         Command::Status(a) => cli::status::run(a),
     };
     match outcome {
-        Ok(code) => std::process::exit(code),
+        Ok(code) => std::process::exit(code.code()),
         Err(e) => {
             // Not eprintln!: a stderr that cannot be written (a full disk) must not turn the
             // error into a panic.
@@ -130,7 +135,7 @@ fn main() {
                 "sunjitter: {}",
                 sunjitter::text::escape(&e.to_string())
             );
-            std::process::exit(e.exit_code());
+            std::process::exit(e.exit_code().code());
         }
     }
 }

@@ -10,6 +10,7 @@ use ndarray::{s, Array2};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use sunjitter::error::ExitCode;
 use sunjitter::fits::{frame_header_cards, read_frame, read_image_header, write_image, FrameSpec};
 use sunjitter::geometry::{Similarity, ARCSEC_PER_RAD};
 use sunjitter::header::HeaderValue;
@@ -281,7 +282,7 @@ fn align_recovers_an_injected_transform_and_writes_aligned_fits_and_quicklook() 
         "--config".as_ref(),
         config.as_os_str(),
     ]);
-    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(run.code, Some(ExitCode::Ok.code()), "{}", run.stderr);
     let doc = one_document(&run.stdout);
     assert_contract_fields(&doc);
     assert_eq!(doc["status"], "ok", "{}", doc["message"]);
@@ -375,7 +376,7 @@ fn align_recovers_an_injected_transform_and_writes_aligned_fits_and_quicklook() 
     // On an aligned.fits written by this test astropy prints the same, and
     // `fits.open(path).verify('exception')` passes (its only note: MJD-OBS derived from DATE-OBS).
     let info = sunjitter(&["info".as_ref(), "--json".as_ref(), aligned.as_os_str()]);
-    assert_eq!(info.code, Some(0), "{}", info.stderr);
+    assert_eq!(info.code, Some(ExitCode::Ok.code()), "{}", info.stderr);
     let meta = &one_document(&info.stdout)[0];
     let sun = meta["sun_center_px"].as_array().unwrap();
     assert!((sun[0].as_f64().unwrap() + 716.555).abs() < 1e-9, "{meta}");
@@ -413,7 +414,7 @@ fn unrelated_pair_fails_with_null_numbers_and_writes_nothing() {
         "--aligned".as_ref(),
         aligned.as_os_str(),
     ]);
-    assert_eq!(run.code, Some(1), "{}", run.stderr);
+    assert_eq!(run.code, Some(ExitCode::Failed.code()), "{}", run.stderr);
     let doc = one_document(&run.stdout);
     assert_contract_fields(&doc);
     assert_eq!(doc["status"], "failed");
@@ -451,7 +452,12 @@ fn bad_input_files_exit_2_naming_the_file() {
         (missing, reference.as_str(), missing),
     ] {
         let run = sunjitter(&["align", a, b, "--json"]);
-        assert_eq!(run.code, Some(2), "{a} {b}: {}", run.stderr);
+        assert_eq!(
+            run.code,
+            Some(ExitCode::BadInput.code()),
+            "{a} {b}: {}",
+            run.stderr
+        );
         assert!(run.stdout.is_empty(), "{}", run.stdout);
         assert!(!run.stderr.contains("panicked"), "{}", run.stderr);
         assert_eq!(run.stderr.lines().count(), 1, "{:?}", run.stderr);
@@ -508,7 +514,7 @@ fn cube_frame_syntax_selects_the_frame() {
             frame_path.to_str().unwrap(),
             "--json",
         ]);
-        assert_ne!(run.code, Some(2), "{}", run.stderr);
+        assert_ne!(run.code, Some(ExitCode::BadInput.code()), "{}", run.stderr);
         one_document(&run.stdout)
     };
     let doc = align_to(plane);
@@ -556,7 +562,7 @@ fn align_test_pair(name: &str) -> Run {
 /// `align --json` on `tests/data/NAME/{ref,frame}.fits`, and each truth's error in σ.
 fn known_truth_pair(name: &str, truth: &[(&str, f64)]) -> (Value, Vec<(String, f64)>) {
     let run = align_test_pair(name);
-    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(run.code, Some(ExitCode::Ok.code()), "{}", run.stderr);
     let doc = one_document(&run.stdout);
     let z = truth
         .iter()
@@ -596,13 +602,13 @@ fn no_confident_wrong_answer(name: &str, truth: &[(&str, f64)], why: &str) -> Va
     let run = align_test_pair(name);
     let doc = one_document(&run.stdout);
     if doc["status"] == "failed" {
-        assert_eq!(run.code, Some(1), "{}", run.stderr);
+        assert_eq!(run.code, Some(ExitCode::Failed.code()), "{}", run.stderr);
         assert!(doc["dx_px"].is_null(), "{doc}");
         let message = doc["message"].as_str().unwrap();
         assert!(message.contains(why), "{message}");
         return doc;
     }
-    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(run.code, Some(ExitCode::Ok.code()), "{}", run.stderr);
     for &(key, value) in truth {
         let z = (num(&doc, key) - value).abs() / num(&doc, &format!("sigma_{key}"));
         assert!(z <= 3.0, "{key}: {z:.1}σ off: {doc}");
@@ -745,7 +751,7 @@ fn kept_self_tests_give_the_same_answer_and_a_broken_file_is_run_again() {
                 ("HOME", home),
             ],
         );
-        assert_eq!(run.code, Some(0), "{}", run.stderr);
+        assert_eq!(run.code, Some(ExitCode::Ok.code()), "{}", run.stderr);
         let doc = one_document(&run.stdout);
         for (key, value) in truth {
             let z = (num(&doc, key) - value).abs() / num(&doc, &format!("sigma_{key}"));
@@ -809,7 +815,7 @@ fn aligned_fits_carries_the_plate_scale_and_sun_centre_the_alignment_used() {
         "--aligned".as_ref(),
         aligned.as_os_str(),
     ]);
-    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(run.code, Some(ExitCode::Ok.code()), "{}", run.stderr);
     let doc = one_document(&run.stdout);
     assert!(
         doc["message"].as_str().unwrap().contains("using the image"),
@@ -879,7 +885,7 @@ fn aligned_fits_carries_the_plate_scale_and_sun_centre_the_alignment_used() {
         "{plate} vs {cdelt1}"
     );
     let info = sunjitter(&["info".as_ref(), "--json".as_ref(), aligned.as_os_str()]);
-    assert_eq!(info.code, Some(0), "{}", info.stderr);
+    assert_eq!(info.code, Some(ExitCode::Ok.code()), "{}", info.stderr);
     let meta = &one_document(&info.stdout)[0];
     let scale = meta["plate_scale_arcsec"][0].as_f64().unwrap();
     assert!((scale.abs() / cdelt1 - 1.0).abs() < 1e-9, "{meta}");

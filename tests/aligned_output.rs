@@ -8,6 +8,7 @@ mod support;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use sunjitter::error::ExitCode;
 use sunjitter::fits::{self, FrameSpec};
 use sunjitter::record::{ReferenceKind, Status};
 use support::{logged, sunjitter, sunjitter_ok, WatchProcess, QUICK_DAEMON_CONFIG};
@@ -333,7 +334,7 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
         "--aligned".as_ref(),
         inside.as_os_str(),
     ]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
     assert!(
         stderr.contains("products") && stderr.contains("inside"),
@@ -357,7 +358,7 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
             "--aligned".as_ref(),
             products.as_os_str(),
         ]);
-        assert_eq!(code, 2, "{products:?}: {stderr}");
+        assert_eq!(code, ExitCode::BadInput.code(), "{products:?}: {stderr}");
         assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
         assert!(stderr.contains(why), "{products:?}: {stderr}");
     }
@@ -365,7 +366,7 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
 
     // --wcs-only alone says what it needs.
     let (code, _, stderr) = sunjitter(&["replay", file, "--out", "x", "--wcs-only"]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert!(stderr.contains("--aligned"), "{stderr}");
 
     // A shard's chains start at its own origin: products come from a single run only.
@@ -381,7 +382,7 @@ fn a_product_directory_inside_the_inputs_or_the_log_is_refused() {
         "--aligned".as_ref(),
         products.as_os_str(),
     ]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
     assert!(stderr.contains("--shard"), "{stderr}");
     assert!(!products.exists() && !shard_out.exists(), "nothing created");

@@ -5,6 +5,7 @@
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use sunjitter::error::ExitCode;
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const MALFORMED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/malformed/");
@@ -25,7 +26,7 @@ fn expect_bad_arg(arg: &OsStr, shown_name: &str, problem: &str) -> String {
         let stderr = String::from_utf8_lossy(&out.stderr).to_string();
         assert_eq!(
             out.status.code(),
-            Some(2),
+            Some(ExitCode::BadInput.code()),
             "exit code for {shown_name}: {stderr}"
         );
         assert!(!stderr.contains("panicked"), "{stderr}");
@@ -330,7 +331,11 @@ fn noise_without_a_measurable_background_is_refused() {
         .output()
         .expect("run sunjitter");
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(
+        out.status.code(),
+        Some(ExitCode::BadInput.code()),
+        "{stderr}"
+    );
     assert_eq!(stderr.lines().count(), 1, "one line expected: {stderr:?}");
     assert!(
         stderr.starts_with(&format!("sunjitter: {}: no 16×16 block", file.display())),
@@ -364,7 +369,11 @@ fn a_sparse_file_claiming_a_huge_image_is_refused_before_reading() {
         .output()
         .expect("run sunjitter");
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert_eq!(
+        out.status.code(),
+        Some(ExitCode::BadInput.code()),
+        "{stderr}"
+    );
     assert_eq!(stderr.lines().count(), 1, "{stderr}");
     assert!(
         stderr.starts_with(&format!("sunjitter: {}: ", path.display()))
@@ -413,7 +422,11 @@ fn pixel_scaling_that_is_not_a_finite_number_is_refused() {
             .output()
             .unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert_eq!(
+            out.status.code(),
+            Some(ExitCode::BadInput.code()),
+            "{stderr}"
+        );
         assert_eq!(stderr.lines().count(), 1, "{stderr}");
         assert!(
             stderr.starts_with(&format!("sunjitter: {}: ", path.display()))
@@ -463,7 +476,7 @@ fn replay_logs_a_broken_scaling_and_continues() {
         .unwrap();
     assert_eq!(
         out.status.code(),
-        Some(0),
+        Some(ExitCode::Ok.code()),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
@@ -506,7 +519,7 @@ fn unwritable_outputs_exit_2_naming_the_path() {
         .arg(&good_log)
         .output()
         .unwrap();
-    assert_eq!(made.status.code(), Some(0));
+    assert_eq!(made.status.code(), Some(ExitCode::Ok.code()));
     let under = blocker.join("x");
     let cases: Vec<(Vec<&OsStr>, &Path)> = vec![
         (
@@ -563,7 +576,11 @@ fn unwritable_outputs_exit_2_naming_the_path() {
             .output()
             .unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
-        assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
+        assert_eq!(
+            out.status.code(),
+            Some(ExitCode::BadInput.code()),
+            "{args:?}: {stderr}"
+        );
         assert_eq!(stderr.lines().count(), 1, "{args:?}: {stderr}");
         assert!(
             stderr.starts_with(&format!(

@@ -14,6 +14,7 @@ use std::collections::BTreeMap;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use sunjitter::error::ExitCode;
 use sunjitter_runtime::fake::{split_cube, SplitFrame};
 use support::{logged, publish, sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 
@@ -43,7 +44,7 @@ fn os(parts: &[&dyn AsRef<OsStr>]) -> Vec<std::ffi::OsString> {
 /// A refusal as the contract has it: exit 2, one line naming `path` and containing `why`.
 fn assert_refused(run: (i32, String, String), path: &Path, why: &str) {
     let (code, _, stderr) = run;
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
     let lines: Vec<&str> = stderr.lines().collect();
     assert_eq!(lines.len(), 1, "one line: {stderr}");
@@ -307,8 +308,8 @@ fn merge_writes_only_into_a_new_or_empty_directory_or_over_its_own_merge() {
     // An empty directory, then over its own merge.
     let empty = base.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
-    assert_eq!(merge(&empty).0, 0);
-    assert_eq!(merge(&empty).0, 0);
+    assert_eq!(merge(&empty).0, ExitCode::Ok.code());
+    assert_eq!(merge(&empty).0, ExitCode::Ok.code());
     assert_eq!(jitter_count(&empty), 4);
 }
 
@@ -421,20 +422,20 @@ fn a_rerun_of_the_same_replay_resumes_and_another_run_is_refused_saying_why() {
         sunjitter(&args)
     };
     let (code, _, err) = replay(&[&a]);
-    assert_eq!(code, 0, "{err}");
+    assert_eq!(code, ExitCode::Ok.code(), "{err}");
     let logged = segments(&out);
     assert_eq!(jitter_count(&out), 3);
 
     // The same run again: nothing to do, and it says so.
     let (code, _, err) = replay(&[&a]);
-    assert_eq!(code, 0, "{err}");
+    assert_eq!(code, ExitCode::Ok.code(), "{err}");
     assert!(err.contains("all 3 frames already logged"), "{err}");
     assert_eq!(segments(&out), logged);
     // Settings that change no measurement may differ between the runs of one log.
     let sink_only = base.join("sink.toml");
     std::fs::write(&sink_only, "[sink]\nflush_every_frames = 3\n").unwrap();
     let (code, _, err) = replay(&[&a, &"--config", &sink_only]);
-    assert_eq!(code, 0, "{err}");
+    assert_eq!(code, ExitCode::Ok.code(), "{err}");
     assert!(err.contains("all 3 frames already logged"), "{err}");
 
     // Another policy, another engine setting, other inputs: refused, saying what differs.
@@ -458,7 +459,7 @@ fn a_rerun_of_the_same_replay_resumes_and_another_run_is_refused_saying_why() {
     assert_refused(replay(&[&b]), &out, "other inputs");
     // A watch into a replay's log, and a shard into it: refused too.
     let (code, _, err) = sunjitter(&os(&[&"watch", &b, &"--out", &out]));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
     assert!(
         err.contains("it is a replay of 3 files, this is a watch"),
         "{err}"
@@ -470,10 +471,10 @@ fn a_rerun_of_the_same_replay_resumes_and_another_run_is_refused_saying_why() {
     // A plain replay into a shard's output (forgot --shard): refused.
     let shard = base.join("shard");
     let (code, _, err) = sunjitter(&os(&[&"replay", &a, &"--out", &shard, &"--shard", &"1/2"]));
-    assert_eq!(code, 0, "{err}");
+    assert_eq!(code, ExitCode::Ok.code(), "{err}");
     let shard_log = segments(&shard);
     let (code, _, err) = sunjitter(&os(&[&"replay", &a, &"--out", &shard]));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
     assert!(err.contains("holds shard 1/2's log"), "{err}");
     assert_eq!(segments(&shard), shard_log);
 }
@@ -532,7 +533,7 @@ fn a_product_that_cannot_be_written_leaves_no_temporary_file() {
     support::with_rlimit(&mut cmd, libc::RLIMIT_FSIZE, limit);
     let run = cmd.output().unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(run.status.code(), Some(0), "{stderr}");
+    assert_eq!(run.status.code(), Some(ExitCode::Ok.code()), "{stderr}");
     let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), 3, "{stderr}");
     let notes = contents

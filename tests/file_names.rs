@@ -11,6 +11,7 @@ use std::ffi::OsStr;
 use std::os::unix::ffi::OsStrExt;
 use std::path::Path;
 use std::process::Command;
+use sunjitter::error::ExitCode;
 use support::monitor::*;
 
 const AIA: &str = concat!(
@@ -92,7 +93,12 @@ fn replay_measures_names_that_are_not_utf8_each_under_its_own_name() {
         raw(b"--out"),
         out.as_os_str(),
     ]);
-    assert_eq!(code, 0, "{}", String::from_utf8_lossy(&stderr));
+    assert_eq!(
+        code,
+        ExitCode::Ok.code(),
+        "{}",
+        String::from_utf8_lossy(&stderr)
+    );
     let (frames, logs) = logged(&out);
     let d = dir.display();
     assert_eq!(
@@ -116,7 +122,12 @@ fn info_reads_a_name_that_is_not_utf8_and_names_it_escaped() {
     let path = tmp.path().join(raw(b"caf\xe9.fits"));
     std::fs::copy(AIA, &path).unwrap();
     let (code, stdout, stderr) = sunjitter(&[raw(b"info"), raw(b"--json"), path.as_os_str()]);
-    assert_eq!(code, 0, "{}", String::from_utf8_lossy(&stderr));
+    assert_eq!(
+        code,
+        ExitCode::Ok.code(),
+        "{}",
+        String::from_utf8_lossy(&stderr)
+    );
     let doc: serde_json::Value = serde_json::from_slice(&stdout).unwrap();
     assert_eq!(
         doc[0]["file"],
@@ -147,7 +158,12 @@ fn status_prints_control_characters_in_names_escaped() {
     });
     std::fs::write(&path, doc.to_string()).unwrap();
     let (code, stdout, stderr) = sunjitter(&[raw(b"status"), path.as_os_str()]);
-    assert_eq!(code, 0, "{}", String::from_utf8_lossy(&stderr));
+    assert_eq!(
+        code,
+        ExitCode::Ok.code(),
+        "{}",
+        String::from_utf8_lossy(&stderr)
+    );
     assert_printable("status output", &stdout);
     let text = String::from_utf8(stdout).unwrap();
     let shown = r"/in/evil\x1b]0;owned\x07\nsunjitter: all good\u{9b}2J.fits";
@@ -209,7 +225,7 @@ fn watch_measures_hostile_names_and_prints_them_escaped() {
     });
 
     let (code, stdout, _) = sunjitter(&[raw(b"status"), out.as_os_str()]);
-    assert_eq!(code, 0);
+    assert_eq!(code, ExitCode::Ok.code());
     assert_printable("status output", &stdout);
     let w = watched.display();
     let text = String::from_utf8(stdout).unwrap();

@@ -4,6 +4,7 @@
 
 use std::path::Path;
 use std::process::Command;
+use sunjitter::error::ExitCode;
 
 const COMMANDS: [&str; 8] = [
     "info", "align", "watch", "replay", "inspect", "simulate", "synth", "status",
@@ -90,7 +91,7 @@ fn the_quick_examples_run_as_printed_and_draw_no_bar_on_a_pipe() {
                 continue;
             }
             let (code, stderr) = run(&dir, &bin, &line);
-            assert_eq!(code, 0, "{line}: {stderr}");
+            assert_eq!(code, ExitCode::Ok.code(), "{line}: {stderr}");
             assert!(
                 !stderr.contains('\r') && !stderr.contains('\u{1b}'),
                 "{line}: terminal control on a pipe: {stderr:?}"

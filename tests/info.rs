@@ -6,6 +6,7 @@
 use serde_json::Value;
 use std::path::PathBuf;
 use std::process::{Command, Output};
+use sunjitter::error::ExitCode;
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const MALFORMED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/malformed/");
@@ -508,7 +509,7 @@ fn gzip_compressed_files_are_read_as_the_files_they_hold() {
     let bytes = std::fs::read(gzip(EIT_195)).unwrap();
     std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
     let (_, out) = info_json(std::slice::from_ref(&truncated));
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(ExitCode::BadInput.code()));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         stderr.starts_with(&format!(
@@ -540,7 +541,7 @@ fn human_table_lists_each_image() {
 fn a_bad_file_among_good_ones() {
     let bad = PathBuf::from(MALFORMED).join("not_actually_fits.fits");
     let (records, out) = info_json(&[real(AIA), bad.clone(), real(EIT_195)]);
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(ExitCode::BadInput.code()));
     assert_eq!(records.len(), 2);
     check(&records[0], &TRUTH[0]);
     check(&records[1], &TRUTH[2]);

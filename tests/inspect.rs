@@ -2,6 +2,7 @@
 //! noise, gaps, a failed and a degraded frame, a glitch), the JSON schema, the CSV, and the
 //! plot files (PNG decodes with the right size, SVG carries the axis labels).
 
+use sunjitter::error::ExitCode;
 use sunjitter::inspect::{self, InspectOptions, LoggedFrame, SeriesKind};
 use sunjitter::record::{AlignResult, FrameAlignment, Status};
 use sunjitter::synth;
@@ -379,7 +380,7 @@ fn plots_are_written_and_readable() {
     }
     // An unknown extension is a usage error (exit 2), not a panic.
     let err = inspect::plot::write_plot(&a, &dir.path().join("x.gif")).unwrap_err();
-    assert_eq!(err.exit_code(), 2);
+    assert_eq!(err.exit_code(), ExitCode::BadInput);
 }
 
 #[test]
@@ -452,7 +453,7 @@ fn command_reads_a_run_split_over_segments() {
         .arg(dir.path().join("nope.mcap"))
         .output()
         .unwrap();
-    assert_eq!(missing.status.code(), Some(2));
+    assert_eq!(missing.status.code(), Some(ExitCode::BadInput.code()));
     assert!(String::from_utf8_lossy(&missing.stderr).contains("nope.mcap"));
 }
 

@@ -9,6 +9,7 @@ mod support;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
+use sunjitter::error::ExitCode;
 use support::monitor::*;
 
 const CONFIG: &str = r#"
@@ -349,7 +350,7 @@ fn a_missing_status_file_is_bad_input() {
         .arg(tmp.path())
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(ExitCode::BadInput.code()));
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains("status.json"), "{err}");
 }
@@ -369,7 +370,7 @@ fn a_live_port_in_use_is_a_usage_error() {
         .args(["--live", &addr])
         .output()
         .unwrap();
-    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(out.status.code(), Some(ExitCode::BadInput.code()));
     let err = String::from_utf8(out.stderr).unwrap();
     assert!(err.contains(&format!("--live {addr}")), "{err}");
 }

@@ -9,6 +9,7 @@ mod support;
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
+use sunjitter::error::ExitCode;
 use sunjitter::fits::FrameSpec;
 use sunjitter::record::{AlignResult, FrameAlignment, ReferenceKind, Status, TransformFields};
 use sunjitter::sink::{
@@ -717,7 +718,7 @@ fn full_disk_run(dir: &Path, budget: u64) -> (Vec<FrameAlignment>, usize) {
             Err(e) => {
                 errors += 1;
                 assert!(errors < 10, "budget {budget}: no progress: {e}");
-                assert_eq!(e.exit_code(), 1);
+                assert_eq!(e.exit_code(), ExitCode::Failed);
                 assert!(
                     sink.pending_messages() <= 3,
                     "budget {budget}: pending grew"
@@ -878,7 +879,7 @@ fn reader_bad_input() {
     let garbage = dir.path().join("notes.mcap");
     std::fs::write(&garbage, b"this is not an mcap file at all").unwrap();
     let err = read_logs(std::slice::from_ref(&garbage)).unwrap_err();
-    assert_eq!(err.exit_code(), 2);
+    assert_eq!(err.exit_code(), ExitCode::BadInput);
     assert!(
         err.to_string().contains("notes.mcap") && err.to_string().contains("not an MCAP"),
         "{err}"
@@ -901,7 +902,10 @@ fn reader_bad_input() {
     assert!(log.jitter.is_empty());
 
     let missing = dir.path().join("missing");
-    assert_eq!(read_logs(&[missing]).unwrap_err().exit_code(), 2);
+    assert_eq!(
+        read_logs(&[missing]).unwrap_err().exit_code(),
+        ExitCode::BadInput
+    );
 }
 
 /// A record that JSON cannot carry (NaN where a number is required) is refused before it is
@@ -913,7 +917,7 @@ fn unencodable_record_is_refused() {
     f.align.elapsed_ms = f64::NAN;
     let mut sink = McapSink::new(dir.path(), config(0, 1), CONFIG_JSON.into()).unwrap();
     let err = sink.write_frame(&f, T0, T0).unwrap_err();
-    assert_eq!(err.exit_code(), 1);
+    assert_eq!(err.exit_code(), ExitCode::Failed);
     assert_eq!(sink.pending_messages(), 0);
     sink.finish().unwrap();
     assert!(read_logs(&[dir.path().to_path_buf()])

@@ -8,6 +8,7 @@ mod support;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use sunjitter::error::ExitCode;
 use sunjitter_runtime::fake::{split_cube, SplitFrame};
 use support::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CONFIG};
 
@@ -78,7 +79,7 @@ fn second_daemon_is_refused(s: &Setup, holder: u32) {
     let status = exit_status_within(&mut second, 60).expect("the second daemon refuses to start");
     let mut stderr = String::new();
     std::io::Read::read_to_string(&mut second.stderr.take().unwrap(), &mut stderr).unwrap();
-    assert_eq!(status.code(), Some(2), "{stderr}");
+    assert_eq!(status.code(), Some(ExitCode::BadInput.code()), "{stderr}");
     assert_refused_naming(&stderr, &s.out, holder);
 }
 
@@ -150,7 +151,7 @@ fn replay_into_a_held_out_is_refused_and_leaves_the_log_alone() {
         "--out".as_ref(),
         s.out.as_os_str(),
     ] as &[&std::ffi::OsStr]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert_refused_naming(&stderr, &s.out, daemon.pid());
     assert_eq!(snapshot(&s.out), before, "the log is untouched");
     assert!(daemon.terminate().success());
@@ -195,7 +196,7 @@ fn removing_the_lock_file_lets_no_second_writer_in() {
         "--out".as_ref(),
         s.out.as_os_str(),
     ] as &[&std::ffi::OsStr]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert_eq!(snapshot(&s.out), before, "the refused runs touched nothing");
 
     for f in &s.frames {

@@ -6,6 +6,7 @@ mod support;
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
+use sunjitter::error::ExitCode;
 use sunjitter_runtime::fake::split_cube;
 use support::{sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 
@@ -19,7 +20,7 @@ fn args(parts: &[&dyn AsRef<std::ffi::OsStr>]) -> Vec<OsString> {
 /// Exit 2 with one line on stderr naming `path` and saying `why`.
 fn assert_refused(run: (i32, String, String), path: &Path, why: &str) {
     let (code, _, stderr) = run;
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     let lines: Vec<&str> = stderr.lines().collect();
     assert_eq!(lines.len(), 1, "one line: {stderr}");
     assert!(lines[0].contains(&path.display().to_string()), "{stderr}");
@@ -46,7 +47,7 @@ fn replayed_log(dir: &Path) -> PathBuf {
     }
     let out = dir.join("out");
     let (code, _, stderr) = sunjitter(&args(&[&"replay", &archive, &"--out", &out]));
-    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(code, ExitCode::Ok.code(), "{stderr}");
     out
 }
 
@@ -111,7 +112,7 @@ fn align_refuses_to_write_over_its_inputs() {
         &"--quicklook",
         &png,
     ]));
-    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(code, ExitCode::Ok.code(), "{stderr}");
     assert!(aligned.is_file() && png.is_file());
 }
 
@@ -158,7 +159,7 @@ fn inspect_refuses_to_write_over_a_log_segment_and_the_log_stays_usable() {
     assert!(!fresh.exists());
 
     let (code, _, stderr) = sunjitter(&args(&[&"inspect", &out, &"--csv", &out.join("s.csv")]));
-    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(code, ExitCode::Ok.code(), "{stderr}");
     assert_eq!(segments(&out).len(), 1, "the log is whole and readable");
 }
 

@@ -10,6 +10,7 @@
 mod support;
 
 use std::path::Path;
+use sunjitter::error::ExitCode;
 use sunjitter::fits::{read_frame_with, FrameSpec, PlateScales, ReadOptions};
 use sunjitter::record::Status;
 use support::{sunjitter, sunjitter_ok};
@@ -160,7 +161,7 @@ fn a_plate_scale_that_is_not_one_is_refused_naming_the_key() {
         "--config",
         config.to_str().unwrap(),
     ]);
-    assert_eq!(code, 2, "{stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{stderr}");
     assert!(stdout.is_empty());
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
     assert!(

@@ -10,6 +10,7 @@ mod support;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
+use sunjitter::error::ExitCode;
 use support::{exit_status_within, logged, publish, sunjitter, WatchProcess};
 
 const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
@@ -80,7 +81,7 @@ fn a_shard_count_past_the_limit_is_refused_at_once() {
             &"--shard",
             &spec,
         ]));
-        assert_eq!(run.0, 2, "{}", run.2);
+        assert_eq!(run.0, ExitCode::BadInput.code(), "{}", run.2);
         assert!(!run.2.contains("panicked"), "{}", run.2);
         assert!(run.2.contains("N must be at most 100000"), "{}", run.2);
         assert!(!out.exists());
@@ -302,7 +303,7 @@ fn a_daemon_that_cannot_write_its_log_stops_on_sigterm() {
     reader.join().unwrap();
     let text = lines.lock().unwrap().join("\n");
     // The work ran but its log could not be written: exit 1, one line saying where.
-    assert_eq!(status.code(), Some(1), "{text}");
+    assert_eq!(status.code(), Some(ExitCode::Failed.code()), "{text}");
     assert!(!text.contains("panicked"), "{text}");
     let last = text.lines().last().unwrap();
     assert!(last.starts_with("sunjitter: "), "{last}");
@@ -375,7 +376,7 @@ fn header_values_no_instrument_can_have_are_refused() {
     // Within range: read as before.
     let file = aia_with("HGLT_OBS=                  7.2", tmp.path(), "fine.fits");
     let (code, _, err) = sunjitter(&os(&[&"info", &file]));
-    assert_eq!(code, 0, "{err}");
+    assert_eq!(code, ExitCode::Ok.code(), "{err}");
 }
 
 #[test]

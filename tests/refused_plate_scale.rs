@@ -11,6 +11,7 @@
 mod support;
 
 use std::path::{Path, PathBuf};
+use sunjitter::error::ExitCode;
 use sunjitter::fits::{frame_header_cards, read_frame, read_image_header, write_image, FrameSpec};
 use sunjitter::header::HeaderValue;
 
@@ -24,7 +25,7 @@ fn plate_scale_used(reference: &Path, frame: &Path) -> (f64, String) {
         frame.as_os_str(),
         "--json".as_ref(),
     ]);
-    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(code, ExitCode::Ok.code(), "{stderr}");
     let doc: serde_json::Value = serde_json::from_str(&stdout).expect("one JSON document");
     let num = |k: &str| doc[k].as_f64().unwrap_or_else(|| panic!("{k} in {doc}"));
     let plate = num("sigma_dx_arcsec") / num("sigma_dx_px");

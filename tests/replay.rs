@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use sunjitter::config::{Config, Overrides};
+use sunjitter::error::ExitCode;
 use sunjitter::pipeline::{open_output, EngineAligner, FitsReader};
 use sunjitter_runtime::fake::split_cube;
 
@@ -132,7 +133,7 @@ fn replay_of_the_iris_cubes_logs_every_frame_once_in_time_order() {
     assert_eq!(summary["frames"], 126);
     let measured = summary["ok"].as_u64().unwrap() + summary["degraded"].as_u64().unwrap();
     assert!(measured > 0);
-    assert_eq!(code, 0, "{stderr}");
+    assert_eq!(code, ExitCode::Ok.code(), "{stderr}");
     assert_eq!(
         configs[0]["channels"]["SJI_2796"]["policy"],
         "channel:SJI_1400"
@@ -187,7 +188,10 @@ fn replay_of_nothing_but_garbage_exits_1() {
         "--json",
     ]);
     let summary: serde_json::Value = serde_json::from_str(&stdout).unwrap();
-    assert_eq!((code, summary["skipped"].as_u64()), (1, Some(1)));
+    assert_eq!(
+        (code, summary["skipped"].as_u64()),
+        (ExitCode::Failed.code(), Some(1))
+    );
     let (messages, _) = read_mcap(&out);
     let logs = on(&messages, "/log");
     assert_eq!(logs.len(), 1);
@@ -220,7 +224,7 @@ fn usage_errors_exit_2_naming_the_problem() {
     let out = tmp.path().join("out");
     let out_s = out.to_str().unwrap();
     let (code, _, err) = sunjitter(&["replay", "no/such/file.fits", "--out", out_s]);
-    assert_eq!(code, 2);
+    assert_eq!(code, ExitCode::BadInput.code());
     assert!(
         err.contains("no/such/file.fits") && err.contains("no such file"),
         "{err}"
@@ -233,7 +237,7 @@ fn usage_errors_exit_2_naming_the_problem() {
         "--reference",
         "sometimes",
     ]);
-    assert_eq!(code, 2);
+    assert_eq!(code, ExitCode::BadInput.code());
     assert!(err.contains("sometimes"), "{err}");
     let bad = tmp.path().join("bad.toml");
     std::fs::write(&bad, "[daemon]\nworkerz = 2\n").unwrap();
@@ -245,10 +249,10 @@ fn usage_errors_exit_2_naming_the_problem() {
         "--config",
         bad.to_str().unwrap(),
     ]);
-    assert_eq!(code, 2);
+    assert_eq!(code, ExitCode::BadInput.code());
     assert!(err.contains("bad.toml") && err.contains("workerz"), "{err}");
     let (code, _, err) = sunjitter(&["watch", ".", "--out", out_s, "--live", "8765"]);
-    assert_eq!(code, 2);
+    assert_eq!(code, ExitCode::BadInput.code());
     assert!(err.contains("expected ADDR:PORT"), "{err}");
     assert!(!out.exists(), "nothing was written");
 }

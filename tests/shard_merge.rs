@@ -7,6 +7,7 @@ mod support;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
+use sunjitter::error::ExitCode;
 use sunjitter::record::FrameAlignment;
 use support::sunjitter;
 
@@ -35,7 +36,7 @@ fn input(p: &str) -> String {
 
 fn run_ok(args: &[String]) -> String {
     let (code, out, err) = sunjitter(args);
-    assert_eq!(code, 0, "sunjitter {args:?}: {err}");
+    assert_eq!(code, ExitCode::Ok.code(), "sunjitter {args:?}: {err}");
     out
 }
 
@@ -259,7 +260,7 @@ fn previous_policy_shards_merge_to_the_single_run() {
 /// The refusal contract: exit 2, one line naming the problem, nothing written.
 fn assert_refused(args: &[String], out: &Path, needle: &str) {
     let (code, stdout, stderr) = sunjitter(args);
-    assert_eq!(code, 2, "{args:?}: {stderr}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{args:?}: {stderr}");
     assert!(stdout.is_empty(), "{stdout}");
     let lines: Vec<&str> = stderr.lines().filter(|l| !l.trim().is_empty()).collect();
     assert_eq!(lines.len(), 1, "one line: {stderr}");
@@ -394,17 +395,17 @@ fn a_shard_never_replaces_a_log_that_is_not_its_own() {
     copy_dir(&f.single, &out);
     let before = frames(&out).len();
     let (code, _, err) = sunjitter(&replay_args(&f.config, &out, &["--shard", "0/4"]));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
     assert!(err.contains("refusing to replace"), "{err}");
     assert_eq!(frames(&out).len(), before);
     // Nor the output of another shard.
     let (code, _, err) = sunjitter(&replay_args(&f.config, &f.shards[1], &["--shard", "0/4"]));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
     // And the merge never writes over a log either.
     let (code, _, err) = sunjitter(&merge_args(&f.shards, &f.single));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
     let (code, _, err) = sunjitter(&merge_args(&f.shards, &f.shards[0]));
-    assert_eq!(code, 2, "{err}");
+    assert_eq!(code, ExitCode::BadInput.code(), "{err}");
 }
 
 #[test]
@@ -413,7 +414,7 @@ fn shard_flags_are_checked_before_any_work() {
     let out = f.dir.join("bad-flags");
     for bad in ["4/4", "1/0", "x/4"] {
         let (code, _, err) = sunjitter(&replay_args(&f.config, &out, &["--shard", bad]));
-        assert_eq!(code, 2, "{bad}: {err}");
+        assert_eq!(code, ExitCode::BadInput.code(), "{bad}: {err}");
         assert!(!out.exists());
     }
 }

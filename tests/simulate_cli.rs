@@ -6,6 +6,7 @@
 
 use serde_json::Value;
 use std::process::Command;
+use sunjitter::error::ExitCode;
 
 const AIA: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -34,7 +35,7 @@ fn simulate(extra: &[&str]) -> Value {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert_eq!(
         out.status.code(),
-        Some(0),
+        Some(ExitCode::Ok.code()),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );

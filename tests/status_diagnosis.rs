@@ -4,6 +4,7 @@
 mod support;
 
 use std::process::Command;
+use sunjitter::error::ExitCode;
 use support::monitor::*;
 
 const CONFIG: &str = r#"
@@ -37,7 +38,7 @@ fn status_of_a_live_daemon_with_an_unwritable_output_names_the_problem() {
         .arg(&moved)
         .output()
         .unwrap();
-    assert_eq!(shown.status.code(), Some(0));
+    assert_eq!(shown.status.code(), Some(ExitCode::Ok.code()));
     let text = String::from_utf8(shown.stdout).unwrap();
     let first = text.lines().next().unwrap();
     assert!(!first.contains("STALE"), "{text}");
@@ -70,7 +71,7 @@ fn status_of_a_daemon_that_is_gone_says_so() {
         .arg(&path)
         .output()
         .unwrap();
-    assert_eq!(shown.status.code(), Some(0));
+    assert_eq!(shown.status.code(), Some(ExitCode::Ok.code()));
     let text = String::from_utf8(shown.stdout).unwrap();
     assert!(
         text.lines()

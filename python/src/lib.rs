@@ -18,21 +18,41 @@ use pyo3::prelude::*;
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// `mi_option_purge_delay` in the mimalloc header vendored by the pinned libmimalloc-sys.
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-/// `mi_option_allow_thp` in the same header.
-const MI_OPTION_ALLOW_THP: libmimalloc_sys::mi_option_t = 43;
+/// The mimalloc options this module sets, by their names in `mimalloc.h` (`mi_option_…`).
+#[derive(Clone, Copy)]
+enum MiOption {
+    /// `mi_option_purge_delay`: ms before freed memory goes back to the system; -1 never.
+    PurgeDelay,
+    /// `mi_option_allow_thp`: whether the heap may use transparent huge pages.
+    AllowThp,
+}
+
+impl MiOption {
+    /// Its index in the header vendored by the pinned libmimalloc-sys, whose bindings do not
+    /// name it (the command line's `src/allocator.rs` checks both against their variables).
+    fn index(self) -> libmimalloc_sys::mi_option_t {
+        match self {
+            MiOption::PurgeDelay => 15,
+            MiOption::AllowThp => 43,
+        }
+    }
+
+    /// The environment variable that sets it when the process starts; it governs when set.
+    fn variable(self) -> &'static str {
+        match self {
+            MiOption::PurgeDelay => "MIMALLOC_PURGE_DELAY",
+            MiOption::AllowThp => "MIMALLOC_ALLOW_THP",
+        }
+    }
+}
 
 /// The allocator settings of the command line, for this module's own heap only (the rest of
 /// the Python process is left as it is); each left to the environment when it sets it.
 fn tune_allocator() {
-    for (var, option, value) in [
-        ("MIMALLOC_PURGE_DELAY", MI_OPTION_PURGE_DELAY, -1),
-        ("MIMALLOC_ALLOW_THP", MI_OPTION_ALLOW_THP, 0),
-    ] {
-        if std::env::var_os(var).is_none() {
+    for (option, value) in [(MiOption::PurgeDelay, -1), (MiOption::AllowThp, 0)] {
+        if std::env::var_os(option.variable()).is_none() {
             // SAFETY: sets a plain integer option; mimalloc synchronises option access.
-            unsafe { libmimalloc_sys::mi_option_set(option, value) };
+            unsafe { libmimalloc_sys::mi_option_set(option.index(), value) };
         }
     }
 }

@@ -1,7 +1,7 @@
 //! `sunjitter align REFERENCE FRAME [--json] [--aligned OUT.fits] [--quicklook OUT.png]`
 
 use crate::engine;
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::fits::{self, FrameSpec};
 use crate::record::Status;
 use crate::{Error, Result};
@@ -32,7 +32,7 @@ Examples:
   sunjitter align data/real/eit_171_20040301T010016_128.fits \\
       data/real/eit_195_20040301T000010_128.fits --aligned eit_195_on_171.fits";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let reference_spec = FrameSpec::parse(&args.reference);
     let frame_spec = FrameSpec::parse(&args.frame);
     let outputs: Vec<&std::path::Path> = [&args.aligned, &args.quicklook]
@@ -109,18 +109,14 @@ pub fn run(args: &Args) -> Result<i32> {
         }
     }
     Ok(if result.status == Status::Failed {
-        exit::FAILED
+        ExitCode::Failed
     } else {
-        exit::OK
+        ExitCode::Ok
     })
 }
 
 fn print_human(r: &crate::record::AlignResult) {
-    let status = match r.status {
-        Status::Ok => "ok",
-        Status::Degraded => "degraded",
-        Status::Failed => "failed",
-    };
+    let status = r.status.as_str();
     use crate::text::{escape, value_pm};
     println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)

@@ -6,7 +6,7 @@
 //! is 2 if any file was bad. With `--json` stdout always holds exactly one JSON array
 //! (empty when nothing could be read).
 
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::fits::{self, FrameSpec};
 use crate::meta::FrameMeta;
 use crate::{Error, Result};
@@ -71,7 +71,7 @@ impl From<&FrameMeta> for InfoRecord {
     }
 }
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let mut records = Vec::new();
     let mut failed = 0;
     for file in &args.files {
@@ -91,9 +91,9 @@ pub fn run(args: &Args) -> Result<i32> {
         print!("{}", table(&records));
     }
     Ok(if failed > 0 {
-        exit::BAD_INPUT
+        ExitCode::BadInput
     } else {
-        exit::OK
+        ExitCode::Ok
     })
 }
 

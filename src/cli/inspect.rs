@@ -40,7 +40,7 @@
 //! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
 //! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
 
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::inspect::{self, log_files, read_frames_and_references, InspectOptions};
 use crate::{Error, Result};
 use std::path::PathBuf;
@@ -66,7 +66,7 @@ Examples:
   sunjitter inspect out/sji1400 --csv jitter.csv --plot jitter.png
   sunjitter inspect out/sji1400/*.mcap --json";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     if let Some(plot) = &args.plot {
         let ext = plot
             .extension()
@@ -110,5 +110,5 @@ pub fn run(args: &Args) -> Result<i32> {
     } else {
         print!("{}", inspect::render_text(&report));
     }
-    Ok(exit::OK)
+    Ok(ExitCode::Ok)
 }

@@ -8,9 +8,8 @@ pub struct Args {
     /// Output directories of `replay --shard K/N`, one per shard (any order).
     #[arg(required = true, value_name = "SHARD_OUT")]
     pub shards: Vec<PathBuf>,
-    /// Output directory for the MCAP log segments (and watch's status.json).
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
+    #[command(flatten)]
+    pub out: super::OutArg,
     #[command(flatten)]
     pub output: super::JsonArg,
 }
@@ -24,21 +23,21 @@ shard missing, given twice, unfinished or made from other inputs or configuratio
 and nothing is written; a merge run again replaces its own earlier output, which stays
 whole until the new one takes its place.";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<crate::error::ExitCode> {
     let mut shards = args
         .shards
         .iter()
         .map(|p| crate::merge::read_shard(p))
         .collect::<Result<Vec<_>>>()?;
     crate::merge::check_set(&mut shards)?;
-    crate::merge::check_output(&args.out, &shards)?;
+    crate::merge::check_output(&args.out.dir, &shards)?;
     let merged = crate::merge::merge(&shards);
-    let segments = crate::merge::write(&args.out, &shards, &merged)?;
+    let segments = crate::merge::write(&args.out.dir, &shards, &merged)?;
     let frames: u64 = merged.frames.values().sum();
     eprintln!(
         "sunjitter: {} shards merged into {}: {frames} frames, {} with chained values carried across shards{}",
         shards.len(),
-        crate::text::path(&args.out),
+        crate::text::path(&args.out.dir),
         merged.stitched,
         if merged.unlinked > 0 {
             format!(", {} left without (see /log)", merged.unlinked)
@@ -48,7 +47,7 @@ pub fn run(args: &Args) -> Result<i32> {
     );
     if args.output.json {
         let doc = serde_json::json!({
-            "out": crate::text::path(&args.out),
+            "out": crate::text::path(&args.out.dir),
             "shards": shards.len(),
             "frames": frames,
             "per_channel": merged.frames,
@@ -58,5 +57,5 @@ pub fn run(args: &Args) -> Result<i32> {
         });
         println!("{doc}");
     }
-    Ok(crate::error::exit::OK)
+    Ok(crate::error::ExitCode::Ok)
 }

@@ -1,9 +1,11 @@
 //! One module per subcommand: its arguments (clap), its `EXAMPLES` and its `run`.
-//! `run` returns the process exit code for work that ran (0 or 1); errors carry their own
-//! code through [`crate::Error::exit_code`].
+//! `run` returns the [`ExitCode`](crate::error::ExitCode) of work that ran (`Ok` or `Failed`);
+//! errors carry their own through [`crate::Error::exit_code`], and `main` maps both to the
+//! process's status.
 //!
 //! Flags that several commands take are defined here once, so that each means and reads the
-//! same everywhere: [`PipelineArgs`] (`watch`, `replay`), [`CONFIG_HELP`] and [`JSON_HELP`].
+//! same everywhere: [`PipelineArgs`] (`watch`, `replay`), [`OutArg`] (theirs and `merge`'s),
+//! [`ConfigArg`] and [`JsonArg`].
 
 pub mod align;
 pub mod info;
@@ -44,6 +46,16 @@ impl ConfigArg {
     }
 }
 
+/// `--out` of every command that writes a log.
+pub const OUT_HELP: &str = "Output directory for the MCAP log segments (and watch's status.json)";
+
+/// `--out DIR`, for every command that writes a log (`watch`, `replay`, `merge`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct OutArg {
+    #[arg(id = "out", long = "out", value_name = "DIR", help = OUT_HELP)]
+    pub dir: PathBuf,
+}
+
 /// `--json`, for every command.
 #[derive(Debug, Clone, Copy, Default, clap::Args)]
 pub struct JsonArg {
@@ -54,9 +66,8 @@ pub struct JsonArg {
 /// The options of the pipeline's runs, `watch` and `replay`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PipelineArgs {
-    /// Output directory for the MCAP log segments (and watch's status.json).
-    #[arg(long, value_name = "DIR")]
-    pub out: PathBuf,
+    #[command(flatten)]
+    pub out: OutArg,
     /// Reference policy of every channel: keyframe, previous, fixed:FILE, channel:NAME
     /// [default: --config's, else keyframe].
     #[arg(long, value_name = "POLICY")]
@@ -82,7 +93,7 @@ impl PipelineArgs {
         crate::products::Request {
             dir: self.aligned.as_deref(),
             wcs_only: self.wcs_only,
-            out: &self.out,
+            out: &self.out.dir,
         }
     }
 }

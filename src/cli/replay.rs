@@ -1,7 +1,7 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
 use super::watch::{effective_config, runtime, termination};
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::pipeline::Progress;
 use crate::replay::{ReplayRequest, ReplayRun};
 use crate::Result;
@@ -34,12 +34,12 @@ Examples:
 Past one machine: run --shard K/N for K = 0…N−1 (e.g. a Slurm job array, examples/slurm/),
 each into its own --out, then join them with `sunjitter merge`.";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let config = effective_config(&args.run)?;
     super::ensure_open_files(super::MIN_OPEN_FILES)?;
     let replay = ReplayRun::open(ReplayRequest {
         paths: &args.paths,
-        out: &args.run.out,
+        out: &args.run.out.dir,
         config,
         config_path: args.run.config.path.as_deref(),
         products: args.run.products(),
@@ -83,12 +83,12 @@ pub fn run(args: &Args) -> Result<i32> {
     match &shard {
         None if progress.frames == 0 && progress.skipped == 0 && earlier > 0 => eprintln!(
             "sunjitter: all {earlier} frames already logged in {} (nothing left to measure)",
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
         ),
         None => eprintln!(
             "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped{}",
             progress.frames,
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
             progress.ok,
             progress.degraded,
             progress.failed,
@@ -106,7 +106,7 @@ pub fn run(args: &Args) -> Result<i32> {
             plan.start,
             plan.end,
             plan.total,
-            crate::text::path(&args.run.out),
+            crate::text::path(&args.run.out.dir),
             plan.owned.len(),
             progress.frames,
             progress.ok,
@@ -116,14 +116,14 @@ pub fn run(args: &Args) -> Result<i32> {
         ),
     }
     if args.output.json {
-        println!("{}", progress.summary_json(&args.run.out));
+        println!("{}", progress.summary_json(&args.run.out.dir));
     }
     // Frames that failed are results (logged as such); the run failed only if it had input
     // and not one frame gave a measurement.
     let measured = progress.ok + progress.degraded;
     Ok(if total > 0 && measured == 0 {
-        exit::FAILED
+        ExitCode::Failed
     } else {
-        exit::OK
+        ExitCode::Ok
     })
 }

@@ -3,7 +3,7 @@
 //! the cross-correlation baseline.
 
 use crate::engine::{self, Image};
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::fits::{self, FrameSpec};
 use crate::geometry::Similarity;
 use crate::resample::{HighOrder, HighOrderSpline};
@@ -72,7 +72,7 @@ struct Report {
     mean_elapsed_ms: f64,
 }
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let mut config = args.config.load(&Default::default())?;
     if args.window_px.is_some() {
         config.engine.window_px = args.window_px;
@@ -252,9 +252,9 @@ pub fn run(args: &Args) -> Result<i32> {
     }
     Ok(
         if report.similarity_trials.succeeded == 0 && args.trials > 0 {
-            exit::FAILED
+            ExitCode::Failed
         } else {
-            exit::OK
+            ExitCode::Ok
         },
     )
 }

@@ -1,6 +1,6 @@
 //! `sunjitter status [PATH|OUTDIR] [--json]`: print a daemon's health status file.
 
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::monitor::status;
 use crate::Result;
 use std::path::PathBuf;
@@ -19,7 +19,7 @@ Examples:
   sunjitter status out/watch
   sunjitter status out/watch/status.json --json";
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let path = status::resolve_path(&args.path);
     let s = status::read(&path)?;
     if args.output.json {
@@ -42,5 +42,5 @@ pub fn run(args: &Args) -> Result<i32> {
             status::render_diagnosed(&s, now, diagnosis.as_deref())
         );
     }
-    Ok(exit::OK)
+    Ok(ExitCode::Ok)
 }

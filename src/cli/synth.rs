@@ -16,7 +16,7 @@ use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
 use crate::time::{parse_fits_time, TimeScale};
 
 /// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
@@ -69,7 +69,7 @@ Examples:
 /// Longest time a synthetic sequence spans (its last frame's DATE-OBS stays a real date).
 const MAX_SPAN_S: f64 = 100.0 * 365.25 * 86_400.0;
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     crate::limits::flag_int("--frames", args.frames as u64, 1, 1_000_000)?;
     crate::limits::flag_float("--cadence", args.cadence, 0.0, 365.25 * 86_400.0, true)?;
     let spec: JitterSpec = args.jitter.parse()?;
@@ -161,7 +161,7 @@ pub fn run(args: &Args) -> Result<i32> {
             per_frame.map_or(String::new(), |s| format!("; {s:.2} s per frame"))
         );
     }
-    Ok(exit::OK)
+    Ok(ExitCode::Ok)
 }
 
 /// Refuse a jitter that takes a frame off its own image or past any instrument's motion: a

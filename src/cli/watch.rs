@@ -1,7 +1,7 @@
 //! `sunjitter watch DIR --out OUT`: the daemon.
 
 use crate::config::{Config, Overrides};
-use crate::error::exit;
+use crate::error::ExitCode;
 use crate::monitor::{Monitor, MonitorSetup};
 use crate::outputs::check_outputs_outside;
 use crate::pipeline::{EngineAligner, FitsReader, Progress, RunParts};
@@ -49,7 +49,7 @@ pub fn effective_config(args: &super::PipelineArgs) -> Result<Config> {
     Ok(config)
 }
 
-pub fn run(args: &Args) -> Result<i32> {
+pub fn run(args: &Args) -> Result<ExitCode> {
     let live = args.live.as_deref().map(parse_live_address).transpose()?;
     let config = effective_config(&args.run)?;
     let clients = if live.is_some() {
@@ -76,8 +76,8 @@ pub fn run(args: &Args) -> Result<i32> {
         &root,
     )?;
     let watched: (&std::path::Path, &str) = (&root, "the watched directory");
-    crate::runs::check_out_dir(&args.run.out, &[watched], true, &[])?;
-    let status_file = config.health.status_path(&args.run.out);
+    crate::runs::check_out_dir(&args.run.out.dir, &[watched], true, &[])?;
+    let status_file = config.health.status_path(&args.run.out.dir);
     let mut trees = vec![watched];
     if let Some(dir) = args.run.aligned.as_deref() {
         trees.push((dir, "the --aligned directory"));
@@ -86,7 +86,7 @@ pub fn run(args: &Args) -> Result<i32> {
     check_outputs_outside(&[&status_file], &protected_refs, &trees)?;
     // Before reading (and recovering) the log: another daemon may be writing it.
     let identity = crate::runs::RunIdentity::watch(&root);
-    let opened = open_run(&args.run.out, &config, &identity)?;
+    let opened = open_run(&args.run.out.dir, &config, &identity)?;
     if let Some(dir) = status_file.parent().filter(|d| !d.as_os_str().is_empty()) {
         crate::error::check_writable_dir(dir)?;
     }
@@ -94,7 +94,7 @@ pub fn run(args: &Args) -> Result<i32> {
         tracing::info!(
             frames = opened.earlier_frames,
             "resuming the log in {}: frames already logged are not measured again",
-            crate::text::path(&args.run.out)
+            crate::text::path(&args.run.out.dir)
         );
     }
     let (history, mcap) = (opened.history, opened.sink);
@@ -103,7 +103,7 @@ pub fn run(args: &Args) -> Result<i32> {
     let setup = MonitorSetup {
         config: &config,
         watching: &args.dir,
-        out: &args.run.out,
+        out: &args.run.out.dir,
         live,
         progress: progress_rx,
     };
@@ -136,9 +136,9 @@ pub fn run(args: &Args) -> Result<i32> {
         "stopped cleanly"
     );
     if args.output.json {
-        println!("{}", progress.summary_json(&args.run.out));
+        println!("{}", progress.summary_json(&args.run.out.dir));
     }
-    Ok(exit::OK)
+    Ok(ExitCode::Ok)
 }
 
 /// `--live ADDR:PORT` (a host name is resolved; its first address is used).

@@ -256,7 +256,7 @@ mod tests {
         assert_px(t.apply([8.0, 5.0]), [2.0, 5.0], 1e-9);
         let mirrored = meta(11, 11, [-1.0, 1.0], 0.0, [5.0, 5.0], None);
         let err = coarse_transform(&r, &mirrored).unwrap_err();
-        assert_eq!(err.exit_code(), 2);
+        assert_eq!(err.exit_code(), crate::error::ExitCode::BadInput);
         assert!(err.to_string().contains("hand-made.fits"));
         let zero = meta(11, 11, [0.0, 1.0], 0.0, [5.0, 5.0], None);
         assert!(coarse_transform(&r, &zero).is_err());

@@ -100,30 +100,43 @@ impl Error {
         }
     }
 
-    /// The contract's exit code for this error: the one mapping from errors to [`exit`] codes.
-    pub fn exit_code(&self) -> i32 {
+    /// The contract's exit code for this error: the one mapping from errors to exit codes.
+    pub fn exit_code(&self) -> ExitCode {
         match self {
             Error::BadInput { .. }
             | Error::BadHeader { .. }
             | Error::Usage(_)
             | Error::Refused { .. }
-            | Error::Unwritable { .. } => exit::BAD_INPUT,
+            | Error::Unwritable { .. } => ExitCode::BadInput,
             Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
-                exit::BAD_INPUT
+                ExitCode::BadInput
             }
-            Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => exit::FAILED,
+            Error::AlignmentFailed(_) | Error::Output { .. } | Error::Io { .. } => ExitCode::Failed,
         }
     }
 }
 
-/// The contract's exit codes (docs/contract.md), named once; commands return one of these.
-pub mod exit {
+/// The contract's exit codes (docs/contract.md), each with its one number: commands return
+/// one, errors map to one ([`Error::exit_code`]), and the binary hands it to the system.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExitCode {
     /// The work was done.
-    pub const OK: i32 = 0;
+    Ok,
     /// The work ran but failed: nothing could be aligned, nothing measured, an output failed.
-    pub const FAILED: i32 = 1;
+    Failed,
     /// Bad usage or bad input: one line on stderr names the file and the problem.
-    pub const BAD_INPUT: i32 = 2;
+    BadInput,
+}
+
+impl ExitCode {
+    /// The process's exit status.
+    pub const fn code(self) -> i32 {
+        match self {
+            ExitCode::Ok => 0,
+            ExitCode::Failed => 1,
+            ExitCode::BadInput => 2,
+        }
+    }
 }
 
 /// Errors of the moment (out of file descriptors or memory, interrupted, busy, timed out)

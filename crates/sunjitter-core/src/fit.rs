@@ -978,7 +978,7 @@ mod tests {
     #[test]
     fn failures_become_alignment_failed_with_exit_code_1() {
         let e: crate::Error = FitFailure::TooFewPoints { have: 1, need: 6 }.into();
-        assert_eq!(e.exit_code(), 1);
+        assert_eq!(e.exit_code(), crate::error::ExitCode::Failed);
         assert_eq!(
             e.to_string(),
             "alignment failed: too few usable correspondences: 1 (need at least 6)"

@@ -3,12 +3,54 @@
 
 use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// A frame's verdict (`status`), written as [`Status::as_str`] gives it: in the records, the
+/// schema, the CSV, the log and every message that names it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Status {
     Ok,
     Degraded,
     Failed,
+}
+
+impl Status {
+    pub const ALL: [Status; 3] = [Status::Ok, Status::Degraded, Status::Failed];
+    /// [`Status::ALL`] written.
+    pub const NAMES: [&'static str; 3] = [
+        Status::Ok.as_str(),
+        Status::Degraded.as_str(),
+        Status::Failed.as_str(),
+    ];
+
+    /// Its one written form.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Status::Ok => "ok",
+            Status::Degraded => "degraded",
+            Status::Failed => "failed",
+        }
+    }
+}
+
+impl std::fmt::Display for Status {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl Serialize for Status {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de> Deserialize<'de> for Status {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Status, D::Error> {
+        let text = std::borrow::Cow::<'de, str>::deserialize(d)?;
+        Status::ALL
+            .into_iter()
+            .find(|s| s.as_str() == text)
+            .ok_or_else(|| serde::de::Error::unknown_variant(&text, &Status::NAMES))
+    }
 }
 
 /// The transform a record's numbers come from (`model`).
@@ -218,4 +260,21 @@ pub fn pixel_checksum(pixels: ndarray::ArrayView2<f32>) -> String {
         }
     }
     format!("xxh3_64:{:016x}", digest.digest())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Status;
+
+    #[test]
+    fn a_status_reads_back_from_its_one_written_form() {
+        for status in Status::ALL {
+            let text = serde_json::to_string(&status).unwrap();
+            assert_eq!(text, format!("\"{}\"", status.as_str()));
+            assert_eq!(serde_json::from_str::<Status>(&text).unwrap(), status);
+            assert_eq!(status.to_string(), status.as_str());
+        }
+        let refused = serde_json::from_str::<Status>("\"Ok\"").unwrap_err();
+        assert!(refused.to_string().contains("`degraded`"), "{refused}");
+    }
 }

@@ -987,7 +987,7 @@ mod tests {
             "walk:-1",
         ] {
             let e = bad.parse::<JitterSpec>().unwrap_err();
-            assert_eq!(e.exit_code(), 2, "{bad}");
+            assert_eq!(e.exit_code(), crate::error::ExitCode::BadInput, "{bad}");
         }
         assert!("none".parse::<JitterSpec>().unwrap().terms.is_empty());
     }

@@ -118,7 +118,11 @@ mod tests {
         let e = open_regular(Path::new("/dev/zero")).unwrap_err();
         assert!(e.to_string().contains("character device"), "{e}");
         let e = read_text(Path::new("/dev/zero"), 1024, "configuration file").unwrap_err();
-        assert_eq!(e.exit_code(), 2, "{e}");
+        assert_eq!(
+            e.exit_code(),
+            sunjitter_core::error::ExitCode::BadInput,
+            "{e}"
+        );
     }
 
     #[test]
@@ -127,14 +131,14 @@ mod tests {
         let bin = dir.path().join("c.toml");
         std::fs::write(&bin, [0x80u8, 0xff, 0x00, 0x41]).unwrap();
         let e = read_text(&bin, 1024, "configuration file").unwrap_err();
-        assert_eq!(e.exit_code(), 2);
+        assert_eq!(e.exit_code(), sunjitter_core::error::ExitCode::BadInput);
         assert!(e.to_string().contains("UTF-8"), "{e}");
         std::fs::write(&bin, vec![b'#'; 2048]).unwrap();
         assert_eq!(
             read_text(&bin, 1024, "configuration file")
                 .unwrap_err()
                 .exit_code(),
-            2
+            sunjitter_core::error::ExitCode::BadInput
         );
         std::fs::write(&bin, "[engine]\n").unwrap();
         assert_eq!(

@@ -435,7 +435,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let lock = OutputLock::acquire(dir.path()).unwrap();
         let err = OutputLock::acquire(dir.path()).unwrap_err();
-        assert_eq!(err.exit_code(), 2);
+        assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
         let pid = format!("pid {}", std::process::id());
         assert!(err.to_string().contains(&pid), "{err}");
         drop(lock);
@@ -449,7 +449,7 @@ mod tests {
         let lock = OutputLock::acquire(&out).unwrap();
         std::fs::remove_file(out.join(LOCK_FILE)).unwrap();
         let err = OutputLock::acquire(&out).unwrap_err();
-        assert_eq!(err.exit_code(), 2);
+        assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
         let pid = format!("held by sunjitter pid {}", std::process::id());
         assert!(err.to_string().contains(&pid), "{err}");
         lock.verify().unwrap();
@@ -538,7 +538,7 @@ mod tests {
         std::fs::hard_link(&input, &link).unwrap();
         for out in [&input, &other_spelling, &link] {
             let err = check_outputs(&[out], &[&input]).unwrap_err();
-            assert_eq!(err.exit_code(), 2);
+            assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
             assert!(err.to_string().contains("is an input"), "{err}");
         }
         let log = d.join("log.bin");

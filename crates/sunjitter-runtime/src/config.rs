@@ -602,7 +602,7 @@ mod tests {
         )
         .unwrap();
         let err = cyclic.validate().unwrap_err();
-        assert_eq!(err.exit_code(), 2);
+        assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
         assert!(err.to_string().contains("cycle"), "{err}");
 
         let typo = Config::from_toml("[daemon]\nworkerz = 3").unwrap_err();
@@ -631,7 +631,7 @@ mod tests {
                 .unwrap()
                 .validate()
                 .unwrap_err();
-            assert_eq!(err.exit_code(), 2);
+            assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
             assert!(
                 err.to_string().contains("channels.X.plate_scale_arcsec"),
                 "{err}"

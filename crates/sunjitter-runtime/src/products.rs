@@ -73,6 +73,16 @@ pub struct Products {
 /// The chained-transform cards: scale, rotation (arcsec), dx, dy (px), centre (0-based px).
 const CHAIN_KEYS: [&str; 6] = ["SJ_SCALE", "SJ_ROT", "SJ_DX", "SJ_DY", "SJ_CX", "SJ_CY"];
 
+/// A processed frame, as its product is written from: its key, its image, the pipeline's step
+/// for it and the alignment that step logged.
+#[derive(Clone, Copy)]
+struct Processed<'a> {
+    key: &'a str,
+    image: &'a Arc<Image>,
+    message: &'a FrameAlignment,
+    step: &'a StepOutput,
+}
+
 impl Products {
     /// Products of frames found below `root` (canonical), written into `dir` (created).
     pub fn new(dir: &Path, root: &Path, wcs_only: bool) -> Result<Products> {
@@ -204,7 +214,13 @@ impl Products {
         let chain = step.partner.as_ref().and_then(|p| p.chain);
         let written = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             let chain = chain.ok_or_else(|| "its reference has no chained pointing".to_string())?;
-            self.write_product(&path, key, image, message, step, &chain, ctx)
+            let frame = Processed {
+                key,
+                image,
+                message,
+                step,
+            };
+            self.write_product(&path, &frame, &chain, ctx)
         }));
         match written {
             Ok(Ok(())) => None,
@@ -219,17 +235,19 @@ impl Products {
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn write_product(
         &self,
         path: &Path,
-        key: &str,
-        image: &Arc<Image>,
-        message: &FrameAlignment,
-        step: &StepOutput,
+        frame: &Processed,
         chain: &Chain,
         ctx: &dyn StepContext,
     ) -> std::result::Result<(), String> {
+        let Processed {
+            key,
+            image,
+            message,
+            step,
+        } = *frame;
         let reason = |e: Error| e.reason();
         let t = chain.transform;
         let is_self = message.reference_kind == ReferenceKind::Itself;
@@ -426,12 +444,7 @@ fn is_identity(t: &Similarity) -> bool {
 }
 
 fn status_text(m: &FrameAlignment) -> String {
-    match m.align.status {
-        Status::Ok => "ok",
-        Status::Degraded => "degraded",
-        Status::Failed => "failed",
-    }
-    .to_string()
+    m.align.status.as_str().to_string()
 }
 
 /// `HISTORY` lines: what was applied, from which measurement. Short lines (one card each).
@@ -709,7 +722,11 @@ mod tests {
             out.join("p"),
         ] {
             let err = check_dir(&bad, &out, &inputs, &[]).unwrap_err();
-            assert_eq!(err.exit_code(), 2, "{err}");
+            assert_eq!(
+                err.exit_code(),
+                sunjitter_core::error::ExitCode::BadInput,
+                "{err}"
+            );
             assert_eq!(err.to_string().lines().count(), 1, "{err}");
         }
         check_dir(&t.path().join("products"), &out, &inputs, &[]).unwrap();

@@ -128,12 +128,8 @@ pub fn predicted_keyframes(times_ns: &[i64], p: &ChannelPolicy) -> Vec<usize> {
     keyframes.push(0);
     let (mut key_time, mut on_reference) = (first, 0u32);
     for (i, &t) in times_ns.iter().enumerate().skip(1) {
-        let due_count = p.keyframe_every_frames > 0 && on_reference + 1 >= p.keyframe_every_frames;
         let age_s = (t - key_time) as f64 * 1e-9;
-        let due_time = p.keyframe_every_s > 0.0
-            && age_s >= p.keyframe_every_s
-            && on_reference >= p.keyframe_min_frames;
-        if due_count || due_time {
+        if p.keyframe_due(on_reference, age_s).is_some() {
             keyframes.push(i);
             key_time = t;
             on_reference = 0;
@@ -693,7 +689,11 @@ mod tests {
             "0/100001",
         ] {
             let e = bad.parse::<ShardSpec>().unwrap_err();
-            assert_eq!(e.exit_code(), 2, "{bad}");
+            assert_eq!(
+                e.exit_code(),
+                sunjitter_core::error::ExitCode::BadInput,
+                "{bad}"
+            );
         }
     }
 

@@ -3,20 +3,22 @@
 //! flow or a seed for the refinement, the refinement, the flow's interpolation check, the
 //! quality of the match and the verdict.
 
+use super::config::ChannelSettings;
 use super::config::EngineConfig;
 use super::fine::{
-    fine_alignment, flow_reach_px, grown, max_motion_px, Crop, FineResult, FlowRegion, PassStart,
-    UNSETTLED_PASS_FACTOR,
+    fine_alignment, flow_reach_px, max_motion_px, Crop, FineResult, FlowRegion, FlowSetup,
+    PassStart, UNSETTLED_PASS_FACTOR,
 };
-use super::prepared::{made_once, FrameWork, Matched, ReferenceWork, Workspace};
+use super::frame::{prepare_frame, FrameOwn};
+use super::prepared::{made_once, FrameWork, Matched, PreparedReference, ReferenceWork};
+use super::region::grown;
 use super::seed::{
     binned_alignment, final_level, seed_level, seed_slack_px, Binned, BinnedRun, FINAL_ANTIALIAS,
 };
 use super::verdict::{verdict, Evidence, Refinement, Verdict};
-use super::{
-    check_usable, cleaned_from, derotate, flow_check, geometry_check, photometry, quality,
-};
-use super::{model, refine, AlignOutcome, SigmaMethod};
+use super::workspace::Workspace;
+use super::{derotate, flow_check, quality};
+use super::{model, refine, AlignOutcome, Image, Pixels, SigmaMethod};
 use crate::flow::Roi;
 use crate::geometry::{sigmas, Similarity};
 use crate::meta::FrameMeta;
@@ -27,38 +29,87 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 
-/// The frame's own preparation, which needs nothing of the reference: cleaned, and its disk
-/// checked against its header. A caller holding both images makes it while the reference is
-/// prepared.
-pub(super) struct FrameOwn {
-    cleaned: Array2<f32>,
-    fill: Option<super::FillSeen>,
-    check: geometry_check::Checked,
-    notes: Vec<String>,
-    cleaned_in: std::time::Duration,
-    checked_in: std::time::Duration,
-}
+impl PreparedReference {
+    /// Align `frame` to the prepared reference.
+    pub fn align(&self, frame: &Image) -> AlignOutcome {
+        self.align_with(frame, &self.cfg.channel_settings())
+    }
 
-impl FrameOwn {
-    pub(super) fn new(
-        frame: &FrameMeta,
-        data: super::Pixels<'_>,
-        hot_pixel_fraction: f32,
-    ) -> Result<FrameOwn, String> {
-        check_usable("frame", &data)?;
+    /// Align `frame` with its channel's own settings.
+    pub fn align_with(&self, frame: &Image, settings: &ChannelSettings) -> AlignOutcome {
+        self.align_inner(
+            &frame.meta,
+            Pixels::from(frame.data.view()),
+            settings,
+            false,
+        )
+        .0
+    }
+
+    /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
+    /// as a reference would repeat (`None` when the alignment failed).
+    pub fn align_keeping(
+        &self,
+        frame: &Image,
+        settings: &ChannelSettings,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), settings, true)
+    }
+
+    fn align_inner(
+        &self,
+        frame_meta: &FrameMeta,
+        frame_data: Pixels<'_>,
+        settings: &ChannelSettings,
+        keep: bool,
+    ) -> (AlignOutcome, Option<FrameWork>) {
         let started = Instant::now();
-        let (cleaned, fill) = cleaned_from(data, hot_pixel_fraction);
-        let cleaned_in = started.elapsed();
-        let mut notes = Vec::new();
-        let check = geometry_check::checked(frame, &cleaned, &mut notes);
-        Ok(FrameOwn {
-            cleaned,
-            fill,
-            check,
-            notes,
-            cleaned_in,
-            checked_in: started.elapsed(),
-        })
+        // Against an unusable reference the frame is not worth cleaning.
+        let own = self
+            .work
+            .as_ref()
+            .map_err(Clone::clone)
+            .and_then(|_| FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction));
+        self.align_own(frame_meta, own, settings, keep, started)
+    }
+
+    /// [`PreparedReference::align_inner`] from the frame's own preparation, made beforehand
+    /// (`Err`: the frame is unusable).
+    pub(super) fn align_own(
+        &self,
+        frame_meta: &FrameMeta,
+        own: Result<FrameOwn, String>,
+        settings: &ChannelSettings,
+        keep: bool,
+        started: Instant,
+    ) -> (AlignOutcome, Option<FrameWork>) {
+        let first = self
+            .aligned
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            == 0;
+        let cfg = self.cfg.for_channel(settings);
+        let result = match &self.work {
+            Ok(work) => {
+                own.and_then(|own| align_frame(work, frame_meta, own, &cfg, keep, &self.workspace))
+            }
+            Err(reason) => Err(reason.clone()),
+        };
+        let (result, kept) = match result {
+            Ok((outcome, kept)) => (Ok(outcome), kept),
+            Err(e) => (Err(e), None),
+        };
+        // A reference that serves many frames (a keyframe, a fixed file) keeps its own
+        // self-test: its cases are handed on only along a chain.
+        let kept = kept.map(|k| FrameWork {
+            self_test: k.self_test.filter(|_| first),
+            ..k
+        });
+        let mut outcome = result.unwrap_or_else(|reason| {
+            AlignOutcome::failed(&self.file, &crate::text::path(&frame_meta.file), &reason)
+        });
+        outcome.reference_geometry = self.geometry();
+        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
+        (outcome, kept)
     }
 }
 
@@ -130,123 +181,6 @@ pub(super) fn align_frame(
         self_test,
     });
     Ok((outcome, kept))
-}
-
-/// The frame as the measurement reads it, with what the coarse stage found.
-struct FrameSide {
-    /// The frame's header, checked against its disk and the reference's.
-    meta: FrameMeta,
-    /// Cleaned, in the reference's intensity units.
-    data: Array2<f32>,
-    /// `data` binned by its disk check, unless the intensity match changed it since.
-    block_means: Option<Arc<BlockMeans>>,
-    coarse: Similarity,
-    carried: Option<derotate::Carried>,
-    solar_rotation: Option<SolarRotationFields>,
-    /// The reference's notes and the frame's checks'.
-    notes: Vec<String>,
-    /// The frame's border fill, taken as missing data.
-    fill: Option<super::FillSeen>,
-    /// With `keep`: the frame's own disk check and its notes, and the cleaned frame where
-    /// the intensity match changed `data`.
-    kept_check: Option<(geometry_check::Checked, Vec<String>)>,
-    kept_cleaned: Option<Array2<f32>>,
-}
-
-/// From the frame's own preparation: the coarse transform from the headers (checked against
-/// the reference's), the Sun's rotation and the intensity match: everything before the flow.
-fn prepare_frame(
-    work: &ReferenceWork,
-    frame: &FrameMeta,
-    own: FrameOwn,
-    cfg: &EngineConfig,
-    keep: bool,
-    started: Instant,
-) -> Result<FrameSide, String> {
-    let mut notes: Vec<String> = work.notes.clone();
-    let FrameOwn {
-        cleaned: mut frame_data,
-        fill,
-        check: own,
-        notes: own_notes,
-        cleaned_in,
-        checked_in,
-    } = own;
-    notes.extend(super::fill_note(work.fill, fill));
-
-    let mut block_means = own.block_means.clone();
-    // Coarse: headers, checked against the disks the images show.
-    let kept_check = keep.then(|| (own.clone(), own_notes.clone()));
-    let frame_meta = geometry_check::frame_against_reference(
-        frame,
-        own,
-        own_notes,
-        &work.meta,
-        &work.reference_check,
-        &mut notes,
-    );
-    tracing::debug!(?cleaned_in, ?checked_in, "frame prepared");
-    let coarse = crate::coarse::coarse_transform(&work.reference_check.meta, &frame_meta)
-        .map_err(|e| format!("coarse alignment: {e}"))?;
-    if let Some(e) = &work.mask_error {
-        return Err(e.clone());
-    }
-
-    // The Sun's rotation between the two times: the frame is carried back to the reference's
-    // time, so that what is measured is the telescope.
-    let rotation = derotate::derotate(
-        &derotate::ReferenceSide {
-            meta: &work.reference_check.meta,
-            disk_px: work.reference_check.disk_px,
-            mask: &work.mask,
-            mask_box: work.mask_box,
-            mask_fraction: cfg.mask_radius_fraction,
-        },
-        &frame_meta,
-        coarse,
-        cfg.solar_rotation,
-    );
-    let (carried, coarse, solar_rotation) = match rotation {
-        derotate::Rotation::Removed(d) => {
-            notes.extend(d.notes);
-            (Some(d.carried), d.coarse, Some(d.fields))
-        }
-        derotate::Rotation::Kept { fields, note } => {
-            notes.extend(note);
-            (None, coarse, fields)
-        }
-        derotate::Rotation::Refused(why) => return Err(why),
-    };
-    tracing::debug!(?solar_rotation, carried_at = ?started.elapsed(), "solar rotation");
-    // An exposure change is no motion: the frame in the reference's intensity units.
-    let photometry = photometry::Photometry::estimate(
-        work.cleaned.view(),
-        &work.mask,
-        frame_data.view(),
-        &coarse,
-    );
-    // The frame as cleaned, for its preparation as a reference.
-    let mut kept_cleaned = None;
-    if let Some(p) = photometry.filter(|p| !p.is_identity()) {
-        if keep {
-            kept_cleaned = Some(frame_data.clone());
-        }
-        p.remove(&mut frame_data);
-        block_means = None;
-    }
-    tracing::debug!(?photometry, "frame intensities matched");
-    Ok(FrameSide {
-        meta: frame_meta,
-        data: frame_data,
-        block_means,
-        coarse,
-        carried,
-        solar_rotation,
-        notes,
-        fill,
-        kept_check,
-        kept_cleaned,
-    })
 }
 
 /// What every measurement of one frame against the reference reads.
@@ -449,20 +383,26 @@ impl<'a> Stages<'a> {
         }
     }
 
+    /// What the flow runs of this measurement share.
+    fn flow_setup(&self) -> FlowSetup<'a> {
+        FlowSetup {
+            winsize: self.pair.work.winsize,
+            frame_smoothing_px: self.sig_frame,
+            carried: self.carried,
+            cfg: self.pair.cfg,
+            workspace: self.pair.workspace,
+        }
+    }
+
     /// The fine stage at full resolution from `start`.
     fn flow_from(&self, start: PassStart, max_passes: usize) -> Result<FineResult, String> {
-        let pair = self.pair;
         fine_alignment(
             self.reference(),
-            pair.frame_data,
+            self.pair.frame_data,
             self.region(),
             start,
-            pair.work.winsize,
-            self.sig_frame,
             max_passes,
-            self.carried,
-            pair.cfg,
-            pair.workspace,
+            self.flow_setup(),
         )
         .map_err(|e| e.to_string())
     }
@@ -549,15 +489,10 @@ impl<'a> Stages<'a> {
         binned_alignment(
             binned,
             pair.work.cleaned.dim(),
-            pair.frame_data,
-            pair.frame_means,
+            (pair.frame_data, pair.frame_means),
             run,
             self.limb,
-            pair.work.winsize,
-            self.sig_frame,
-            self.carried,
-            pair.cfg,
-            pair.workspace,
+            self.flow_setup(),
         )
     }
 
@@ -778,11 +713,8 @@ impl<'a> Stages<'a> {
             self.reference(),
             binned,
             region,
-            &fine.transform,
-            &self.coarse,
-            work.winsize,
-            cfg,
-            self.pair.workspace,
+            (&fine.transform, &self.coarse),
+            self.flow_setup(),
         );
         tracing::debug!(took = ?checked.elapsed(), "flow interpolation check");
         term

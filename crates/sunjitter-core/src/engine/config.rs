@@ -1,8 +1,6 @@
 //! The engine's settings (the configuration file's `[engine]` table).
 
 use super::model::{ModelChoice, ModelPrior, ROLL_STABILITY_ARCSEC, SCALE_STABILITY};
-use super::refine::RefineMode;
-use super::seed::{FINAL_EXTENT_PX, SEED_EXTENT_PX};
 use super::sigma::SigmaMethod;
 use serde::{Deserialize, Serialize};
 
@@ -151,6 +149,20 @@ impl EngineConfig {
     }
 }
 
+/// When the intensity refinement runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RefineMode {
+    /// When both images are of the same channel (default): there the intensities are the
+    /// same physical quantity up to gain and offset. Between channels the flow's answer stays.
+    #[default]
+    SameChannel,
+    /// Always (also between channels).
+    Always,
+    /// Never: the flow's answer is final.
+    Off,
+}
+
 /// What a channel may set for the frames it measures, beside the engine's settings (the
 /// configuration's `[channels.NAME]` table): what the instrument and its target do.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -160,3 +172,17 @@ pub struct ChannelSettings {
     /// The model fitted and the instrument's stability.
     pub model: ModelPrior,
 }
+
+/// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
+/// memory grow with the pixel count while the refinement only needs a start near its answer,
+/// and a seed this size gives the same refined answer as one at full resolution. Not less: the
+/// refinement's reweighting settles on slightly different weights from a coarser start. And a
+/// seed that converged on its level, not one pass: on undersampled images the refinement's
+/// answer depends on its start (docs/validation.md#seed-flow-on-binned-copies-converged).
+pub(super) const SEED_EXTENT_PX: usize = 700;
+
+/// Default mask extent, px, at the pyramid level where a final flow answer is measured
+/// (between channels, or with the refinement off). Twice the seed's: the flow's own σ there are
+/// far below its interpolation term, and the cost stays that of a 2048² frame on larger ones
+/// (docs/validation.md#between-channels-the-answer-on-binned-copies).
+pub(super) const FINAL_EXTENT_PX: usize = 1400;

@@ -2,7 +2,8 @@
 //! and composed into the estimate until the update is negligible.
 
 use super::config::EngineConfig;
-use super::prepared::Workspace;
+use super::region::{erode, gaussian_reach, mask_roi};
+use super::workspace::Workspace;
 use super::{derotate, refine, sigma, SigmaMethod};
 use crate::fit::{fit_similarity, FitFailure, RansacParams, SimilarityFit};
 use crate::flow::{Farneback, FarnebackParams, FlowOptions, Roi, RowLattice};
@@ -104,19 +105,34 @@ pub(super) fn flow_reach_px(winsize: usize, poly_n: usize) -> f64 {
     (winsize / 2 + 2 * FlowOptions::affine_grid(winsize).grid_stride + poly_n) as f64
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What every flow run of one alignment shares: the window, the frame's extra smoothing, the
+/// Sun's rotation carried, the settings and the working memory.
+#[derive(Clone, Copy)]
+pub(super) struct FlowSetup<'a> {
+    pub(super) winsize: usize,
+    /// Gaussian σ that brings the frame to the reference's resolution, px.
+    pub(super) frame_smoothing_px: f64,
+    pub(super) carried: Option<&'a derotate::Carried>,
+    pub(super) cfg: &'a EngineConfig,
+    pub(super) workspace: &'a Workspace,
+}
+
+/// Flow passes from `start` until the update is negligible or `max_passes` have run.
 pub(super) fn fine_alignment(
     reference: ArrayView2<f32>,
     frame: &Array2<f32>,
     region: FlowRegion,
     start: PassStart,
-    winsize: usize,
-    frame_smoothing_px: f64,
     max_passes: usize,
-    carried: Option<&derotate::Carried>,
-    cfg: &EngineConfig,
-    workspace: &Workspace,
+    setup: FlowSetup,
 ) -> Result<FineResult, FineError> {
+    let FlowSetup {
+        winsize,
+        frame_smoothing_px,
+        carried,
+        cfg,
+        workspace,
+    } = setup;
     let (h, w) = reference.dim();
     let mask = region.mask;
     let center = Similarity::array_center(w, h);
@@ -158,16 +174,20 @@ pub(super) fn fine_alignment(
         );
         (crop, s)
     });
-    let (mut estimate, seeded) = match start {
+    let (estimate, seeded) = match start {
         PassStart::Coarse(t) => (t.recentered(center), false),
         PassStart::Seed(t) => (t.recentered(center), true),
     };
-    let mut solver: Option<Farneback> = workspace.take();
-    let mut pass = 0;
-    let mut last_moved: Option<f64> = None;
-    let mut last_crop: Option<Crop> = None;
+    let mut state = PassState {
+        pass: 0,
+        estimate,
+        solver: workspace.take(),
+        last_moved: None,
+        last_crop: None,
+    };
     loop {
-        pass += 1;
+        state.pass += 1;
+        let pass = state.pass;
         let pass_started = Instant::now();
         let whole_pyramid = pass == 1 && !seeded;
         let pass_levels = if whole_pyramid { levels } else { 0 };
@@ -176,7 +196,7 @@ pub(super) fn fine_alignment(
         let (ch, cw) = (crop.rows.len(), crop.cols.len());
         let warped = warp_pass(
             &spline,
-            &estimate,
+            &state.estimate,
             &crop,
             shifts.as_ref(),
             carried,
@@ -213,9 +233,9 @@ pub(super) fn fine_alignment(
             region.sample_within,
             (x0, y0),
         );
-        let mut s = configured_solver(solver.take(), &params, &options)?;
+        let mut s = configured_solver(state.solver.take(), &params, &options)?;
         // The same reference crop as the last pass's: its expansion is kept.
-        if last_crop.as_ref() == Some(&crop) {
+        if state.last_crop.as_ref() == Some(&crop) {
             s.next_prev_unchanged();
         }
         // The flow is read only on the sampling lattice's rows.
@@ -229,8 +249,8 @@ pub(super) fn fine_alignment(
         let flow = s
             .compute(ref_crop, warped.view(), Some(roi_crop), None)
             .map_err(|e| FineError::Flow(e.to_string()))?;
-        solver = Some(s);
-        last_crop = Some(crop.clone());
+        state.solver = Some(s);
+        state.last_crop = Some(crop.clone());
         let flow_at = pass_started.elapsed();
 
         let mut points = grid_median_sample(
@@ -248,33 +268,35 @@ pub(super) fn fine_alignment(
             .map_err(|source| FineError::Fit { pass, source })?;
         tracing::debug!(pass, ?warped_at, ?flow_at, fitted_at = ?pass_started.elapsed(), crop = ?(cw, ch), "fine pass");
         let update = fit.transform;
-        let previous = estimate;
-        estimate = estimate.after(&update);
+        let previous = state.estimate;
+        state.estimate = state.estimate.after(&update);
         // Converged when what is left is negligible, or lost in this pass's own noise.
         let moved = max_motion_px(&update, radius);
         let noise = sigmas(&fit.covariance)[2].hypot(sigmas(&fit.covariance)[3]);
-        let left = left_after(moved, seeded.then_some(last_moved).flatten());
+        let left = left_after(moved, seeded.then_some(state.last_moved).flatten());
         let converged = left < cfg.convergence_px.max(0.1 * noise);
-        last_moved = Some(moved);
-        tracing::debug!(pass, moved, noise, estimate = ?estimate.params(), "fine pass estimate");
+        state.last_moved = Some(moved);
+        tracing::debug!(pass, moved, noise, estimate = ?state.estimate.params(), "fine pass estimate");
         if converged || pass >= max_passes.max(1) {
-            if let Some(solver) = solver.take() {
+            if let Some(solver) = state.solver.take() {
                 workspace.give(solver);
             }
-            let last = LastPass {
-                pass,
+            let step = PassStep {
                 previous,
                 update,
-                estimate,
                 moved,
                 converged,
+            };
+            let measured = PassMeasurement {
                 fit,
                 points,
                 warped,
                 crop,
                 sample_mask,
             };
-            return Ok(last.result(center, winsize, cfg));
+            return Ok(FineResult::of_last_pass(
+                &state, step, measured, center, winsize, cfg,
+            ));
         }
     }
 }
@@ -419,16 +441,28 @@ fn sample_mask(
     sample_mask
 }
 
-/// The fine stage's last pass, from which its answer is made.
-struct LastPass {
+/// The fine passes' state from one pass to the next: where the estimate is, the solver (its
+/// buffers, and its expansion of the reference crop), and what the last pass moved and read.
+struct PassState {
     pass: usize,
-    /// The estimate the pass started from, the update it measured and their composition.
+    estimate: Similarity,
+    solver: Option<Farneback>,
+    last_moved: Option<f64>,
+    last_crop: Option<Crop>,
+}
+
+/// A pass's step: the estimate it started from, the update it measured, the update's largest
+/// motion within the mask (px), and whether the passes converged with it.
+struct PassStep {
     previous: Similarity,
     update: Similarity,
-    estimate: Similarity,
-    /// The update's largest motion within the mask, px.
     moved: f64,
     converged: bool,
+}
+
+/// What a pass measured: the fit to its sampled vectors, the frame warped onto its crop and
+/// where it sampled.
+struct PassMeasurement {
     fit: SimilarityFit,
     points: Vec<crate::sampling::Correspondence>,
     warped: Array2<f32>,
@@ -436,21 +470,30 @@ struct LastPass {
     sample_mask: Array2<bool>,
 }
 
-impl LastPass {
-    fn result(self, center: [f64; 2], winsize: usize, cfg: &EngineConfig) -> FineResult {
-        let LastPass {
-            pass,
+impl FineResult {
+    /// The fine stage's answer from its last pass: the step's covariance composed into the
+    /// estimate's, widened by the step when the passes did not converge.
+    fn of_last_pass(
+        state: &PassState,
+        step: PassStep,
+        measured: PassMeasurement,
+        center: [f64; 2],
+        winsize: usize,
+        cfg: &EngineConfig,
+    ) -> FineResult {
+        let PassStep {
             previous,
             update,
-            estimate,
             moved,
             converged,
+        } = step;
+        let PassMeasurement {
             fit,
             points,
             warped,
             crop,
             sample_mask,
-        } = self;
+        } = measured;
         let (x0, y0) = (crop.cols.start, crop.rows.start);
         let inliers = fit.inlier_points(&points);
         let uabjm = fit.covariance;
@@ -478,14 +521,14 @@ impl LastPass {
         let sample_box = crate::sampling::mask_bounding_box(sample_mask.view())
             .map(|(a, b, c, d)| (a + x0, b + y0, c + x0, d + y0));
         FineResult {
-            transform: estimate,
+            transform: state.estimate,
             covariance: cov,
             uabjm_covariance: ucov,
             points: points.len(),
             fit,
             warped: Some(warped),
             crop,
-            passes: pass,
+            passes: state.pass,
             converged,
             unsettled_px,
             seed_level: None,
@@ -533,66 +576,6 @@ impl Crop {
     }
 }
 
-/// Reach of `preprocess::gaussian_smooth` at σ = `sigma_px` (its truncation radius) plus one
-/// pixel for a central difference; 0 when it does nothing.
-pub(crate) fn gaussian_reach(sigma_px: f64) -> usize {
-    if sigma_px > 0.0 && sigma_px.is_finite() {
-        (4.0 * sigma_px + 0.5) as usize + 1
-    } else {
-        0
-    }
-}
-
-/// Pixels whose `(2r+1)²` neighbourhood lies entirely inside the image and inside `valid`.
-/// Separable, with running counts: two boolean arrays the image's size and nothing larger.
-pub(super) fn erode(valid: &Array2<bool>, r: usize) -> Array2<bool> {
-    use ndarray::Axis;
-    use rayon::prelude::*;
-    let (h, w) = valid.dim();
-    let mut out = Array2::from_elem((h, w), false);
-    if 2 * r + 1 > w || 2 * r + 1 > h {
-        return out;
-    }
-    // Across: the whole span [x − r, x + r] of the row is valid.
-    let mut across = Array2::from_elem((h, w), false);
-    across
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(valid.axis_iter(Axis(0)))
-        .for_each(|(mut o, row)| {
-            let mut invalid = row.iter().take(2 * r).filter(|v| !**v).count();
-            for x in r..w - r {
-                invalid += usize::from(!row[x + r]);
-                o[x] = invalid == 0;
-                invalid -= usize::from(!row[x - r]);
-            }
-        });
-    // Down: the whole span [y − r, y + r] of the column is valid across; strips of columns,
-    // each with its running counts.
-    const STRIP: usize = 256;
-    out.axis_chunks_iter_mut(Axis(1), STRIP)
-        .into_par_iter()
-        .zip(across.axis_chunks_iter(Axis(1), STRIP))
-        .for_each(|(mut o, a)| {
-            let mut invalid = vec![0usize; a.ncols()];
-            for row in a.rows().into_iter().take(2 * r) {
-                for (n, v) in invalid.iter_mut().zip(row) {
-                    *n += usize::from(!*v);
-                }
-            }
-            for y in r..h - r {
-                for (n, v) in invalid.iter_mut().zip(a.row(y + r)) {
-                    *n += usize::from(!*v);
-                }
-                for ((d, n), v) in o.row_mut(y).iter_mut().zip(&mut invalid).zip(a.row(y - r)) {
-                    *d = *n == 0;
-                    *n -= usize::from(!*v);
-                }
-            }
-        });
-    out
-}
-
 /// Largest displacement the transform causes within `radius` of its centre.
 pub(super) fn max_motion_px(t: &Similarity, radius: f64) -> f64 {
     let (a, b) = t.ab();
@@ -613,36 +596,6 @@ fn mask_extent_px(mask: &Array2<bool>, roi: Roi) -> f64 {
         }
     }
     r2.sqrt()
-}
-
-/// Rows and columns of `roi` grown by the reach of a Gaussian of `sigma_px` as
-/// `preprocess::gaussian_smooth` truncates it, plus one pixel for a central difference,
-/// clamped to the `w × h` image: inside `roi` such filters give the same values on this crop
-/// as on the whole image.
-pub(super) fn grown(roi: Roi, sigma_px: f64, w: usize, h: usize) -> (Range<usize>, Range<usize>) {
-    let reach = gaussian_reach(sigma_px);
-    (
-        roi.y.saturating_sub(reach)..(roi.y + roi.height + reach).min(h),
-        roi.x.saturating_sub(reach)..(roi.x + roi.width + reach).min(w),
-    )
-}
-
-pub(super) fn mask_roi(mask: &Array2<bool>) -> Roi {
-    let (h, w) = mask.dim();
-    match crate::sampling::mask_bounding_box(mask.view()) {
-        Some((x0, y0, x1, y1)) => Roi {
-            x: x0,
-            y: y0,
-            width: x1 - x0 + 1,
-            height: y1 - y0 + 1,
-        },
-        None => Roi {
-            x: 0,
-            y: 0,
-            width: w,
-            height: h,
-        },
-    }
 }
 
 /// Pyramid levels that keep the coarsest level at least 64 px across (at most 4).

@@ -14,9 +14,8 @@
 //! around the answer, and where in it depends on the way in (from the exact answer the check
 //! would see far less error than the pair's own).
 
-use super::config::EngineConfig;
-use super::fine::{fine_alignment, flow_reach_px, mask_roi, FlowRegion, PassStart, FLOW_TAPER_PX};
-use super::prepared::Workspace;
+use super::fine::{fine_alignment, flow_reach_px, FlowRegion, FlowSetup, PassStart, FLOW_TAPER_PX};
+use super::region::mask_roi;
 use super::seed::Binned;
 use crate::geometry::Similarity;
 use crate::resample::SplineImage;
@@ -35,17 +34,17 @@ const CHECK_SIDE_PX: usize = 512;
 /// check: the copy is moved at full resolution and then binned, as the pair's frame was
 /// (binning a moved image is not moving a binned one); the term is in full-grid pixels.
 /// `None` when the check cannot run.
-#[allow(clippy::too_many_arguments)]
+/// `answer`: the transform measured and the start it was measured from; `setup`: the pair's
+/// (its frame's smoothing and the Sun's rotation do not apply to the copy).
 pub(super) fn flow_interpolation_check(
     reference: ArrayView2<f32>,
     binned: Option<&Binned>,
     region: FlowRegion,
-    transform: &Similarity,
-    start: &Similarity,
-    winsize: usize,
-    cfg: &EngineConfig,
-    workspace: &Workspace,
+    answer: (&Similarity, &Similarity),
+    setup: FlowSetup,
 ) -> Option<[f64; 4]> {
+    let (transform, start) = answer;
+    let (winsize, cfg) = (setup.winsize, setup.cfg);
     let factor = binned.map_or(1, |b| 1usize << b.level());
     let on_grid = |t: &Similarity| binned.map_or(*t, |b| b.to_binned(t));
     // The grid the flow measures on: the reference's, or its binned copy.
@@ -118,12 +117,12 @@ pub(super) fn flow_interpolation_check(
         &copy,
         sub_region,
         PassStart::Coarse(in_sub(&local.after(&start_error))),
-        winsize,
-        0.0,
         cfg.max_passes,
-        None,
-        cfg,
-        workspace,
+        FlowSetup {
+            frame_smoothing_px: 0.0,
+            carried: None,
+            ..setup
+        },
     )
     .ok()?;
     let truth = in_sub(&local)

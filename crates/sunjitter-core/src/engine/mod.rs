@@ -6,25 +6,30 @@
 //! residual motion towards zero, where the flow's gain errors (a window measures a little
 //! less than the true rotation or scale) do not matter; the σ come from the last pass.
 //!
-//! Modules, one per stage: `config` (settings), `prepared` (the reference's share, kept for
-//! every frame, and shared working memory), `align` (one alignment's stages), `fine` (flow
-//! passes and their crops), `seed` (the flow on binned copies), `verdict` (status and
-//! reasons), and the checks and corrections they call.
+//! Modules, one per stage: `config` (settings), `workspace` (working memory shared between
+//! alignments), `prepared` (the reference's share, kept for every frame), `frame` (the frame's
+//! own preparation, the coarse transform, the Sun's rotation, intensities), `seed` (the flow on
+//! binned copies), `fine` (flow passes and their crops), `refine` (the intensity refinement),
+//! `sigma`, `verdict` (status and reasons), `align` (one alignment through them), and the
+//! checks and corrections they call (`region`: masks, crops and filter reaches).
 
 mod align;
 mod config;
 pub mod derotate;
 mod fine;
 mod flow_check;
+mod frame;
 mod geometry_check;
 mod model;
 mod photometry;
 mod prepared;
 pub mod quality;
 pub mod refine;
+mod region;
 mod seed;
 mod sigma;
 mod verdict;
+mod workspace;
 
 use crate::geometry::{Covariance4, Similarity};
 use crate::meta::FrameMeta;
@@ -33,14 +38,12 @@ use crate::record::{AlignResult, Status, TransformFields};
 use ndarray::{Array2, ArrayView2};
 use std::time::Instant;
 
+pub use config::RefineMode;
 pub use config::{ChannelSettings, EngineConfig};
 pub use model::{Model, ModelChoice, ModelPrior};
-pub use prepared::{FrameWork, PreparedReference, Workspace};
-pub use refine::RefineMode;
+pub use prepared::{FrameWork, PreparedReference};
 pub use sigma::SigmaMethod;
-// `refine` reads these as `super::`.
-use fine::erode;
-pub(crate) use fine::gaussian_reach;
+pub use workspace::Workspace;
 
 /// An image's pixels as the engine takes them: its own (cleaned in place) or borrowed.
 pub type Pixels<'a> = ndarray::CowArray<'a, f32, ndarray::Ix2>;
@@ -151,10 +154,10 @@ fn prepared_side_by_side(
     frame: &FrameMeta,
     data: Pixels<'_>,
     cfg: &EngineConfig,
-) -> (PreparedReference, Result<align::FrameOwn, String>) {
+) -> (PreparedReference, Result<frame::FrameOwn, String>) {
     rayon::join(
         || PreparedReference::of_pixels(reference.0, reference.1, cfg),
-        || align::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
+        || frame::FrameOwn::new(frame, data, cfg.hot_pixel_fraction),
     )
 }
 
@@ -162,7 +165,7 @@ fn prepared_side_by_side(
 fn aligned_pair(
     prepared: PreparedReference,
     frame: &FrameMeta,
-    own: Result<align::FrameOwn, String>,
+    own: Result<frame::FrameOwn, String>,
     cfg: &EngineConfig,
     started: Instant,
 ) -> AlignOutcome {

@@ -1,13 +1,14 @@
 //! The reference's share of an alignment, prepared once for every frame aligned to it, and
 //! the working memory alignments share.
 
-use super::align::{align_frame, FrameOwn};
-use super::config::{ChannelSettings, EngineConfig};
-use super::fine::{grown, mask_roi, Crop};
+use super::config::EngineConfig;
+use super::fine::Crop;
+use super::region::{grown, mask_roi};
 use super::seed::Binned;
+use super::workspace::Workspace;
 use super::{check_usable, cleaned_from, geometry_check, quality, refine, Pixels};
-use super::{AlignOutcome, Image, UsedGeometry};
-use crate::flow::{Farneback, Roi};
+use super::{Image, UsedGeometry};
+use crate::flow::Roi;
 use crate::meta::FrameMeta;
 use crate::preprocess::{self, BlockMeans};
 use ndarray::{s, Array2, ArrayView2, Zip};
@@ -15,70 +16,18 @@ use rayon::prelude::*;
 use std::borrow::Cow;
 use std::time::Instant;
 
-/// What alignments share from one to the next: working memory, and where the caller keeps
-/// them, references' self-test cases.
-///
-/// The working memory is the flow solver, whose buffers (≈ 35 bytes per pixel of the crop)
-/// are the largest of an alignment. Faulting them in again for every frame costs more than
-/// the flow's arithmetic on the coarse levels, so a caller aligning many frames, against one
-/// reference or many, shares one `Workspace` between its prepared references
-/// ([`PreparedReference::sharing`]). It holds one solver; an alignment that finds it taken
-/// makes its own.
-#[derive(Default)]
-pub struct Workspace {
-    spare: std::sync::Mutex<Option<Farneback>>,
-    /// Self-test cases kept between runs ([`Workspace::keeping_self_tests`]).
-    self_tests: Option<std::sync::Arc<dyn refine::SelfTestStore>>,
-}
-
-impl Workspace {
-    /// A workspace whose alignments look up a new reference's self-test cases in `store`
-    /// before running them, and save the cases they run there: a reference seen before (the
-    /// same pixels, mask, configuration and build) skips its self-test.
-    pub fn keeping_self_tests(store: std::sync::Arc<dyn refine::SelfTestStore>) -> Workspace {
-        Workspace {
-            self_tests: Some(store),
-            ..Workspace::default()
-        }
-    }
-
-    pub(super) fn self_tests(&self) -> Option<&dyn refine::SelfTestStore> {
-        self.self_tests.as_deref()
-    }
-
-    pub(super) fn take(&self) -> Option<Farneback> {
-        match self.spare.lock() {
-            Ok(mut g) => g.take(),
-            Err(poisoned) => poisoned.into_inner().take(),
-        }
-    }
-
-    pub(super) fn give(&self, solver: Farneback) {
-        match self.spare.lock() {
-            Ok(mut g) => *g = Some(solver),
-            Err(poisoned) => *poisoned.into_inner() = Some(solver),
-        }
-    }
-}
-
-impl std::fmt::Debug for Workspace {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("Workspace")
-    }
-}
-
 /// The reference's share of an alignment (hot-pixel cleaning, disk check, mask, window,
 /// resolution-matched copies and their high-pass), computed once and reused for every frame
 /// aligned to it: the daemon aligns many frames to one reference. `align` gives exactly what
 /// [`align_images`](super::align_images) gives.
 pub struct PreparedReference {
-    cfg: EngineConfig,
-    file: String,
-    work: Result<ReferenceWork, String>,
-    workspace: std::sync::Arc<Workspace>,
+    pub(super) cfg: EngineConfig,
+    pub(super) file: String,
+    pub(super) work: Result<ReferenceWork, String>,
+    pub(super) workspace: std::sync::Arc<Workspace>,
     /// Frames aligned to it so far: only a reference that served one frame, as each does
     /// along a `previous` chain, hands its self-test on to that frame.
-    aligned: std::sync::atomic::AtomicUsize,
+    pub(super) aligned: std::sync::atomic::AtomicUsize,
 }
 
 pub(super) struct ReferenceWork {
@@ -225,88 +174,6 @@ impl PreparedReference {
     /// The reference's geometry as alignments to it use it; `None` when it cannot be used.
     pub fn geometry(&self) -> Option<UsedGeometry> {
         self.work.as_ref().ok().map(ReferenceWork::geometry)
-    }
-
-    /// Align `frame` to the prepared reference.
-    pub fn align(&self, frame: &Image) -> AlignOutcome {
-        self.align_with(frame, &self.cfg.channel_settings())
-    }
-
-    /// Align `frame` with its channel's own settings.
-    pub fn align_with(&self, frame: &Image, settings: &ChannelSettings) -> AlignOutcome {
-        self.align_inner(
-            &frame.meta,
-            Pixels::from(frame.data.view()),
-            settings,
-            false,
-        )
-        .0
-    }
-
-    /// As [`PreparedReference::align_with`], and the work done on `frame` that preparing it
-    /// as a reference would repeat (`None` when the alignment failed).
-    pub fn align_keeping(
-        &self,
-        frame: &Image,
-        settings: &ChannelSettings,
-    ) -> (AlignOutcome, Option<FrameWork>) {
-        self.align_inner(&frame.meta, Pixels::from(frame.data.view()), settings, true)
-    }
-
-    fn align_inner(
-        &self,
-        frame_meta: &FrameMeta,
-        frame_data: Pixels<'_>,
-        settings: &ChannelSettings,
-        keep: bool,
-    ) -> (AlignOutcome, Option<FrameWork>) {
-        let started = Instant::now();
-        // Against an unusable reference the frame is not worth cleaning.
-        let own = self
-            .work
-            .as_ref()
-            .map_err(Clone::clone)
-            .and_then(|_| FrameOwn::new(frame_meta, frame_data, self.cfg.hot_pixel_fraction));
-        self.align_own(frame_meta, own, settings, keep, started)
-    }
-
-    /// [`PreparedReference::align_inner`] from the frame's own preparation, made beforehand
-    /// (`Err`: the frame is unusable).
-    pub(super) fn align_own(
-        &self,
-        frame_meta: &FrameMeta,
-        own: Result<FrameOwn, String>,
-        settings: &ChannelSettings,
-        keep: bool,
-        started: Instant,
-    ) -> (AlignOutcome, Option<FrameWork>) {
-        let first = self
-            .aligned
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-            == 0;
-        let cfg = self.cfg.for_channel(settings);
-        let result = match &self.work {
-            Ok(work) => {
-                own.and_then(|own| align_frame(work, frame_meta, own, &cfg, keep, &self.workspace))
-            }
-            Err(reason) => Err(reason.clone()),
-        };
-        let (result, kept) = match result {
-            Ok((outcome, kept)) => (Ok(outcome), kept),
-            Err(e) => (Err(e), None),
-        };
-        // A reference that serves many frames (a keyframe, a fixed file) keeps its own
-        // self-test: its cases are handed on only along a chain.
-        let kept = kept.map(|k| FrameWork {
-            self_test: k.self_test.filter(|_| first),
-            ..k
-        });
-        let mut outcome = result.unwrap_or_else(|reason| {
-            AlignOutcome::failed(&self.file, &crate::text::path(&frame_meta.file), &reason)
-        });
-        outcome.reference_geometry = self.geometry();
-        outcome.result.elapsed_ms = started.elapsed().as_secs_f64() * 1e3;
-        (outcome, kept)
     }
 }
 

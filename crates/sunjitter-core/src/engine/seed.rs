@@ -3,24 +3,15 @@
 
 use super::config::EngineConfig;
 use super::fine::{
-    auto_levels, fine_alignment, flow_reach_px, grown, mask_roi, Crop, FineResult, FlowRegion,
-    PassStart,
+    auto_levels, fine_alignment, flow_reach_px, Crop, FineResult, FlowRegion, FlowSetup, PassStart,
 };
-use super::prepared::Workspace;
-use super::{derotate, quality};
+use super::quality;
+use super::region::{grown, mask_roi};
 use crate::flow::Roi;
 use crate::geometry::{compose_with_covariance, Covariance4, Similarity};
 use crate::preprocess::{self, BlockMeans};
 use ndarray::{s, Array2, ArrayView2, Axis};
 use rayon::prelude::*;
-
-/// Default mask extent, px, at the pyramid level a seed flow works on. The flow's cost and
-/// memory grow with the pixel count while the refinement only needs a start near its answer,
-/// and a seed this size gives the same refined answer as one at full resolution. Not less: the
-/// refinement's reweighting settles on slightly different weights from a coarser start. And a
-/// seed that converged on its level, not one pass: on undersampled images the refinement's
-/// answer depends on its start (docs/validation.md#seed-flow-on-binned-copies-converged).
-pub(super) const SEED_EXTENT_PX: usize = 700;
 
 /// How far a seed on `level` may be from the full-resolution flow, px: a level-1 finish's RMS
 /// flow error, growing with each further level, and none at full resolution
@@ -28,12 +19,6 @@ pub(super) const SEED_EXTENT_PX: usize = 700;
 pub(super) fn seed_slack_px(level: usize) -> f64 {
     0.05 * ((1usize << level.min(16)) - 1) as f64
 }
-
-/// Default mask extent, px, at the pyramid level where a final flow answer is measured
-/// (between channels, or with the refinement off). Twice the seed's: the flow's own σ there are
-/// far below its interpolation term, and the cost stays that of a 2048² frame on larger ones
-/// (docs/validation.md#between-channels-the-answer-on-binned-copies).
-pub(super) const FINAL_EXTENT_PX: usize = 1400;
 
 /// Gaussian σ, in units of the binning factor, both images are smoothed by before they are
 /// binned for a final answer. A 2×2 mean alone passes 38 % of the amplitude at 3/8 cycles per
@@ -221,21 +206,18 @@ pub(super) enum BinnedRun {
 /// The flow stage on `binned` copies, as a seed or as the flow's final answer (`run`): the
 /// result in full-grid terms (transform, covariances, inliers, sampling mask), its warped
 /// frame on the binned grid. Between channels `disk` is the reference's disk (centre, radius
-/// px, full grid), whose limb the flow's windows must stay clear of.
-#[allow(clippy::too_many_arguments)]
+/// px, full grid), whose limb the flow's windows must stay clear of. `frame`: its pixels and
+/// block means, when it has them.
 pub(super) fn binned_alignment(
     binned: &Binned,
     grid: (usize, usize),
-    frame: &Array2<f32>,
-    frame_means: Option<&BlockMeans>,
+    frame: (&Array2<f32>, Option<&BlockMeans>),
     run: BinnedRun,
     disk: Option<([f64; 2], f64)>,
-    winsize: usize,
-    frame_smoothing_px: f64,
-    carried: Option<&derotate::Carried>,
-    cfg: &EngineConfig,
-    workspace: &Workspace,
+    setup: FlowSetup,
 ) -> Result<FineResult, String> {
+    let (frame, frame_means) = frame;
+    let cfg = setup.cfg;
     let factor = 1usize << binned.level;
     let b = factor as f64;
     // The reference's grid (the frame may be of another size).
@@ -255,17 +237,19 @@ pub(super) fn binned_alignment(
         ),
         BinnedRun::Final(seed) => (PassStart::Seed(binned.to_binned(&seed)), cfg.clone()),
     };
+    let carried = setup.carried.map(|c| c.binned(factor));
     let mut fine = fine_alignment(
         binned.reference.view(),
         &small_frame,
-        binned.region(disk, winsize, cfg),
+        binned.region(disk, setup.winsize, cfg),
         start,
-        winsize,
-        frame_smoothing_px / b,
         run_cfg.max_passes,
-        carried.map(|c| c.binned(factor)).as_ref(),
-        &run_cfg,
-        workspace,
+        FlowSetup {
+            frame_smoothing_px: setup.frame_smoothing_px / b,
+            carried: carried.as_ref(),
+            cfg: &run_cfg,
+            ..setup
+        },
     )
     .map_err(|e| e.to_string())?;
     let unbinned = |t: &Similarity, cov: &Covariance4| -> (Similarity, Covariance4) {

@@ -16,7 +16,7 @@
 //! bilinear interpolation of the grid), only the solve runs on the grid.
 
 use super::simd;
-use super::solve::{matrices_row, Level};
+use super::solve::{matrices_row, FieldMut, FieldView, Level};
 use rayon::prelude::*;
 
 /// Positions of grid nodes along one axis of a domain of `len` pixels starting at level pixel
@@ -166,17 +166,15 @@ const HCH_AFFINE: [(usize, usize); 24] = [
 const HCH_CONST: [(usize, usize); 5] = [(0, 0), (1, 0), (2, 0), (3, 0), (4, 0)];
 
 /// One iteration on the grid: new grid flow from the old one.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn iterate(
     lv: &Level,
     grid: &Grid,
-    gu_old: &[f32],
-    gv_old: &[f32],
-    gu_new: &mut [f32],
-    gv_new: &mut [f32],
+    old: FieldView,
+    new: FieldMut,
     scratch: &mut Vec<GridScratch>,
     last: bool,
 ) {
+    let (gu_new, gv_new) = (new.u, new.v);
     let nx = grid.xs.len();
     let ny = grid.ys.len();
     let threads = rayon::current_num_threads().max(1);
@@ -208,10 +206,11 @@ pub(crate) fn iterate(
         .zip(scratch.par_iter_mut())
         .zip(u_parts.into_par_iter().zip(v_parts.into_par_iter()))
         .for_each(|((&(ia, ib), sc), (uo, vo))| {
+            let out = FieldMut { u: uo, v: vo };
             if grid.affine {
-                grid_strip_affine(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+                grid_strip_affine(lv, grid, old, (ia, ib), out, sc, last);
             } else {
-                grid_strip_const(lv, grid, gu_old, gv_old, ia, ib, uo, vo, sc, last);
+                grid_strip_const(lv, grid, old, (ia, ib), out, sc, last);
             }
         });
 }
@@ -219,12 +218,9 @@ pub(crate) fn iterate(
 simd::multiversion!(fn grid_strip_affine(
     lv: &Level,
     grid: &Grid,
-    gu: &[f32],
-    gv: &[f32],
-    ia: usize,
-    ib: usize,
-    u_out: &mut [f32],
-    v_out: &mut [f32],
+    old: FieldView,
+    rows: (usize, usize),
+    out: FieldMut,
     sc: &mut GridScratch,
     last: bool,
 ) => grid_strip::<true>);
@@ -232,12 +228,9 @@ simd::multiversion!(fn grid_strip_affine(
 simd::multiversion!(fn grid_strip_const(
     lv: &Level,
     grid: &Grid,
-    gu: &[f32],
-    gv: &[f32],
-    ia: usize,
-    ib: usize,
-    u_out: &mut [f32],
-    v_out: &mut [f32],
+    old: FieldView,
+    rows: (usize, usize),
+    out: FieldMut,
     sc: &mut GridScratch,
     last: bool,
 ) => grid_strip::<false>);
@@ -277,20 +270,21 @@ pub(crate) fn flow_row(
     }
 }
 
-#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+/// Grid rows `rows.0 .. rows.1` of the new grid flow, into `out` (those rows only).
+#[allow(clippy::needless_range_loop)]
 #[inline(always)]
 fn grid_strip<const AFF: bool>(
     lv: &Level,
     grid: &Grid,
-    gu: &[f32],
-    gv: &[f32],
-    ia: usize,
-    ib: usize,
-    u_out: &mut [f32],
-    v_out: &mut [f32],
+    old: FieldView,
+    rows: (usize, usize),
+    out: FieldMut,
     sc: &mut GridScratch,
     last: bool,
 ) {
+    let FieldView { u: gu, v: gv } = old;
+    let FieldMut { u: u_out, v: v_out } = out;
+    let (ia, ib) = rows;
     let (w, h, m) = (lv.w, lv.h, lv.m);
     let nx = grid.xs.len();
     let rw = 5 * w;
@@ -466,7 +460,6 @@ fn centred_prefix<const NV: usize, const NH: usize>(
 
 /// Add pixel row `y` (its normal matrices at the interpolated grid flow) to the cumulative
 /// vertical moment sums, with row weight `(y − lo)^order`.
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn add_row<const AFF: bool>(
     lv: &Level,

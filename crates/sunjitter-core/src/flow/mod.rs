@@ -650,18 +650,13 @@ impl Farneback {
                 if use_grid {
                     u_new.resize(u_old.len(), 0.0);
                     v_new.resize(v_old.len(), 0.0);
-                    grid::iterate(
-                        &lv,
-                        &gr,
-                        u_old,
-                        v_old,
-                        u_new,
-                        v_new,
-                        &mut self.grid_scratch,
-                        last,
-                    );
+                }
+                let old = solve::FieldView { u: u_old, v: v_old };
+                let new = solve::FieldMut { u: u_new, v: v_new };
+                if use_grid {
+                    grid::iterate(&lv, &gr, old, new, &mut self.grid_scratch, last);
                 } else {
-                    solve::iterate(&lv, u_old, v_old, u_new, v_new, &mut self.scratch, last);
+                    solve::iterate(&lv, old, new, &mut self.scratch, last);
                 }
                 cur = 1 - cur;
             }

@@ -284,18 +284,29 @@ pub(crate) fn strips(h: usize, m: usize) -> Vec<(usize, usize)> {
     (0..n).map(|i| (i * h / n, (i + 1) * h / n)).collect()
 }
 
-/// One iteration: new flow (`u_new`, `v_new`) from the old one. `last` marks the final
-/// iteration of the finest level (empty windows become NaN).
-#[allow(clippy::too_many_arguments)]
+/// A flow field's two components on a level, row-major, as an iteration reads them.
+#[derive(Clone, Copy)]
+pub(crate) struct FieldView<'a> {
+    pub(crate) u: &'a [f32],
+    pub(crate) v: &'a [f32],
+}
+
+/// A flow field's two components (or the rows of a strip of them), as an iteration writes them.
+pub(crate) struct FieldMut<'a> {
+    pub(crate) u: &'a mut [f32],
+    pub(crate) v: &'a mut [f32],
+}
+
+/// One iteration: the new flow from the old one. `last` marks the final iteration of the
+/// finest level (empty windows become NaN).
 pub(crate) fn iterate(
     lv: &Level,
-    u_old: &[f32],
-    v_old: &[f32],
-    u_new: &mut [f32],
-    v_new: &mut [f32],
+    old: FieldView,
+    new: FieldMut,
     scratch: &mut Vec<StripScratch>,
     last: bool,
 ) {
+    let (u_new, v_new) = (new.u, new.v);
     let w = lv.w;
     let bounds = strips(lv.h, lv.m);
     if scratch.len() < bounds.len() {
@@ -318,18 +329,15 @@ pub(crate) fn iterate(
         .zip(scratch.par_iter_mut())
         .zip(u_parts.into_par_iter().zip(v_parts.into_par_iter()))
         .for_each(|((&(ya, yb), sc), (uo, vo))| {
-            run_strip_mv(lv, u_old, v_old, ya, yb, uo, vo, sc, last);
+            run_strip_mv(lv, old, (ya, yb), FieldMut { u: uo, v: vo }, sc, last);
         });
 }
 
 simd::multiversion!(fn run_strip_mv(
     lv: &Level,
-    u_old: &[f32],
-    v_old: &[f32],
-    ya: usize,
-    yb: usize,
-    u_out: &mut [f32],
-    v_out: &mut [f32],
+    old: FieldView,
+    rows: (usize, usize),
+    out: FieldMut,
     sc: &mut StripScratch,
     last: bool,
 ) => run_strip);
@@ -365,19 +373,19 @@ fn floor_fast(x: f32) -> f32 {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Rows `rows.0 .. rows.1` of the new flow, into `out` (those rows only).
 #[inline(always)]
 fn run_strip(
     lv: &Level,
-    u_old: &[f32],
-    v_old: &[f32],
-    ya: usize,
-    yb: usize,
-    u_out: &mut [f32],
-    v_out: &mut [f32],
+    old: FieldView,
+    rows: (usize, usize),
+    out: FieldMut,
     sc: &mut StripScratch,
     last: bool,
 ) {
+    let FieldView { u: u_old, v: v_old } = old;
+    let FieldMut { u: u_out, v: v_out } = out;
+    let (ya, yb) = rows;
     let (w, h, m) = (lv.w, lv.h, lv.m);
     let slots = 2 * m + 2;
     let rw = w * 5;

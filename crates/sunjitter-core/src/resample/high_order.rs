@@ -1,7 +1,10 @@
 //! B-splines of degree 5, 7 and 9: weights, the prefiltered image, its values and gradients.
 
 use super::prefilter::{dilate_support, fill_non_finite, non_finite_mask, prefilter, Prefilter};
-use super::{high_order_shifted_row, high_order_similarity_row, locate, mirror, warp_rows, RowMap};
+use super::{
+    gradients_at, high_order_shifted_row, high_order_similarity_row, locate, mirror, warp_rows,
+    RowMap,
+};
 use crate::geometry::Similarity;
 use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
@@ -413,18 +416,5 @@ impl HighOrderSpline {
                 },
             );
         out
-    }
-}
-
-/// [`HighOrderSpline::sample_with_gradient`] at each of `positions`: four at a time with AVX2
-/// where the CPU has it and the spline is quintic (identical values).
-fn gradients_at(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
-    #[cfg(target_arch = "x86_64")]
-    if let (HighOrder::Quintic, Some(isa)) = (sp.order, super::quintic_x86::Isa::detect()) {
-        // SAFETY: the CPU has `isa`'s features and the spline is quintic.
-        return unsafe { super::quintic_x86::gradients_at(isa, sp, positions, out) };
-    }
-    for (&[x, y], o) in positions.iter().zip(out) {
-        *o = sp.sample_with_gradient(x, y);
     }
 }

@@ -363,6 +363,19 @@ crate::flow::simd::multiversion!(fn spline_similarity_row(
     out: &mut [f32],
 ) => similarity_row_body::<SplineImage>);
 
+/// [`HighOrderSpline::sample_with_gradient`] at each of `positions`: four at a time with AVX2
+/// where the CPU has it and the spline is quintic (identical values).
+fn gradients_at(sp: &HighOrderSpline, positions: &[[f64; 2]], out: &mut [[f64; 3]]) {
+    #[cfg(target_arch = "x86_64")]
+    if let (HighOrder::Quintic, Some(isa)) = (sp.order(), quintic_x86::Isa::detect()) {
+        // SAFETY: the CPU has `isa`'s features and the spline is quintic.
+        return unsafe { quintic_x86::gradients_at(isa, sp, positions, out) };
+    }
+    for (&[x, y], o) in positions.iter().zip(out) {
+        *o = sp.sample_with_gradient(x, y);
+    }
+}
+
 /// One output row of a warp whose pixels are moved by `shift` before the similarity: four
 /// pixels at a time with AVX2 where the CPU has it and the spline is quintic (identical
 /// values).

@@ -1,7 +1,7 @@
 //! Plain and gzip-compressed files: a `.fits.gz` is read from a private decompressed copy.
 
 use super::layout::{not_fits_reason, open, starts_like_a_header, MAX_HDUS, MAX_HEADER_BLOCKS};
-use super::read::ReadLimits;
+use super::options::ReadLimits;
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};

@@ -40,7 +40,7 @@ impl Hdu {
 pub(super) struct Layout {
     pub(super) hdus: Vec<Hdu>,
     /// Plate scales given for channels, applied to the image's header where it is merged.
-    pub(super) plate_scales: super::read::PlateScales,
+    pub(super) plate_scales: super::options::PlateScales,
 }
 
 impl Layout {

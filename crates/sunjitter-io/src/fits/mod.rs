@@ -20,6 +20,7 @@
 mod cube;
 mod gzip;
 mod layout;
+mod options;
 mod pixels;
 mod read;
 mod spec;
@@ -27,9 +28,10 @@ mod write;
 
 pub use gzip::remove_stale_gunzipped_copies;
 pub use layout::is_incomplete;
+pub use options::{PlateScales, ReadLimits, ReadOptions, DEFAULT_MAX_FRAME_PIXELS};
 pub use read::{
     read_frame, read_frame_with, read_image_header, read_image_header_as_read, read_meta,
-    read_meta_with, PlateScales, ReadLimits, ReadOptions, DEFAULT_MAX_FRAME_PIXELS,
+    read_meta_with,
 };
 pub use spec::{frame_key, parse_frame_key, FrameSpec};
 pub use write::{frame_header_cards, write_image};

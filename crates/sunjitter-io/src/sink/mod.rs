@@ -879,11 +879,19 @@ mod tests {
             let err = McapSink::new(dir.path(), config, "{}".into())
                 .err()
                 .unwrap();
-            assert_eq!(err.exit_code(), 2, "{err}");
+            assert_eq!(
+                err.exit_code(),
+                sunjitter_core::error::ExitCode::BadInput,
+                "{err}"
+            );
         }
         let err = McapSink::new(dir.path(), SinkConfig::default(), "{oops".into())
             .err()
             .unwrap();
-        assert_eq!(err.exit_code(), 2, "{err}");
+        assert_eq!(
+            err.exit_code(),
+            sunjitter_core::error::ExitCode::BadInput,
+            "{err}"
+        );
     }
 }

@@ -6,7 +6,7 @@
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::{json, Value};
 use sunjitter_core::chain::Chain;
-use sunjitter_core::record::{ReferenceKind, TransformFields};
+use sunjitter_core::record::{ReferenceKind, Status, TransformFields};
 
 /// Schema encoding of every channel.
 pub const SCHEMA_ENCODING: &str = "jsonschema";
@@ -379,10 +379,7 @@ pub fn frame_alignment_schema() -> Value {
             "description": "The transform fitted: similarity, rigid or translation; scale and rotation not fitted are the headers' values, with the instrument's stability as σ (null: nothing fitted)"
         }),
     );
-    put(
-        "status",
-        json!({ "type": "string", "enum": ["ok", "degraded", "failed"] }),
-    );
+    put("status", json!({ "type": "string", "enum": Status::NAMES }));
     put(
         "message",
         json!({ "type": "string", "description": "Why degraded or failed" }),

@@ -441,7 +441,11 @@ mod tests {
     fn refused(toml: &str) -> String {
         let config = Config::from_toml(toml).expect("parses");
         let err = config.validate().expect_err(toml);
-        assert_eq!(err.exit_code(), 2, "{toml}: {err}");
+        assert_eq!(
+            err.exit_code(),
+            sunjitter_core::error::ExitCode::BadInput,
+            "{toml}: {err}"
+        );
         let text = err.to_string();
         assert!(!text.contains('\n'), "{text}");
         text

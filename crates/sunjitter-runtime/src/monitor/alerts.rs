@@ -759,7 +759,7 @@ mod tests {
         let mut bad = config.clone();
         bad.defaults.lag_s = Some(-1.0);
         let err = bad.validate().unwrap_err();
-        assert_eq!(err.exit_code(), 2);
+        assert_eq!(err.exit_code(), sunjitter_core::error::ExitCode::BadInput);
         assert!(err.to_string().contains("alerts.defaults.lag_s"), "{err}");
     }
 

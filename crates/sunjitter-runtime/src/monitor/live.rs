@@ -18,14 +18,12 @@
 //! under the hub's lock, so a subscriber gets each message once: none is lost to the time
 //! between a channel's advertisement (with its first message) and the client's subscription.
 
-use super::gate::{self, Notices};
 use futures_util::{SinkExt, StreamExt};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, MutexGuard};
-use sunjitter_core::{Error, Result};
 use sunjitter_io::records::{mcap_ns, Record};
 use sunjitter_io::sink::{self, Alert, LogEntry};
 use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
@@ -86,16 +84,6 @@ impl LiveTap {
     pub fn dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }
-}
-
-/// The running server, its front door and its publishing thread.
-pub struct LiveServer {
-    tap: LiveTap,
-    gate_stop: Option<tokio::sync::oneshot::Sender<()>>,
-    notices: Notices,
-    thread: Option<std::thread::JoinHandle<()>>,
-    hub: Arc<Hub>,
-    pub addr: SocketAddr,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -188,7 +176,7 @@ fn status(level: u8, message: &str) -> Outgoing {
 }
 
 impl Hub {
-    fn new() -> Hub {
+    pub(super) fn new() -> Hub {
         let session = sunjitter_io::records::now_ns().to_string();
         let server_info = serde_json::json!({
             "op": "serverInfo",
@@ -223,6 +211,14 @@ impl Hub {
     }
 
     /// The channel of `topic`, created (and advertised to every client) on first use.
+    /// Channels for `topics`, advertised before their first message.
+    pub(super) fn open_channels(&self, topics: &[String]) {
+        let mut state = self.lock();
+        for topic in topics {
+            self.channel(&mut state, topic);
+        }
+    }
+
     fn channel(&self, state: &mut HubState, topic: &str) -> u32 {
         if let Some(id) = state.by_topic.get(topic) {
             return *id;
@@ -293,7 +289,7 @@ impl Hub {
     }
 
     /// Every client's queue closed: their connections end.
-    fn disconnect_all(&self) {
+    pub(super) fn disconnect_all(&self) {
         self.lock().clients.clear();
     }
 
@@ -456,85 +452,7 @@ pub async fn serve_client(
     tracing::info!(client = id.to_string(), "live: client disconnected");
 }
 
-impl LiveServer {
-    /// Start serving on `addr` (inside a tokio runtime). `topics` are advertised at once (the
-    /// channels named in the configuration, `/log`, `/alert`), so a client can subscribe before
-    /// their first message; other topics appear with their first message. Connections are
-    /// admitted as `config` says (origins, number of clients); `config.queue` is the capacity
-    /// of the writer → live queue.
-    pub async fn start(
-        addr: SocketAddr,
-        topics: &[String],
-        config: &super::LiveConfig,
-    ) -> Result<LiveServer> {
-        if !addr.ip().is_loopback() {
-            tracing::warn!(
-                %addr,
-                "live view on a non-loopback address: anyone who can reach it can read the data"
-            );
-        }
-        let unavailable = |e: &dyn std::fmt::Display| {
-            Error::Usage(format!("--live {addr}: cannot serve the live view: {e}"))
-        };
-        let listener = tokio::net::TcpListener::bind(addr)
-            .await
-            .map_err(|e| unavailable(&e))?;
-        let addr = listener.local_addr().map_err(|e| unavailable(&e))?;
-        let hub = Arc::new(Hub::new());
-        {
-            let mut state = hub.lock();
-            for topic in topics {
-                hub.channel(&mut state, topic);
-            }
-        }
-        let notices = Notices::default();
-        let admission = gate::Admission {
-            allowed_origins: config.allowed_origins.clone(),
-            max_clients: config.max_clients,
-        };
-        let (gate_stop, stop) = tokio::sync::oneshot::channel();
-        tokio::spawn(gate::Gate::new(admission, hub.clone(), notices.clone()).run(listener, stop));
-        let (tap, rx) = LiveTap::new(config.queue);
-        let publisher = hub.clone();
-        let thread = std::thread::Builder::new()
-            .name("sunjitter-live".into())
-            .spawn(move || publish_all(&publisher, rx))
-            .map_err(|e| Error::output("live view", e.to_string()))?;
-        tracing::info!(%addr, "live view: Foxglove WebSocket server listening (ws://{addr})");
-        Ok(LiveServer {
-            tap,
-            gate_stop: Some(gate_stop),
-            notices,
-            thread: Some(thread),
-            hub,
-            addr,
-        })
-    }
-
-    pub fn tap(&self) -> LiveTap {
-        self.tap.clone()
-    }
-
-    /// Refused connections to name on `/log`.
-    pub fn notices(&self) -> Notices {
-        self.notices.clone()
-    }
-
-    /// Stop serving: close client connections without waiting for slow ones.
-    pub fn stop(mut self) {
-        if let Some(stop) = self.gate_stop.take() {
-            let _ = stop.send(());
-        }
-        self.hub.disconnect_all();
-        // The thread ends when every tap is gone (the sink drops its copy when it finishes).
-        drop(self.tap);
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
-    }
-}
-
-fn publish_all(hub: &Hub, rx: Receiver<LiveMessage>) {
+pub(super) fn publish_all(hub: &Hub, rx: Receiver<LiveMessage>) {
     while let Ok(message) = rx.recv() {
         if let Some((topic, data, log_time_ns)) = encode(&message) {
             hub.publish(&topic, data, log_time_ns);

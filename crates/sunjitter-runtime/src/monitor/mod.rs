@@ -18,6 +18,7 @@ pub mod alerts;
 pub mod gate;
 pub mod hook;
 pub mod live;
+pub mod server;
 pub mod status;
 
 use crate::config::{HealthConfig, LiveConfig};
@@ -301,11 +302,7 @@ pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
     if let Some(n) = spec.frame {
         file.push_str(&format!("[{n}]"));
     }
-    let status = match a.status {
-        FrameStatus::Ok => "ok",
-        FrameStatus::Degraded => "degraded",
-        FrameStatus::Failed => "failed",
-    };
+    let status = a.status.as_str();
     let mut line = format!(
         "{} {file} {status}",
         sunjitter_core::text::escape(&message.channel)
@@ -355,7 +352,7 @@ pub fn frame_line(message: &sunjitter_core::record::FrameAlignment) -> String {
 /// [`MonitoredSink`] it returns to the pipeline, call [`Monitor::stop`] after it ended.
 pub struct Monitor {
     health: SharedHealth,
-    live: Option<live::LiveServer>,
+    live: Option<server::LiveServer>,
     status_path: PathBuf,
     status_stop: Option<std::sync::mpsc::Sender<()>>,
     status_thread: Option<std::thread::JoinHandle<()>>,
@@ -391,7 +388,7 @@ impl Monitor {
                 topics.dedup();
                 topics.push(sunjitter_io::sink::LOG_TOPIC.to_string());
                 topics.push(sunjitter_io::sink::ALERT_TOPIC.to_string());
-                Some(live::LiveServer::start(addr, &topics, &config.live).await?)
+                Some(server::LiveServer::start(addr, &topics, &config.live).await?)
             }
             None => None,
         };

@@ -213,8 +213,7 @@ pub fn run_job(job: Job, ctx: &JobContext) -> JobDone {
 fn frame_note(message: &FrameAlignment, log_time_ns: i64) -> Option<Record> {
     let what = match message.align.status {
         Status::Ok => return None,
-        Status::Degraded => "degraded",
-        Status::Failed => "failed",
+        status => status.as_str(),
     };
     Some(Record::note(
         &message.align.frame,

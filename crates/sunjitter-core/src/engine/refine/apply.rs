@@ -9,7 +9,8 @@ use super::{
     Rejected, SelfTest, MAX_PIXELS,
 };
 use crate::engine::derotate::Carried;
-use crate::engine::{gaussian_reach, EngineConfig, SigmaMethod};
+use crate::engine::region::gaussian_reach;
+use crate::engine::{EngineConfig, SigmaMethod};
 use crate::geometry::{Covariance4, Similarity};
 use crate::sampling::Correspondence;
 use ndarray::{Array2, ArrayView2};

@@ -40,8 +40,10 @@ pub(super) fn interpolation_check(
         pixels,
         grid,
         transform,
-        settings,
-        0.0,
+        &RefineSettings {
+            frame_smoothing_px: 0.0,
+            ..*settings
+        },
         FrameMaker::CubicSpline,
     )?;
     tracing::debug!(bias = ?test.bias, variance = ?test.variance, "interpolation check");
@@ -70,8 +72,10 @@ pub(super) fn blur_check(
         pixels,
         grid,
         transform,
-        settings,
-        mismatch_px2.max(0.0).sqrt(),
+        &RefineSettings {
+            frame_smoothing_px: mismatch_px2.max(0.0).sqrt(),
+            ..*settings
+        },
         FrameMaker::Model,
     )?;
     tracing::debug!(bias = ?test.bias, mismatch_px2, "blur check");
@@ -80,8 +84,7 @@ pub(super) fn blur_check(
 
 /// A self-test at `transform` with its shift reduced to the fractional part (the same
 /// sub-pixel positions, and a synthetic frame that stays inside the reference), its frame
-/// smoothed by `frame_smoothing_px` beyond the reference's.
-#[allow(clippy::too_many_arguments)]
+/// smoothed by `settings.frame_smoothing_px` beyond the reference's.
 pub(super) fn check_at_fractional_shift(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
@@ -89,13 +92,8 @@ pub(super) fn check_at_fractional_shift(
     grid: &CellGrid,
     transform: &Similarity,
     settings: &RefineSettings,
-    frame_smoothing_px: f64,
     maker: FrameMaker,
 ) -> Option<SelfTestCase> {
-    let settings = RefineSettings {
-        frame_smoothing_px,
-        ..*settings
-    };
     let local = Similarity {
         dx: transform.dx - transform.dx.round(),
         dy: transform.dy - transform.dy.round(),
@@ -103,7 +101,7 @@ pub(super) fn check_at_fractional_shift(
     };
     let whole = [pixel_box(pixels)?];
     let fit = FitPixels::new(prepared, pixels, local.center).ok()?;
-    self_test_bias(reference, &fit, &whole, grid, &local, &settings, maker)
+    self_test_bias(reference, &fit, &whole, grid, &local, settings, maker)
 }
 
 /// Factors (1 to 2) that raise each geometric σ of `cov` to what the residuals' noise gives

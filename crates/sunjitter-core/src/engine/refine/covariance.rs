@@ -3,7 +3,7 @@
 
 use super::pixels::CellGrid;
 use super::reference::Pixel;
-use super::solve::{robust_sigma_where, sum_in_chunks, tukey_psi_slope};
+use super::robust::{robust_sigma_where, sum_in_chunks, tukey_psi_slope};
 use nalgebra::{Matrix6, Vector6};
 use ndarray::Array2;
 use rayon::prelude::*;

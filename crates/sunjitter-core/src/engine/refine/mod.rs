@@ -33,10 +33,12 @@ mod checks;
 mod covariance;
 mod pixels;
 mod reference;
+mod robust;
 mod self_test;
 mod solve;
 mod window;
 
+pub use crate::engine::config::RefineMode;
 pub use apply::{run_refinement, settle, FlowAnswer, RefineInputs, RefinementRun};
 pub use pixels::{inlier_cell_pixels, CellGrid};
 pub use reference::RefineReference;
@@ -50,20 +52,6 @@ pub use window::FrameWindow;
 use crate::geometry::{Covariance4, Similarity};
 use crate::resample::HighOrder;
 use serde::{Deserialize, Serialize};
-
-/// When the intensity refinement runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum RefineMode {
-    /// When both images are of the same channel (default): there the intensities are the
-    /// same physical quantity up to gain and offset. Between channels the flow's answer stays.
-    #[default]
-    SameChannel,
-    /// Always (also between channels).
-    Always,
-    /// Never: the flow's answer is final.
-    Off,
-}
 
 /// Settings of one refinement.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -181,7 +181,10 @@ pub(super) fn refinement_region<'a>(
     let frame_blank_free = if crate::stats::all_finite(frame) {
         None
     } else {
-        Some(crate::engine::erode(&frame.mapv(f32::is_finite), margin))
+        Some(crate::engine::region::erode(
+            &frame.mapv(f32::is_finite),
+            margin,
+        ))
     };
     let frame_side_holds = frame_blank_free.is_none()
         && mask_maps_inside(mask_box, t, carried, margin as f64, frame.dim());
@@ -300,7 +303,7 @@ pub(super) fn pixel_box(pixels: &[(usize, usize, usize)]) -> Option<(usize, usiz
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::fine::mask_roi;
+    use crate::engine::region::mask_roi;
 
     #[test]
     fn a_mask_said_to_map_inside_maps_inside_pixel_by_pixel() {

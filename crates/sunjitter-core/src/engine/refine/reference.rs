@@ -1,7 +1,7 @@
 //! The reference as the refinement reads it.
 
 use super::RefineSettings;
-use crate::engine::gaussian_reach;
+use crate::engine::region::gaussian_reach;
 use crate::preprocess::gaussian_smooth_as;
 use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;

@@ -223,7 +223,6 @@ pub trait SelfTestStore: Send + Sync {
 /// structure length; `handed_on`, the cases of the previous reference along a chain, of which
 /// a quarter are run again when they still apply, all of them otherwise. `None` when a case
 /// fails.
-#[allow(clippy::too_many_arguments)]
 pub fn self_test_floor(
     reference: ArrayView2<f32>,
     prepared: &RefineReference,
@@ -427,7 +426,6 @@ pub(super) enum FrameMaker {
 /// the reference itself through `transform` (by `maker`) is refined from the exact answer,
 /// and what the refinement reports instead is its bias (interpolation of sharp or
 /// undersampled structure, mostly), with the variance it reported.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn self_test_bias(
     reference: ArrayView2<f32>,
     fit: &FitPixels,

@@ -4,7 +4,7 @@
 use super::reference::Pixel;
 use super::MODEL;
 use crate::engine::derotate::Carried;
-use crate::engine::gaussian_reach;
+use crate::engine::region::gaussian_reach;
 use crate::geometry::Similarity;
 use crate::resample::HighOrderSpline;
 use ndarray::{s, ArrayView2};

@@ -5,10 +5,6 @@
 //! (and, for `channel:NAME`, the partner frame the scheduler picked), which is what makes
 //! `replay` write the same messages as the daemon.
 
-use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, HashSet};
-use std::fmt;
-use std::str::FromStr;
 use std::sync::Arc;
 use sunjitter_core::chain::IDENTITY;
 use sunjitter_core::chain::{
@@ -28,117 +24,11 @@ use sunjitter_io::sink::{ReferenceChange, ReferenceClosure};
 /// Covariance of (scale, rotation_rad, dx_px, dy_px).
 pub type Cov4 = sunjitter_core::geometry::Covariance4;
 
-// ---------------------------------------------------------------------------------------------
-// Policy names
+mod history;
+mod policy;
 
-/// A reference policy as written in the configuration or on the command line.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PolicySpec {
-    /// Each frame aligned to the previous (good) frame of its channel.
-    Previous,
-    /// A keyframe refreshed every N frames / T seconds / when the match degrades.
-    Keyframe,
-    /// One fixed image (`FILE` or `FILE[N]` for frame N of a cube).
-    Fixed(String),
-    /// The nearest-in-time frame of another channel.
-    Channel(String),
-}
-
-impl PolicySpec {
-    /// The `reference_kind` written in messages for frames aligned under this policy.
-    pub fn kind(&self) -> ReferenceKind {
-        match self {
-            PolicySpec::Previous => ReferenceKind::Previous,
-            PolicySpec::Keyframe => ReferenceKind::Keyframe,
-            PolicySpec::Fixed(_) => ReferenceKind::Fixed,
-            PolicySpec::Channel(_) => ReferenceKind::Channel,
-        }
-    }
-}
-
-impl FromStr for PolicySpec {
-    type Err = sunjitter_core::Error;
-    fn from_str(s: &str) -> sunjitter_core::Result<Self> {
-        let bad = || {
-            sunjitter_core::Error::Usage(format!(
-                "reference policy `{s}`: expected previous, keyframe, fixed:FILE or channel:NAME"
-            ))
-        };
-        match s.trim() {
-            "previous" => Ok(PolicySpec::Previous),
-            "keyframe" => Ok(PolicySpec::Keyframe),
-            other => match other.split_once(':') {
-                Some(("fixed", file)) if !file.is_empty() => Ok(PolicySpec::Fixed(file.into())),
-                Some(("channel", name)) if !name.is_empty() => Ok(PolicySpec::Channel(name.into())),
-                _ => Err(bad()),
-            },
-        }
-    }
-}
-
-impl fmt::Display for PolicySpec {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            PolicySpec::Previous => f.write_str("previous"),
-            PolicySpec::Keyframe => f.write_str("keyframe"),
-            PolicySpec::Fixed(file) => write!(f, "fixed:{file}"),
-            PolicySpec::Channel(name) => write!(f, "channel:{name}"),
-        }
-    }
-}
-
-impl Serialize for PolicySpec {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(self)
-    }
-}
-
-impl<'de> Deserialize<'de> for PolicySpec {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let s = String::deserialize(d)?;
-        s.parse().map_err(serde::de::Error::custom)
-    }
-}
-
-/// A channel's reference settings: the `[reference]` table of the configuration (every
-/// channel's defaults), and the settings one channel resolves to with its own overrides
-/// (`Config::channel_policy`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ChannelPolicy {
-    /// `keyframe`, `previous`, `fixed:FILE` (or `fixed:FILE[N]`) or `channel:NAME`.
-    pub policy: PolicySpec,
-    /// Keyframe: refresh after this many frames aligned to it (0 = never by count).
-    pub keyframe_every_frames: u32,
-    /// Keyframe: refresh when the frame is this much later than the keyframe (0 = never).
-    pub keyframe_every_s: f64,
-    /// Keyframe: frames a keyframe serves before its age can refresh it, so that at a
-    /// cadence sparser than `keyframe_every_s` frames are still measured against a keyframe.
-    pub keyframe_min_frames: u32,
-    /// Keyframe: a match with a similarity below this counts as degraded (0 = engine status only).
-    pub refresh_below_similarity: f64,
-    /// After this many consecutive failed frames the next frame starts a new chain.
-    pub restart_after_failures: u32,
-    /// `channel:NAME`: largest |Δt| between a frame and its partner.
-    pub tolerance_s: f64,
-    /// `channel:NAME`: how long (wall clock, daemon only) a frame waits for a partner.
-    pub hold_s: f64,
-}
-
-impl Default for ChannelPolicy {
-    fn default() -> Self {
-        ChannelPolicy {
-            policy: PolicySpec::Keyframe,
-            keyframe_every_frames: 50,
-            keyframe_every_s: 600.0,
-            keyframe_min_frames: 4,
-            refresh_below_similarity: 0.0,
-            restart_after_failures: 5,
-            tolerance_s: 30.0,
-            hold_s: 120.0,
-        }
-    }
-}
+pub use history::History;
+pub use policy::{ChannelPolicy, KeyframeDue, PolicySpec};
 
 // ---------------------------------------------------------------------------------------------
 // What the state machine is given and gives back
@@ -303,6 +193,13 @@ struct Linked {
     slot: RefSlot,
     closure: Option<ReferenceClosure>,
     cross: Option<Cov4>,
+}
+
+/// The reference a frame was aligned to: the policy's kind and the reference's frame key.
+#[derive(Clone, Copy)]
+struct AlignedTo<'a> {
+    kind: ReferenceKind,
+    key: &'a str,
 }
 
 /// One emitted frame message and the chain it reported.
@@ -498,8 +395,10 @@ impl ChannelState {
             return self.emit(
                 frame,
                 sequence,
-                ReferenceKind::Itself,
-                &frame.key,
+                AlignedTo {
+                    kind: ReferenceKind::Itself,
+                    key: &frame.key,
+                },
                 outcome,
                 None,
                 records,
@@ -553,8 +452,10 @@ impl ChannelState {
         let emitted = self.emit(
             frame,
             sequence,
-            ReferenceKind::Previous,
-            &reference.key,
+            AlignedTo {
+                kind: ReferenceKind::Previous,
+                key: &reference.key,
+            },
             outcome,
             chain,
             records,
@@ -616,18 +517,15 @@ impl ChannelState {
             return self.keyframe_result(frame, sequence, outcome, records);
         }
 
-        let due_count = self.policy.keyframe_every_frames > 0
-            && self.frames_on_reference + 1 >= self.policy.keyframe_every_frames;
         let age_s = (frame.obs_time_ns - keyframe.obs_time_ns) as f64 * 1e-9;
-        let due_time = self.policy.keyframe_every_s > 0.0
-            && age_s >= self.policy.keyframe_every_s
-            && self.frames_on_reference >= self.policy.keyframe_min_frames;
-        if (due_count || due_time) && outcome.result.status != Status::Failed {
+        let due = self.policy.keyframe_due(self.frames_on_reference, age_s);
+        if let (Some(due), false) = (due, outcome.result.status == Status::Failed) {
             // This frame becomes the keyframe: logged aligned to itself, its chain goes on.
-            let reason = if due_count {
-                format!("refresh every {} frames", self.policy.keyframe_every_frames)
-            } else {
-                format!("refresh every {} s", self.policy.keyframe_every_s)
+            let reason = match due {
+                KeyframeDue::Count => {
+                    format!("refresh every {} frames", self.policy.keyframe_every_frames)
+                }
+                KeyframeDue::Age => format!("refresh every {} s", self.policy.keyframe_every_s),
             };
             let (chain, j_current) = chain_after_carrying(keyframe.chain.as_ref(), &outcome)
                 .map_or((None, IDENTITY), |(c, j)| (Some(c), j));
@@ -770,8 +668,10 @@ impl ChannelState {
         let emitted = self.emit(
             frame,
             sequence,
-            ReferenceKind::Keyframe,
-            &key,
+            AlignedTo {
+                kind: ReferenceKind::Keyframe,
+                key: &key,
+            },
             outcome,
             chain,
             records,
@@ -821,8 +721,10 @@ impl ChannelState {
                         return self.emit(
                             frame,
                             sequence,
-                            ReferenceKind::Fixed,
-                            file,
+                            AlignedTo {
+                                kind: ReferenceKind::Fixed,
+                                key: file,
+                            },
                             outcome,
                             None,
                             records,
@@ -845,8 +747,10 @@ impl ChannelState {
             self.emit(
                 frame,
                 sequence,
-                ReferenceKind::Fixed,
-                &reference.key,
+                AlignedTo {
+                    kind: ReferenceKind::Fixed,
+                    key: &reference.key,
+                },
                 outcome,
                 chain,
                 records,
@@ -889,8 +793,10 @@ impl ChannelState {
         let emitted = self.emit(
             frame,
             sequence,
-            ReferenceKind::Channel,
-            &reference.key,
+            AlignedTo {
+                kind: ReferenceKind::Channel,
+                key: &reference.key,
+            },
             outcome,
             chain,
             records,
@@ -1027,21 +933,19 @@ impl ChannelState {
         )
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn emit(
         &mut self,
         frame: &LoadedFrame,
         sequence: u64,
-        kind: ReferenceKind,
-        reference_key: &str,
+        to: AlignedTo,
         outcome: AlignOutcome,
         chain: Option<Chain>,
         records: &mut Vec<Record>,
     ) -> Emitted {
         let mut align = outcome.result;
-        align.reference = reference_key.into();
+        align.reference = to.key.into();
         align.frame = frame.key.clone();
-        self.push_message(frame, sequence, kind, align, chain, records)
+        self.push_message(frame, sequence, to.kind, align, chain, records)
     }
 
     fn push_message(
@@ -1083,90 +987,6 @@ fn unflat(v: &[f64]) -> Option<Cov4> {
 fn image_center(image: &Image) -> [f64; 2] {
     let (h, w) = image.data.dim();
     Similarity::array_center(w, h)
-}
-
-// ---------------------------------------------------------------------------------------------
-// What an existing log says (restart)
-
-/// What earlier runs logged in the output: which frames are finished, and each channel's
-/// state to continue from. Built from the sink's reader with [`History::add`].
-#[derive(Debug, Clone, Default)]
-pub struct History {
-    /// Frame keys (and file keys) already logged as a measurement or a terminal `/log` entry.
-    pub done: HashSet<String>,
-    pub channels: BTreeMap<String, RestoredChannel>,
-}
-
-/// Frame messages kept per channel for restoring its state.
-const RESTORE_TAIL: usize = 256;
-
-impl History {
-    pub fn add(&mut self, record: &Record) {
-        match record {
-            Record::Frame {
-                message,
-                log_time_ns,
-            } => {
-                self.done.insert(message.align.frame.clone());
-                let ch = self.channels.entry(message.channel.clone()).or_default();
-                ch.next_sequence = ch.next_sequence.max(message.sequence + 1);
-                ch.last_obs_time_ns = ch.last_obs_time_ns.max(Some(*log_time_ns));
-                let at = ch
-                    .recent
-                    .partition_point(|(m, _)| m.sequence < message.sequence);
-                if ch
-                    .recent
-                    .get(at)
-                    .is_none_or(|(m, _)| m.sequence != message.sequence)
-                {
-                    ch.recent.insert(at, ((**message).clone(), *log_time_ns));
-                }
-                if ch.recent.len() > RESTORE_TAIL {
-                    let excess = ch.recent.len() - RESTORE_TAIL;
-                    ch.recent.drain(..excess);
-                }
-            }
-            Record::Reference {
-                change,
-                log_time_ns,
-            } => {
-                let ch = self.channels.entry(change.channel.clone()).or_default();
-                let newer = ch
-                    .last_reference
-                    .as_ref()
-                    .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
-                if newer {
-                    let older = ch
-                        .last_reference
-                        .replace(((**change).clone(), *log_time_ns));
-                    if older.as_ref().is_some_and(|(c, _)| c.key() != change.key()) {
-                        ch.previous_reference = older;
-                    }
-                } else {
-                    let older_than_previous = ch
-                        .previous_reference
-                        .as_ref()
-                        .is_none_or(|(c, t)| (change.sequence, *log_time_ns) >= (c.sequence, *t));
-                    let is_last = ch
-                        .last_reference
-                        .as_ref()
-                        .is_some_and(|(c, _)| c.key() == change.key());
-                    if older_than_previous && !is_last {
-                        ch.previous_reference = Some(((**change).clone(), *log_time_ns));
-                    }
-                }
-            }
-            Record::Log { level, file, .. } => {
-                if *level >= LogLevel::Error && !file.is_empty() {
-                    self.done.insert(file.clone());
-                }
-            }
-        }
-    }
-
-    pub fn is_done(&self, key: &str) -> bool {
-        self.done.contains(key)
-    }
 }
 
 #[cfg(test)]
@@ -1357,7 +1177,10 @@ mod tests {
             PolicySpec::Fixed("x.fits".into())
         );
         for bad in ["", "fixed:", "channel:", "nearest"] {
-            assert_eq!(bad.parse::<PolicySpec>().unwrap_err().exit_code(), 2);
+            assert_eq!(
+                bad.parse::<PolicySpec>().unwrap_err().exit_code(),
+                sunjitter_core::error::ExitCode::BadInput
+            );
         }
         assert_eq!(parse_frame_key("/a/cube.fits[12]").frame, Some(12));
         assert_eq!(parse_frame_key("/a/odd[name].fits").frame, None);
