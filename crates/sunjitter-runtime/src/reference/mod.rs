@@ -421,6 +421,34 @@ impl ChannelState {
         self.emit_self(frame, sequence, Some(chain), records)
     }
 
+    /// The current reference and its image, taken out of the state; or what the frame gets
+    /// instead: the start of a chain (no reference, or one that cannot be read, named `what`
+    /// in the reason), or itself when it is the reference.
+    fn take_reference(
+        &mut self,
+        frame: &LoadedFrame,
+        sequence: u64,
+        ctx: &dyn StepContext,
+        records: &mut Vec<Record>,
+        what: &str,
+    ) -> std::result::Result<(RefSlot, Arc<Image>), Box<Emitted>> {
+        let Some(mut reference) = self.reference.take() else {
+            return Err(Box::new(self.start_chain(frame, sequence, ctx, records)));
+        };
+        if reference.key == frame.key {
+            let chain = reference.chain;
+            self.reference = Some(reference);
+            return Err(Box::new(self.emit_self(frame, sequence, chain, records)));
+        }
+        match reference.image(ctx) {
+            Ok(image) => Ok((reference, image)),
+            Err(e) => {
+                self.restart_reason = Some(format!("{what} unreadable ({e}): new chain"));
+                Err(Box::new(self.start_chain(frame, sequence, ctx, records)))
+            }
+        }
+    }
+
     fn step_previous(
         &mut self,
         frame: &LoadedFrame,
@@ -428,22 +456,11 @@ impl ChannelState {
         ctx: &dyn StepContext,
         records: &mut Vec<Record>,
     ) -> Emitted {
-        let Some(mut reference) = self.reference.take() else {
-            return self.start_chain(frame, sequence, ctx, records);
-        };
-        if reference.key == frame.key {
-            let chain = reference.chain;
-            self.reference = Some(reference);
-            return self.emit_self(frame, sequence, chain, records);
-        }
-        let ref_image = match reference.image(ctx) {
-            Ok(image) => image,
-            Err(e) => {
-                self.restart_reason =
-                    Some(format!("previous reference unreadable ({e}): new chain"));
-                return self.start_chain(frame, sequence, ctx, records);
-            }
-        };
+        let (reference, ref_image) =
+            match self.take_reference(frame, sequence, ctx, records, "previous reference") {
+                Ok(taken) => taken,
+                Err(emitted) => return *emitted,
+            };
         let outcome = match reference.position {
             Some(position) => ctx.align_at(&ref_image, position, &frame.image),
             None => ctx.align(&ref_image, &frame.image),
@@ -479,21 +496,11 @@ impl ChannelState {
         ctx: &dyn StepContext,
         records: &mut Vec<Record>,
     ) -> Emitted {
-        let Some(mut keyframe) = self.reference.take() else {
-            return self.start_chain(frame, sequence, ctx, records);
-        };
-        if keyframe.key == frame.key {
-            let chain = keyframe.chain;
-            self.reference = Some(keyframe);
-            return self.emit_self(frame, sequence, chain, records);
-        }
-        let key_image = match keyframe.image(ctx) {
-            Ok(image) => image,
-            Err(e) => {
-                self.restart_reason = Some(format!("keyframe unreadable ({e}): new chain"));
-                return self.start_chain(frame, sequence, ctx, records);
-            }
-        };
+        let (keyframe, key_image) =
+            match self.take_reference(frame, sequence, ctx, records, "keyframe") {
+                Ok(taken) => taken,
+                Err(emitted) => return *emitted,
+            };
         let outcome = ctx.align(&key_image, &frame.image);
 
         let degraded = self.degraded(&outcome);
