@@ -25,10 +25,10 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::engine::{align_images, EngineConfig, Image, PreparedReference};
-use sunjitter::fits::{read_frame, FrameSpec};
-use sunjitter::sink::{McapSink, SinkConfig};
-use sunjitter::FrameAlignment;
+use sunjitter_core::engine::{align_images, EngineConfig, Image, PreparedReference};
+use sunjitter_core::record::FrameAlignment;
+use sunjitter_io::fits::{read_frame, FrameSpec};
+use sunjitter_io::sink::{McapSink, SinkConfig};
 
 fn synth_pair(dir: &Path, size: usize) -> (PathBuf, PathBuf) {
     let status = Command::new(env!("CARGO_BIN_EXE_sunjitter"))
@@ -55,7 +55,7 @@ fn one_frame(reference: &PreparedReference, path: &Path, sink: &mut McapSink, k:
         frame.meta.channel.clone(),
         frame.meta.obs_time_iso().unwrap_or_default(),
         k,
-        sunjitter::record::ReferenceKind::Fixed,
+        sunjitter_core::record::ReferenceKind::Fixed,
     );
     let t = frame.meta.obs_time_ns.unwrap_or(0).max(0) as u64 + k;
     sink.write_frame(&record, t, t).expect("MCAP write");
@@ -75,7 +75,7 @@ fn selected(group: &str) -> bool {
 
 /// `frame` as another channel shows it: blurred, its intensities bent, another channel name.
 fn other_channel(frame: &Image) -> Image {
-    let mut data = sunjitter::preprocess::gaussian_smooth(frame.data.view(), 1.5);
+    let mut data = sunjitter_core::preprocess::gaussian_smooth(frame.data.view(), 1.5);
     let lo = data
         .iter()
         .copied()

@@ -19,7 +19,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use fitsio::FitsFile;
 use ndarray::Array2;
 use std::hint::black_box;
-use sunjitter::flow::{Farneback, FarnebackParams, Flow, FlowOptions, Roi};
+use sunjitter_core::flow::{Farneback, FarnebackParams, Flow, FlowOptions, Roi};
 
 const SHIFT: (f64, f64) = (0.37, -0.61);
 

@@ -19,10 +19,10 @@ mod allocator;
 
 use std::path::PathBuf;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
-use sunjitter::engine::{EngineConfig, PreparedReference};
-use sunjitter::fits::{read_frame, FrameSpec};
-use sunjitter::sink::{McapSink, SinkConfig};
-use sunjitter::FrameAlignment;
+use sunjitter_core::engine::{EngineConfig, PreparedReference};
+use sunjitter_core::record::FrameAlignment;
+use sunjitter_io::fits::{read_frame, FrameSpec};
+use sunjitter_io::sink::{McapSink, SinkConfig};
 
 /// Process CPU time (user + system, all threads) in seconds, from /proc/self/stat.
 fn cpu_seconds() -> f64 {
@@ -113,7 +113,7 @@ fn main() -> anyhow::Result<()> {
             frame.meta.channel.clone(),
             frame.meta.obs_time_iso().unwrap_or_default(),
             k as u64,
-            sunjitter::record::ReferenceKind::Fixed,
+            sunjitter_core::record::ReferenceKind::Fixed,
         );
         let now_ns = SystemTime::now().duration_since(UNIX_EPOCH)?.as_nanos() as u64;
         let log_ns = frame.meta.obs_time_ns.map_or(now_ns, |t| t.max(0) as u64);

@@ -34,11 +34,11 @@ mod allocator;
 
 use std::sync::Arc;
 use std::time::Instant;
-use sunjitter::engine::{
+use sunjitter_core::engine::{
     align_images_owned, align_images_owned_in, EngineConfig, PreparedReference, Workspace,
 };
-use sunjitter::fits::{read_frame, FrameSpec};
-use sunjitter::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+use sunjitter_core::flow::{Farneback, FarnebackParams, FlowOptions, Roi};
+use sunjitter_io::fits::{read_frame, FrameSpec};
 
 fn cpu_seconds() -> f64 {
     let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
@@ -105,7 +105,7 @@ fn main() -> anyhow::Result<()> {
     });
     let kept_dir = tempfile::tempdir()?;
     let keeping = || {
-        let cache = sunjitter::self_tests::SelfTestCache::at(kept_dir.path());
+        let cache = sunjitter_io::self_tests::SelfTestCache::at(kept_dir.path());
         Arc::new(Workspace::keeping_self_tests(Arc::new(cache)))
     };
     if cases.contains("align_kept") {

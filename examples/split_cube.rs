@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use sunjitter::fits::{self, FrameSpec};
+use sunjitter_io::fits::{self, FrameSpec};
 
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -31,16 +31,16 @@ fn main() -> ExitCode {
 }
 
 /// Write every frame of `cube` into `out_dir`; returns the number of frames written.
-fn split(cube: &Path, out_dir: &Path) -> sunjitter::Result<usize> {
+fn split(cube: &Path, out_dir: &Path) -> sunjitter_core::error::Result<usize> {
     let metas = fits::read_meta(cube)?;
     if metas.first().and_then(|m| m.frame).is_none() {
-        return Err(sunjitter::Error::bad_input(
+        return Err(sunjitter_core::error::Error::bad_input(
             cube,
             "is a 2-D image, not a cube",
         ));
     }
     let (_, header) = fits::read_image_header(cube)?;
-    std::fs::create_dir_all(out_dir).map_err(|e| sunjitter::Error::io(out_dir, e))?;
+    std::fs::create_dir_all(out_dir).map_err(|e| sunjitter_core::error::Error::io(out_dir, e))?;
     let stem = cube.file_stem().and_then(|s| s.to_str()).unwrap_or("frame");
     for meta in &metas {
         let index = meta.frame.unwrap_or(0);

@@ -5,7 +5,7 @@ mod allocator;
 use clap::{Parser, Subcommand};
 use std::io::Write;
 use sunjitter::cli;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -76,7 +76,7 @@ fn escaped_fields() -> impl for<'w> tracing_subscriber::fmt::FormatFields<'w> {
     use tracing_subscriber::field::MakeExt;
     tracing_subscriber::fmt::format::debug_fn(|w, field, value| {
         let text = format!("{value:?}");
-        let text = sunjitter::text::escape(&text);
+        let text = sunjitter_core::text::escape(&text);
         match field.name() {
             "message" => write!(w, "{text}"),
             name => write!(w, "{name}={text}"),
@@ -113,7 +113,7 @@ fn main() {
         }
     };
     // Decompressed copies a killed run left behind (their names carry the dead process's id).
-    sunjitter::fits::remove_stale_gunzipped_copies();
+    sunjitter_io::fits::remove_stale_gunzipped_copies();
     let outcome = match &cli.command {
         Command::Info(a) => cli::info::run(a),
         Command::Align(a) => cli::align::run(a),
@@ -133,7 +133,7 @@ fn main() {
             let _ = writeln!(
                 std::io::stderr(),
                 "sunjitter: {}",
-                sunjitter::text::escape(&e.to_string())
+                sunjitter_core::text::escape(&e.to_string())
             );
             std::process::exit(e.exit_code().code());
         }

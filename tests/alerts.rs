@@ -8,7 +8,7 @@ mod support;
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use sunjitter::sink::Alert;
+use sunjitter_io::sink::Alert;
 use support::monitor::*;
 
 /// Frame indices of the IRIS cube fed in phase 1, with their alteration.
@@ -120,7 +120,7 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
 
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), PHASE_1.len() + 1);
     let logged: Vec<Alert> = contents.alerts.iter().map(|m| m.alert.clone()).collect();
     // The command got every alert, in the same order, with the same content.
@@ -195,7 +195,7 @@ fn injected_faults_raise_each_alert_once_and_resolve_it_once() {
     // The blanked frames are logged as failed measurements, not lost.
     for m in &contents.jitter {
         let i = index_of(&m.record.align.frame);
-        let failed = m.record.align.status == sunjitter::Status::Failed;
+        let failed = m.record.align.status == sunjitter_core::record::Status::Failed;
         assert_eq!(
             failed,
             i == 14 || i == 15,
@@ -233,7 +233,7 @@ fn run_alert_command_once(
     script: &str,
     timeout_s: f64,
     observe: impl FnOnce(),
-) -> Vec<sunjitter::sink::LogMessage> {
+) -> Vec<sunjitter_io::sink::LogMessage> {
     let tmp = tempfile::tempdir().unwrap();
     let (watched, out) = (tmp.path().join("in"), tmp.path().join("out"));
     std::fs::create_dir_all(&watched).unwrap();
@@ -273,7 +273,7 @@ consecutive_failed = 1
     observe();
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "{}", log.join("\n"));
-    let contents = sunjitter::sink::read_logs(&[out]).unwrap();
+    let contents = sunjitter_io::sink::read_logs(&[out]).unwrap();
     assert_eq!(contents.alerts.len(), 1);
     contents
         .logs
@@ -291,7 +291,10 @@ fn a_failing_alert_command_is_reported_on_the_log() {
         "{:?}",
         failures[0].entry
     );
-    assert_eq!(failures[0].entry.level, sunjitter::sink::LogLevel::Warning);
+    assert_eq!(
+        failures[0].entry.level,
+        sunjitter_io::sink::LogLevel::Warning
+    );
 }
 
 #[test]

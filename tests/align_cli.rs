@@ -10,11 +10,13 @@ use ndarray::{s, Array2};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::error::ExitCode;
-use sunjitter::fits::{frame_header_cards, read_frame, read_image_header, write_image, FrameSpec};
-use sunjitter::geometry::{Similarity, ARCSEC_PER_RAD};
-use sunjitter::header::HeaderValue;
-use sunjitter::resample::{HighOrder, HighOrderSpline, SplineImage};
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::geometry::{Similarity, ARCSEC_PER_RAD};
+use sunjitter_core::header::HeaderValue;
+use sunjitter_core::resample::{HighOrder, HighOrderSpline, SplineImage};
+use sunjitter_io::fits::{
+    frame_header_cards, read_frame, read_image_header, write_image, FrameSpec,
+};
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const TRACE: &str = "trace_171_19980519T222143_1024.fits";

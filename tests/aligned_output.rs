@@ -8,9 +8,9 @@ mod support;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use sunjitter::error::ExitCode;
-use sunjitter::fits::{self, FrameSpec};
-use sunjitter::record::{ReferenceKind, Status};
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::record::{ReferenceKind, Status};
+use sunjitter_io::fits::{self, FrameSpec};
 use support::{logged, sunjitter, sunjitter_ok, WatchProcess, QUICK_DAEMON_CONFIG};
 
 /// Synthetic frames of 256² with a 1.5 px sinusoid, a random walk and a roll drift; the Sun
@@ -44,7 +44,7 @@ fn still_sun_config(dir: &Path) -> PathBuf {
 
 /// Logged frames: key → (status, reference kind).
 fn logged_frames(out: &Path) -> BTreeMap<String, (Status, ReferenceKind)> {
-    let logs = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
+    let logs = sunjitter_io::sink::read_logs(&[out.to_path_buf()]).unwrap();
     logs.jitter
         .iter()
         .map(|m| {
@@ -403,7 +403,7 @@ fn a_real_cube_gets_one_header_only_product_per_measured_frame_on_its_chain() {
         products.to_str().unwrap(),
         "--wcs-only",
     ]);
-    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let logs = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     let name = stem(cube);
     let mut expected = Vec::new();
     for m in &logs.jitter {
@@ -472,7 +472,7 @@ fn a_refused_plate_scale_is_not_the_one_products_state() {
             args.push("--wcs-only");
         }
         sunjitter_ok(&args);
-        let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+        let logs = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
         let m = logs
             .jitter
             .iter()
@@ -610,7 +610,7 @@ fn a_product_that_cannot_be_written_is_one_log_warning_and_the_frame_is_still_lo
         products.to_str().unwrap(),
         "--wcs-only",
     ]);
-    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let logs = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(logs.jitter.len(), 3, "every frame is logged");
     let notes: Vec<_> = logs
         .logs
@@ -738,7 +738,7 @@ fn two_inputs_differing_only_in_extension_never_share_a_product() {
         products.to_str().unwrap(),
         "--wcs-only",
     ]);
-    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let logs = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(logs.jitter.len(), 3, "every frame is logged");
     assert_eq!(files_below(&products), ["a.wcs.fits", "b.wcs.fits"]);
     // One of b.fits and b.fits.gz has the product; the other a note naming it.

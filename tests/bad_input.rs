@@ -5,7 +5,7 @@
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const MALFORMED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/malformed/");
@@ -480,8 +480,8 @@ fn replay_logs_a_broken_scaling_and_continues() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let files = sunjitter::inspect::log_files(&[out_dir]).unwrap();
-    let contents = sunjitter::sink::read_logs(&files).unwrap();
+    let files = sunjitter_runtime::inspect::log_files(&[out_dir]).unwrap();
+    let contents = sunjitter_io::sink::read_logs(&files).unwrap();
     let frames: Vec<&str> = contents
         .jitter
         .iter()

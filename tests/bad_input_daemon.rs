@@ -8,14 +8,14 @@ mod support;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use sunjitter::engine::Image;
-use sunjitter::fits::FrameSpec;
-use sunjitter::meta::FrameMeta;
-use sunjitter::pipeline::{EngineAligner, FitsReader};
-use sunjitter::ports::FrameReader;
-use sunjitter::records::MemorySink;
-use sunjitter::sink::LogLevel;
-use sunjitter::Result;
+use sunjitter_core::engine::Image;
+use sunjitter_core::error::Result;
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_io::fits::FrameSpec;
+use sunjitter_io::records::MemorySink;
+use sunjitter_io::sink::LogLevel;
+use sunjitter_runtime::pipeline::{EngineAligner, FitsReader};
+use sunjitter_runtime::ports::FrameReader;
 use support::faults::*;
 
 /// The real reader, except that one file is deleted just before it is first read: the
@@ -62,7 +62,7 @@ fn with_pixels(src: &Source, name: &str, t: i64, fill: impl Fn(usize, usize) -> 
 
 /// The real header and pixels as a 128 × 1 × 2 cube (two rows of the real image).
 fn flat_cube(src: &Source, t: i64) -> Vec<u8> {
-    let iso = sunjitter::pipeline::iso8601_utc(t);
+    let iso = sunjitter_runtime::pipeline::iso8601_utc(t);
     let mut cards = Vec::new();
     for c in &src.cards {
         let key = c[..8].trim_end();
@@ -282,7 +282,7 @@ async fn every_bad_input_gets_one_log_entry_and_the_daemon_goes_on() {
         let entries: Vec<_> = records
             .iter()
             .filter_map(|r| match r {
-                sunjitter::records::Record::Log { file, message, .. }
+                sunjitter_io::records::Record::Log { file, message, .. }
                     if file_name(file) == base && file.ends_with(name) && !waiting(message) =>
                 {
                     Some(message.clone())

@@ -6,10 +6,11 @@
 
 use ndarray::Array2;
 use std::path::{Path, PathBuf};
-use sunjitter::coarse::{check_header, coarse_transform};
-use sunjitter::preprocess::{detect_disk, DiskFit, LimbFeature};
-use sunjitter::resample::{warp_similarity, Interp};
-use sunjitter::{FrameMeta, Similarity};
+use sunjitter_core::coarse::{check_header, coarse_transform};
+use sunjitter_core::geometry::Similarity;
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_core::preprocess::{detect_disk, DiskFit, LimbFeature};
+use sunjitter_core::resample::{warp_similarity, Interp};
 
 fn real(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -103,7 +103,7 @@ fn sigkill_at_50_random_points_loses_and_doubles_nothing() {
         child.kill().unwrap(); // SIGKILL
         child.wait().unwrap();
         // What the kill interrupted: frames still to do, a segment left unfinished.
-        if let Ok(logs) = sunjitter::sink::read_logs(std::slice::from_ref(&out)) {
+        if let Ok(logs) = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)) {
             let done: std::collections::BTreeSet<&str> = logs
                 .jitter
                 .iter()

@@ -12,15 +12,15 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-use sunjitter::config::{ChannelConfig, Config};
-use sunjitter::ingest::expand_inputs;
-use sunjitter::pipeline::{parse_iso8601_utc, replay_inputs, Progress, RunParts};
-use sunjitter::records::{MemorySink, Record};
-use sunjitter::reference::History;
-use sunjitter::reference::PolicySpec;
-use sunjitter::sink::LogLevel;
-use sunjitter::FrameAlignment;
+use sunjitter_core::record::FrameAlignment;
+use sunjitter_io::records::{MemorySink, Record};
+use sunjitter_io::sink::LogLevel;
+use sunjitter_runtime::config::{ChannelConfig, Config};
 use sunjitter_runtime::fake::{FakeFrame, FakeReader, TruthAligner};
+use sunjitter_runtime::ingest::expand_inputs;
+use sunjitter_runtime::pipeline::{parse_iso8601_utc, replay_inputs, Progress, RunParts};
+use sunjitter_runtime::reference::History;
+use sunjitter_runtime::reference::PolicySpec;
 use tokio::sync::watch;
 
 const S: i64 = 1_000_000_000;
@@ -206,7 +206,7 @@ async fn watch_takes_each_complete_frame_once_in_time_order() {
             "frame {t}"
         );
         assert_eq!(
-            m.reference_kind == sunjitter::record::ReferenceKind::Itself,
+            m.reference_kind == sunjitter_core::record::ReferenceKind::Itself,
             t % 4 == 0,
             "keyframes every 4 frames"
         );
@@ -380,7 +380,7 @@ async fn replay_writes_what_the_daemon_wrote() {
         live: false,
         products: None,
     };
-    sunjitter::pipeline::run_replay(inputs, parts, std::future::pending())
+    sunjitter_runtime::pipeline::run_replay(inputs, parts, std::future::pending())
         .await
         .unwrap();
     let replayed = sink.records();
@@ -399,8 +399,8 @@ mod real {
     use super::*;
     use sunjitter_runtime::fake::{split_cube, SplitFrame};
 
-    use sunjitter::pipeline::{open_output, EngineAligner, FitsReader};
-    use sunjitter::records::RecordSink;
+    use sunjitter_io::records::RecordSink;
+    use sunjitter_runtime::pipeline::{open_output, EngineAligner, FitsReader};
 
     pub const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
     pub const SJI_2796: &str =
@@ -472,13 +472,13 @@ mod real {
     /// A daemon on real FITS frames writing MCAP into `out`.
     pub fn start_real(dir: &Path, out: &Path, config: Config, crash: bool) -> Daemon {
         let (sink, history) = if crash {
-            let sink = sunjitter::sink::McapSink::new(
+            let sink = sunjitter_io::sink::McapSink::new(
                 out,
                 config.sink.clone(),
                 config.to_json().to_string(),
             )
             .unwrap();
-            let history = sunjitter::pipeline::read_history(out).unwrap();
+            let history = sunjitter_runtime::pipeline::read_history(out).unwrap();
             (Box::new(Crash(sink)) as Box<dyn RecordSink>, history)
         } else {
             open_output(out, &config).unwrap()
@@ -498,16 +498,16 @@ mod real {
 
     /// An MCAP sink that, instead of closing cleanly, loses its unflushed tail and leaves its
     /// segment unfinished, like a killed process.
-    struct Crash(sunjitter::sink::McapSink);
+    struct Crash(sunjitter_io::sink::McapSink);
 
     impl RecordSink for Crash {
-        fn write(&mut self, r: &Record, t: i64) -> sunjitter::Result<()> {
-            sunjitter::records::McapRecordSink::write_to(&mut self.0, r, t)
+        fn write(&mut self, r: &Record, t: i64) -> sunjitter_core::error::Result<()> {
+            sunjitter_io::records::McapRecordSink::write_to(&mut self.0, r, t)
         }
-        fn flush(&mut self) -> sunjitter::Result<()> {
+        fn flush(&mut self) -> sunjitter_core::error::Result<()> {
             self.0.flush()
         }
-        fn finish(self: Box<Self>) -> sunjitter::Result<()> {
+        fn finish(self: Box<Self>) -> sunjitter_core::error::Result<()> {
             self.0.abandon();
             Ok(())
         }
@@ -681,7 +681,7 @@ async fn real_restart_after_a_crash_logs_every_frame_exactly_once() {
     first.wait_finished(20).await;
     stop_real(first).await;
 
-    let history = sunjitter::pipeline::read_history(out.path()).unwrap();
+    let history = sunjitter_runtime::pipeline::read_history(out.path()).unwrap();
     let survived = history.done.len();
     assert!(survived < 54, "the crash lost the rest");
     let mut second = start_real(dir.path(), out.path(), config, false);

@@ -14,7 +14,7 @@ use std::collections::BTreeMap;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use sunjitter_runtime::fake::{split_cube, SplitFrame};
 use support::{logged, publish, sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 
@@ -73,7 +73,7 @@ fn segments(dir: &Path) -> BTreeMap<String, Vec<u8>> {
 }
 
 fn jitter_count(dir: &Path) -> usize {
-    sunjitter::sink::read_logs(&[dir.to_path_buf()])
+    sunjitter_io::sink::read_logs(&[dir.to_path_buf()])
         .unwrap()
         .jitter
         .len()
@@ -229,7 +229,7 @@ fn a_merge_killed_while_replacing_its_earlier_output_leaves_it_whole() {
         let _ = child.wait();
         // Whatever the moment: the earlier merge, or (killed after the swap) the new one,
         // finished files holding every frame once. Never a mix, never a part.
-        let contents = sunjitter::sink::read_logs(std::slice::from_ref(&merged)).unwrap();
+        let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&merged)).unwrap();
         assert!(
             contents.segments.iter().all(|s| s.complete),
             "{:?}",
@@ -264,7 +264,7 @@ fn a_merge_killed_while_replacing_its_earlier_output_leaves_it_whole() {
     let names: Vec<String> = std::fs::read_dir(&merged)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .filter(|n| !n.ends_with(".mcap") && n != sunjitter::outputs::LOCK_FILE)
+        .filter(|n| !n.ends_with(".mcap") && n != sunjitter_io::outputs::LOCK_FILE)
         .collect();
     assert!(names.is_empty(), "{names:?}");
 }
@@ -534,7 +534,7 @@ fn a_product_that_cannot_be_written_leaves_no_temporary_file() {
     let run = cmd.output().unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(ExitCode::Ok.code()), "{stderr}");
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), 3, "{stderr}");
     let notes = contents
         .logs

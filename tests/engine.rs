@@ -1,11 +1,11 @@
 //! The alignment engine on real images, against injected transforms and known physics.
 
-use sunjitter::engine::{align_images, EngineConfig, Image};
-use sunjitter::fits::{read_frame, FrameSpec};
-use sunjitter::geometry::{Similarity, ARCSEC_PER_RAD};
-use sunjitter::resample::SplineImage;
-use sunjitter::simulate::{contract_units, draw_truths, TrialRanges};
-use sunjitter::Status;
+use sunjitter_core::engine::{align_images, EngineConfig, Image};
+use sunjitter_core::geometry::{Similarity, ARCSEC_PER_RAD};
+use sunjitter_core::record::Status;
+use sunjitter_core::resample::SplineImage;
+use sunjitter_core::simulate::{contract_units, draw_truths, TrialRanges};
+use sunjitter_io::fits::{read_frame, FrameSpec};
 
 fn real(name: &str) -> Image {
     let path = format!("{}/data/real/{name}", env!("CARGO_MANIFEST_DIR"));
@@ -134,9 +134,9 @@ fn eit_195_to_171_one_hour_apart_measures_the_telescope_not_the_suns_rotation() 
 
     // Left in, the rotation is what the fit measures.
     let kept = EngineConfig {
-        solar_rotation: sunjitter::solar_rotation::Profile::None,
+        solar_rotation: sunjitter_core::solar_rotation::Profile::None,
         // The Sun's turn is what is measured here, not the telescope's roll.
-        model: sunjitter::engine::ModelChoice::Similarity,
+        model: sunjitter_core::engine::ModelChoice::Similarity,
         ..EngineConfig::default()
     };
     let r = align_images(&reference, &frame, &kept).result;
@@ -158,7 +158,8 @@ fn another_channels_limb_brightening_does_not_pass_for_a_scale_change() {
     let (h, w) = reference.data.dim();
     let meta = &reference.meta;
     let radius_px = meta.rsun_arcsec.expect("AIA gives RSUN_OBS") / meta.plate_scale_arcsec[0];
-    let prepared = sunjitter::engine::PreparedReference::new(&reference, &EngineConfig::default());
+    let prepared =
+        sunjitter_core::engine::PreparedReference::new(&reference, &EngineConfig::default());
     let truths = draw_truths(
         4,
         2,
@@ -215,7 +216,7 @@ fn between_channels_an_answer_on_binned_copies_recovers_injected_similarities() 
 /// as another channel: each `ok`, its message naming the path (`path`), within 3σ of the truth.
 fn between_channels_recovers(cfg: &EngineConfig, seed: u64, path: &str) {
     let reference = crop(&real("trace_171_19980519T222143_1024.fits"), 512);
-    let prepared = sunjitter::engine::PreparedReference::new(&reference, cfg);
+    let prepared = sunjitter_core::engine::PreparedReference::new(&reference, cfg);
     let center = Similarity::array_center(512, 512);
     for truth in &draw_truths(3, seed, &TrialRanges::default(), center) {
         let mut frame = transformed(&reference, truth);
@@ -250,7 +251,7 @@ fn unrelated_or_flipped_frames_never_come_back_as_confident_answers() {
     assert!(!out.result.message.is_empty());
 
     // Gaussian noise with the image's mean and spread: no common structure at all.
-    let mut rng = sunjitter::stats::SplitMix64::new(3);
+    let mut rng = sunjitter_core::stats::SplitMix64::new(3);
     let mut noise = reference.clone();
     let mean = reference.data.mean().unwrap();
     let sd = reference.data.std(0.0);
@@ -313,8 +314,8 @@ fn a_different_real_frame_with_an_injected_roll_is_measured_through_evolution() 
 /// the injected truths, and its σ must cover its residuals.
 #[test]
 fn intensity_refinement_beats_the_flow_under_noise_with_honest_sigma() {
-    use sunjitter::engine::RefineMode;
-    use sunjitter::stats::SplitMix64;
+    use sunjitter_core::engine::RefineMode;
+    use sunjitter_core::stats::SplitMix64;
     let clean = crop(&real("trace_171_19980519T222143_1024.fits"), 384);
     let center = Similarity::array_center(384, 384);
     let truths = draw_truths(3, 5, &TrialRanges::default(), center);
@@ -379,13 +380,17 @@ fn synthetic_full_disk() -> Image {
 }
 
 /// Every parameter of `estimate` within 4 reported σ of `truth` (contract units).
-fn assert_within_4_sigma(r: &sunjitter::AlignResult, estimate: &[f64; 4], truth: &[f64; 4]) {
+fn assert_within_4_sigma(
+    r: &sunjitter_core::record::AlignResult,
+    estimate: &[f64; 4],
+    truth: &[f64; 4],
+) {
     assert_within_sigmas(r, estimate, truth, 4.0);
 }
 
 /// Every parameter of `estimate` within `bound` reported σ of `truth` (contract units).
 fn assert_within_sigmas(
-    r: &sunjitter::AlignResult,
+    r: &sunjitter_core::record::AlignResult,
     estimate: &[f64; 4],
     truth: &[f64; 4],
     bound: f64,
@@ -420,7 +425,7 @@ fn assert_recovers_injected_similarities(
 ) {
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
-    let prepared = sunjitter::engine::PreparedReference::new(reference, cfg);
+    let prepared = sunjitter_core::engine::PreparedReference::new(reference, cfg);
     for truth in &draw_truths(n, seed, &TrialRanges::default(), center) {
         let out = prepared.align(&transformed(reference, truth));
         let r = &out.result;
@@ -519,7 +524,7 @@ fn a_frame_brighter_or_dimmer_than_its_reference_gives_the_same_transform() {
         let truth = draw_truths(1, 23, &TrialRanges::default(), center)[0];
         let moved = transformed(reference, &truth);
         let prepared =
-            sunjitter::engine::PreparedReference::new(reference, &EngineConfig::default());
+            sunjitter_core::engine::PreparedReference::new(reference, &EngineConfig::default());
         let t = contract_units(&truth);
         for gain in [0.01f32, 0.1, 1.0, 10.0, 100.0] {
             let frame = Image {
@@ -549,7 +554,7 @@ fn a_frame_brighter_or_dimmer_than_its_reference_gives_the_same_transform() {
 /// within 4σ of the truth.
 #[test]
 fn along_a_chain_each_reference_gives_the_fresh_answer_within_its_sigma_of_the_truth() {
-    use sunjitter::engine::PreparedReference;
+    use sunjitter_core::engine::PreparedReference;
     let base = real("aia_171_20110215T000000_128.fits");
     let cfg = EngineConfig::default();
     let center = Similarity::array_center(base.data.ncols(), base.data.nrows());
@@ -579,7 +584,7 @@ fn along_a_chain_each_reference_gives_the_fresh_answer_within_its_sigma_of_the_t
 /// preparation gives.
 #[test]
 fn a_keyframes_self_test_is_not_handed_on() {
-    use sunjitter::engine::PreparedReference;
+    use sunjitter_core::engine::PreparedReference;
     let base = real("aia_171_20110215T000000_128.fits");
     let cfg = EngineConfig::default();
     let center = Similarity::array_center(base.data.ncols(), base.data.nrows());

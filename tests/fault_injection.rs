@@ -13,16 +13,16 @@ use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use sunjitter::engine::Image;
-use sunjitter::fits::FrameSpec;
-use sunjitter::meta::FrameMeta;
-use sunjitter::pipeline::FitsReader;
-use sunjitter::ports::FrameReader;
-use sunjitter::records::{McapRecordSink, MemorySink};
-use sunjitter::sink::LogLevel;
+use sunjitter_core::engine::Image;
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_io::fits::FrameSpec;
+use sunjitter_io::records::{McapRecordSink, MemorySink};
+use sunjitter_io::sink::LogLevel;
+use sunjitter_runtime::pipeline::FitsReader;
+use sunjitter_runtime::ports::FrameReader;
 use support::faults::*;
 
-fn memory_daemon(dir: &Path, config: sunjitter::config::Config) -> (Daemon, MemorySink) {
+fn memory_daemon(dir: &Path, config: sunjitter_runtime::config::Config) -> (Daemon, MemorySink) {
     let sink = MemorySink::default();
     let daemon = start(
         dir,
@@ -214,7 +214,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
     let root = canonical(dir.path());
     let config = quick_config();
     let run = |history| {
-        let sink = sunjitter::sink::McapSink::new(
+        let sink = sunjitter_io::sink::McapSink::new(
             out.path(),
             config.sink.clone(),
             config.to_json().to_string(),
@@ -230,7 +230,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
         )
     };
 
-    let first = run(sunjitter::reference::History::default());
+    let first = run(sunjitter_runtime::reference::History::default());
     first.watching().await;
     publish(&root, &frames[0]);
     first.wait_for("the first frame", |p| p.finished >= 1).await;
@@ -249,7 +249,7 @@ async fn a_file_seen_incomplete_before_a_restart_is_measured_after_it() {
     file.write_all(&stalled.bytes[half..]).unwrap();
     drop(file);
     publish(&root, &frames[2]);
-    let second = run(sunjitter::pipeline::read_history(out.path()).unwrap());
+    let second = run(sunjitter_runtime::pipeline::read_history(out.path()).unwrap());
     second
         .wait_for("the completed and the new frame", |p| p.finished >= 2)
         .await;
@@ -271,13 +271,13 @@ struct OutOfDescriptorsOnce {
 }
 
 impl FrameReader for OutOfDescriptorsOnce {
-    fn read_meta(&self, path: &Path) -> sunjitter::Result<Vec<FrameMeta>> {
+    fn read_meta(&self, path: &Path) -> sunjitter_core::error::Result<Vec<FrameMeta>> {
         FitsReader::default().read_meta(path)
     }
-    fn read_frame(&self, spec: &FrameSpec) -> sunjitter::Result<Image> {
+    fn read_frame(&self, spec: &FrameSpec) -> sunjitter_core::error::Result<Image> {
         if spec.path.ends_with(&self.victim) && self.failures.fetch_add(1, Ordering::SeqCst) < 2 {
             let emfile = std::io::Error::from_raw_os_error(libc::EMFILE);
-            return Err(sunjitter::Error::io(&spec.path, emfile));
+            return Err(sunjitter_core::error::Error::io(&spec.path, emfile));
         }
         FitsReader::default().read_frame(spec)
     }
@@ -407,7 +407,7 @@ async fn full_disk_stops_intake_and_resumes_without_loss() {
     let mut config = quick_config();
     config.daemon.queue_capacity = 4;
     config.sink.flush_every_frames = 3;
-    let sink = sunjitter::sink::McapSink::new(
+    let sink = sunjitter_io::sink::McapSink::new(
         out.path(),
         config.sink.clone(),
         config.to_json().to_string(),

@@ -7,9 +7,9 @@
 mod support;
 
 use std::sync::Arc;
-use sunjitter::pipeline::FitsReader;
-use sunjitter::records::MemorySink;
-use sunjitter::sink::LogLevel;
+use sunjitter_io::records::MemorySink;
+use sunjitter_io::sink::LogLevel;
+use sunjitter_runtime::pipeline::FitsReader;
 use support::faults::*;
 
 /// The soft descriptor limit lowered so that no new descriptor can be opened; restored on

@@ -11,7 +11,7 @@ use std::ffi::OsStr;
 use std::os::unix::ffi::OsStrExt;
 use std::path::Path;
 use std::process::Command;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use support::monitor::*;
 
 const AIA: &str = concat!(
@@ -50,8 +50,8 @@ fn assert_printable(what: &str, bytes: &[u8]) {
 
 /// `/jitter` frames (each `frame` as logged) and `/log` entries (level, file, message).
 fn logged(out: &Path) -> (Vec<String>, Vec<(u8, String, String)>) {
-    let files = sunjitter::inspect::log_files(&[out.to_path_buf()]).unwrap();
-    let contents = sunjitter::sink::read_logs(&files).unwrap();
+    let files = sunjitter_runtime::inspect::log_files(&[out.to_path_buf()]).unwrap();
+    let contents = sunjitter_io::sink::read_logs(&files).unwrap();
     let frames = contents
         .jitter
         .iter()

@@ -16,7 +16,7 @@
 //! crates/sunjitter-core/src/flow/tests.rs `affine_window_recovers_rotation_and_scale` for the unbiased option).
 
 use ndarray::Array2;
-use sunjitter::flow::{farneback, FarnebackParams};
+use sunjitter_core::flow::{farneback, FarnebackParams};
 
 const N: usize = 256;
 

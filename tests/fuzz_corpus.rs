@@ -4,10 +4,10 @@
 //! and the reader may only refuse with `BadInput`/`BadHeader`.
 
 use std::path::PathBuf;
-use sunjitter::fits::{self, FrameSpec};
-use sunjitter::header::{self, Header};
-use sunjitter::meta::{self, ImagePlace};
-use sunjitter::Error;
+use sunjitter_core::error::Error;
+use sunjitter_core::header::{self, Header};
+use sunjitter_core::meta::{self, ImagePlace};
+use sunjitter_io::fits::{self, FrameSpec};
 
 fn input_error<T>(name: &str, result: Result<T, Error>) -> Option<T> {
     match result {

@@ -6,7 +6,7 @@
 
 use std::io::Write;
 use std::path::Path;
-use sunjitter::fits::{read_frame, remove_stale_gunzipped_copies, FrameSpec};
+use sunjitter_io::fits::{read_frame, remove_stale_gunzipped_copies, FrameSpec};
 
 const TRACE: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 use std::process::Command;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 
 const COMMANDS: [&str; 8] = [
     "info", "align", "watch", "replay", "inspect", "simulate", "synth", "status",

@@ -6,7 +6,7 @@
 use serde_json::Value;
 use std::path::PathBuf;
 use std::process::{Command, Output};
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 const MALFORMED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/malformed/");

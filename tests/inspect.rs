@@ -2,10 +2,10 @@
 //! noise, gaps, a failed and a degraded frame, a glitch), the JSON schema, the CSV, and the
 //! plot files (PNG decodes with the right size, SVG carries the axis labels).
 
-use sunjitter::error::ExitCode;
-use sunjitter::inspect::{self, InspectOptions, LoggedFrame, SeriesKind};
-use sunjitter::record::{AlignResult, FrameAlignment, Status};
-use sunjitter::synth;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::record::{AlignResult, FrameAlignment, Status};
+use sunjitter_core::synth;
+use sunjitter_runtime::inspect::{self, InspectOptions, LoggedFrame, SeriesKind};
 
 const T0_NS: i64 = 1_714_564_800_000_000_000; // 2024-05-01T12:00:00Z
 
@@ -75,12 +75,12 @@ fn record(
                 elapsed_ms: 40.0,
             },
             channel: channel.into(),
-            obs_time: sunjitter::time::format_iso_utc(ns),
+            obs_time: sunjitter_core::time::format_iso_utc(ns),
             sequence: seq,
             reference_kind: if seq == 0 {
-                sunjitter::record::ReferenceKind::Itself
+                sunjitter_core::record::ReferenceKind::Itself
             } else {
-                sunjitter::record::ReferenceKind::Keyframe
+                sunjitter_core::record::ReferenceKind::Keyframe
             },
             chained_dx_px: v(m[0]),
             chained_dy_px: v(m[1]),
@@ -385,7 +385,7 @@ fn plots_are_written_and_readable() {
 
 #[test]
 fn command_reads_a_run_split_over_segments() {
-    use sunjitter::sink::{McapSink, SinkConfig};
+    use sunjitter_io::sink::{McapSink, SinkConfig};
     let (frames, _) = measured_series();
     let dir = tempfile::tempdir().unwrap();
     let logs = dir.path().join("log");

@@ -9,10 +9,10 @@
 //! 0.0007 px of that. Tolerance 0.01 px, as for every sun centre in tests/info.rs.
 
 use std::path::{Path, PathBuf};
-use sunjitter::fits::{
+use sunjitter_core::header::HeaderValue;
+use sunjitter_io::fits::{
     frame_header_cards, read_frame, read_image_header, read_meta, write_image, FrameSpec,
 };
-use sunjitter::header::HeaderValue;
 
 const SJI_1400: &str = "iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2832: &str = "iris_l2_20140329_140938_3860258481_SJI_2832_t000.fits";

@@ -9,7 +9,7 @@ mod support;
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use support::monitor::*;
 
 const CONFIG: &str = r#"
@@ -116,7 +116,7 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     assert!(reader.lines.try_iter().all(|l| l["event"] != "message"));
 
     // The log is the truth: one message per frame, and the live ones are the same messages.
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), indices.len());
     let frames: Vec<String> = contents
         .jitter
@@ -138,7 +138,8 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
         }
         // Same message: the client's JSON decodes to exactly the logged record (JavaScript
         // prints 0.0 as 0, so compare decoded values, not text).
-        let decoded: sunjitter::FrameAlignment = serde_json::from_value(payload.clone()).unwrap();
+        let decoded: sunjitter_core::record::FrameAlignment =
+            serde_json::from_value(payload.clone()).unwrap();
         assert_eq!(decoded, logged.record);
         assert_eq!(m["logTime"], logged.log_time_ns.to_string());
     }
@@ -147,7 +148,7 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
     let status = read_status(&out).unwrap();
     assert_eq!(status["state"], "stopped");
     let ch = &status["channels"]["SJI_1400"];
-    let count = |s: sunjitter::Status| {
+    let count = |s: sunjitter_core::record::Status| {
         contents
             .jitter
             .iter()
@@ -155,9 +156,12 @@ fn an_independent_client_receives_every_logged_frame_live_and_a_stalled_one_cost
             .count() as u64
     };
     assert_eq!(ch["frames"], indices.len() as u64);
-    assert_eq!(ch["ok"], count(sunjitter::Status::Ok));
-    assert_eq!(ch["degraded"], count(sunjitter::Status::Degraded));
-    assert_eq!(ch["failed"], count(sunjitter::Status::Failed));
+    assert_eq!(ch["ok"], count(sunjitter_core::record::Status::Ok));
+    assert_eq!(
+        ch["degraded"],
+        count(sunjitter_core::record::Status::Degraded)
+    );
+    assert_eq!(ch["failed"], count(sunjitter_core::record::Status::Failed));
     assert_eq!(status["skipped"], 0);
     assert_eq!(status["queue_depth"], 0);
     let last = contents.jitter.last().unwrap();
@@ -230,7 +234,7 @@ fn a_client_connected_before_a_channels_first_frame_receives_every_frame() {
     assert!(late.lines.try_iter().all(|l| l["event"] != "message"));
 
     // The log is the truth: every logged frame came live, once, in order.
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), indices.len());
     let log_times = |messages: &[&serde_json::Value]| -> Vec<String> {
         messages
@@ -245,7 +249,7 @@ fn a_client_connected_before_a_channels_first_frame_receives_every_frame() {
         .collect();
     assert_eq!(log_times(&live.iter().collect::<Vec<_>>()), logged);
     for (m, logged) in live.iter().zip(&contents.jitter) {
-        let decoded: sunjitter::FrameAlignment =
+        let decoded: sunjitter_core::record::FrameAlignment =
             serde_json::from_value(m["payload"].clone()).unwrap();
         assert_eq!(decoded, logged.record);
     }
@@ -270,7 +274,7 @@ fn live_daemon(tmp: &std::path::Path, extra: &str) -> (Daemon, String, std::path
 fn live_log(daemon: Daemon, out: &std::path::Path) -> Vec<String> {
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
-    let contents = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
+    let contents = sunjitter_io::sink::read_logs(&[out.to_path_buf()]).unwrap();
     contents
         .logs
         .into_iter()
@@ -409,10 +413,10 @@ fn a_client_offering_only_the_classic_subprotocol_is_served() {
     );
     let (exit, log) = daemon.terminate();
     assert!(exit.success(), "daemon exit {exit:?}:\n{}", log.join("\n"));
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     assert_eq!(contents.jitter.len(), indices.len());
     for (m, logged) in live.iter().zip(&contents.jitter) {
-        let decoded: sunjitter::FrameAlignment =
+        let decoded: sunjitter_core::record::FrameAlignment =
             serde_json::from_value(m["payload"].clone()).unwrap();
         assert_eq!(decoded, logged.record);
         assert_eq!(m["logTime"], logged.log_time_ns.to_string());

@@ -3,16 +3,16 @@
 //!
 //! The known truth is the input: every message read back must equal what was written.
 //! The layout is checked with the `mcap` crate's own summary/metadata readers, independently
-//! of `sunjitter::sink::read_logs`; `tools/check_mcap.py` checks it with the Python reader.
+//! of `sunjitter_io::sink::read_logs`; `tools/check_mcap.py` checks it with the Python reader.
 
 mod support;
 
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
-use sunjitter::error::ExitCode;
-use sunjitter::fits::FrameSpec;
-use sunjitter::record::{AlignResult, FrameAlignment, ReferenceKind, Status, TransformFields};
-use sunjitter::sink::{
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::record::{AlignResult, FrameAlignment, ReferenceKind, Status, TransformFields};
+use sunjitter_io::fits::FrameSpec;
+use sunjitter_io::sink::{
     logged_frames, read_logs, recover_segment, LogLevel, McapSink, RecoveryOutcome,
     ReferenceChange, SinkConfig,
 };

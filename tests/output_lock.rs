@@ -8,7 +8,7 @@ mod support;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use sunjitter_runtime::fake::{split_cube, SplitFrame};
 use support::{exit_status_within, logged, publish, WatchProcess, QUICK_DAEMON_CONFIG};
 
@@ -115,7 +115,7 @@ fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
         .filter(|l| l.contains(" SJI_1400 "))
         .collect();
     assert_eq!(frame_lines.len(), 10, "{stderr}");
-    let logs = sunjitter::sink::read_logs(std::slice::from_ref(&s.out)).unwrap();
+    let logs = sunjitter_io::sink::read_logs(std::slice::from_ref(&s.out)).unwrap();
     for m in &logs.jitter {
         let a = &m.record.align;
         assert_eq!(m.record.channel, "SJI_1400");
@@ -124,7 +124,7 @@ fn a_second_daemon_on_one_out_is_refused_and_the_first_logs_every_frame_once() {
         let shown = format!(" SJI_1400 {name} {} ", status.as_str().unwrap());
         let lines: Vec<&&str> = frame_lines.iter().filter(|l| l.contains(&shown)).collect();
         assert_eq!(lines.len(), 1, "{shown}: {stderr}");
-        if m.record.reference_kind == sunjitter::record::ReferenceKind::Itself {
+        if m.record.reference_kind == sunjitter_core::record::ReferenceKind::Itself {
             assert!(lines[0].contains(" starts a "), "{stderr}");
         } else if a.dx_px.is_some() {
             assert!(
@@ -164,7 +164,7 @@ fn a_lock_file_left_by_a_killed_daemon_does_not_block_a_restart() {
     killed.wait_watching();
     killed.kill();
     assert!(
-        s.out.join(sunjitter::outputs::LOCK_FILE).is_file(),
+        s.out.join(sunjitter_io::outputs::LOCK_FILE).is_file(),
         "the lock file stays behind"
     );
 
@@ -185,7 +185,7 @@ fn removing_the_lock_file_lets_no_second_writer_in() {
     let mut first = WatchProcess::spawn(&s.watched, &s.out, &s.config, &s.base.join("1.stderr"));
     first.wait_watching();
     // The pid file is only a name for the message: the lock is on the directory itself.
-    std::fs::remove_file(s.out.join(sunjitter::outputs::LOCK_FILE)).unwrap();
+    std::fs::remove_file(s.out.join(sunjitter_io::outputs::LOCK_FILE)).unwrap();
     let before = snapshot(&s.out);
 
     // Linux names the holder from the kernel's list of locks.

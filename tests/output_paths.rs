@@ -6,7 +6,7 @@ mod support;
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use sunjitter_runtime::fake::split_cube;
 use support::{sunjitter, WatchProcess, QUICK_DAEMON_CONFIG};
 

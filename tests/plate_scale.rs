@@ -10,9 +10,9 @@
 mod support;
 
 use std::path::Path;
-use sunjitter::error::ExitCode;
-use sunjitter::fits::{read_frame_with, FrameSpec, PlateScales, ReadOptions};
-use sunjitter::record::Status;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::record::Status;
+use sunjitter_io::fits::{read_frame_with, FrameSpec, PlateScales, ReadOptions};
 use support::{sunjitter, sunjitter_ok};
 
 const CUBE: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
@@ -89,7 +89,7 @@ fn replay(dir: &Path, name: &str, config: Option<&str>) -> Vec<(f64, f64, f64, S
         args.extend(["--config", config_path.to_str().unwrap()]);
     }
     sunjitter_ok(&args);
-    let logs = sunjitter::sink::read_logs(&[out]).unwrap();
+    let logs = sunjitter_io::sink::read_logs(&[out]).unwrap();
     assert_eq!(logs.jitter.len(), 54);
     logs.jitter
         .iter()

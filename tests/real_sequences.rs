@@ -13,16 +13,16 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use sunjitter::engine::{align_images, EngineConfig};
-use sunjitter::fits::{read_frame, FrameSpec};
-use sunjitter::geometry::{Similarity, ARCSEC_PER_RAD};
-use sunjitter::record::{FrameAlignment, Status};
+use sunjitter_core::engine::{align_images, EngineConfig};
+use sunjitter_core::geometry::{Similarity, ARCSEC_PER_RAD};
+use sunjitter_core::record::{FrameAlignment, Status};
+use sunjitter_io::fits::{read_frame, FrameSpec};
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
 const SJI_2796: &str =
     "data/real/iris_l2_20140329_140938_3860258481_SJI_2796_t000_deconvolved.fits";
 
-fn frame(cube: &str, n: usize) -> sunjitter::engine::Image {
+fn frame(cube: &str, n: usize) -> sunjitter_core::engine::Image {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(cube);
     read_frame(&FrameSpec {
         path,
@@ -32,7 +32,7 @@ fn frame(cube: &str, n: usize) -> sunjitter::engine::Image {
 }
 
 /// The transform and σ of an alignment, `None` when it failed.
-fn measured(r: &sunjitter::record::AlignResult) -> Option<(Similarity, [f64; 4])> {
+fn measured(r: &sunjitter_core::record::AlignResult) -> Option<(Similarity, [f64; 4])> {
     let t = Similarity {
         scale: r.scale?,
         rotation_rad: r.rotation_arcsec? / ARCSEC_PER_RAD,
@@ -129,7 +129,7 @@ fn replay(cube: &str, out: &Path) -> Vec<FrameAlignment> {
         .map(|e| e.unwrap().path())
         .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
         .collect();
-    let contents = sunjitter::sink::read_logs(&files).expect("read the log");
+    let contents = sunjitter_io::sink::read_logs(&files).expect("read the log");
     let mut frames: Vec<_> = contents.jitter.into_iter().map(|m| m.record).collect();
     frames.sort_by_key(|m| m.sequence);
     frames
@@ -137,7 +137,7 @@ fn replay(cube: &str, out: &Path) -> Vec<FrameAlignment> {
 
 /// Seconds of `obs_time` (ISO 8601 UTC).
 fn seconds(m: &FrameAlignment) -> f64 {
-    sunjitter::time::parse_fits_time(&m.obs_time, sunjitter::time::TimeScale::Utc)
+    sunjitter_core::time::parse_fits_time(&m.obs_time, sunjitter_core::time::TimeScale::Utc)
         .expect("obs_time") as f64
         * 1e-9
 }
@@ -190,7 +190,7 @@ fn two_channels_of_one_telescope_agree_within_their_sigma_and_scale_and_roll_hol
         );
         // Every measurement names its model; a frame that starts a reference fitted none.
         for m in &usable {
-            let itself = m.reference_kind == sunjitter::record::ReferenceKind::Itself;
+            let itself = m.reference_kind == sunjitter_core::record::ReferenceKind::Itself;
             assert_eq!(m.align.model.is_none(), itself, "{}", m.align.frame);
         }
     }

@@ -10,7 +10,7 @@ mod support;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use support::{exit_status_within, logged, publish, sunjitter, WatchProcess};
 
 const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
@@ -227,12 +227,12 @@ fn a_fifo_in_the_watched_directory_is_named_on_the_log_and_the_daemon_goes_on() 
     daemon.wait_until("2 frames logged", |_| logged(&out).len() == 2);
     let fifo_key = watched.join("pipe.fits").display().to_string();
     daemon.wait_until("the FIFO named on /log", |_| {
-        sunjitter::sink::read_logs(std::slice::from_ref(&out))
+        sunjitter_io::sink::read_logs(std::slice::from_ref(&out))
             .map(|c| c.logs.iter().any(|m| m.entry.file == fifo_key))
             .unwrap_or(false)
     });
     assert!(daemon.terminate().success());
-    let contents = sunjitter::sink::read_logs(std::slice::from_ref(&out)).unwrap();
+    let contents = sunjitter_io::sink::read_logs(std::slice::from_ref(&out)).unwrap();
     let notes: Vec<&str> = contents
         .logs
         .iter()

@@ -11,9 +11,11 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use sunjitter::error::ExitCode;
-use sunjitter::fits::{frame_header_cards, read_frame, read_image_header, write_image, FrameSpec};
-use sunjitter::header::HeaderValue;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::header::HeaderValue;
+use sunjitter_io::fits::{
+    frame_header_cards, read_frame, read_image_header, write_image, FrameSpec,
+};
 
 const REAL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/real/");
 

@@ -3,10 +3,10 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use sunjitter::config::{Config, Overrides};
-use sunjitter::error::ExitCode;
-use sunjitter::pipeline::{open_output, EngineAligner, FitsReader};
+use sunjitter_core::error::ExitCode;
+use sunjitter_runtime::config::{Config, Overrides};
 use sunjitter_runtime::fake::split_cube;
+use sunjitter_runtime::pipeline::{open_output, EngineAligner, FitsReader};
 
 mod support;
 

@@ -7,8 +7,8 @@ mod support;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
-use sunjitter::error::ExitCode;
-use sunjitter::record::FrameAlignment;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::record::FrameAlignment;
 use support::sunjitter;
 
 const SJI_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";
@@ -94,7 +94,7 @@ fn fixture() -> &'static Fixture {
 }
 
 fn frames(dir: &Path) -> Vec<FrameAlignment> {
-    let log = sunjitter::sink::read_logs(&[dir.to_path_buf()]).expect("log reads");
+    let log = sunjitter_io::sink::read_logs(&[dir.to_path_buf()]).expect("log reads");
     log.jitter.into_iter().map(|m| m.record).collect()
 }
 
@@ -202,7 +202,7 @@ fn each_shard_logs_only_its_own_range_and_the_merge_names_them() {
     let f = fixture();
     let mut total = 0;
     for (k, shard) in f.shards.iter().enumerate() {
-        let log = sunjitter::sink::read_logs(std::slice::from_ref(shard)).unwrap();
+        let log = sunjitter_io::sink::read_logs(std::slice::from_ref(shard)).unwrap();
         let meta = log
             .metadata
             .iter()
@@ -218,7 +218,7 @@ fn each_shard_logs_only_its_own_range_and_the_merge_names_them() {
         total += own;
     }
     assert_eq!(total, 126);
-    let log = sunjitter::sink::read_logs(std::slice::from_ref(&f.merged)).unwrap();
+    let log = sunjitter_io::sink::read_logs(std::slice::from_ref(&f.merged)).unwrap();
     let meta = log
         .metadata
         .iter()

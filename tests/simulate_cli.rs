@@ -6,7 +6,7 @@
 
 use serde_json::Value;
 use std::process::Command;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 
 const AIA: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),

@@ -4,12 +4,12 @@
 
 use serde_json::Value;
 use std::path::PathBuf;
-use sunjitter::header::{Header, HeaderValue};
-use sunjitter::meta::{from_header, ImagePlace};
-use sunjitter::solar_rotation::{
+use sunjitter_core::header::{Header, HeaderValue};
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_core::meta::{from_header, ImagePlace};
+use sunjitter_core::solar_rotation::{
     grid_step_px, DisplacementGrid, Moved, Profile, SurfaceMotion, View,
 };
-use sunjitter::FrameMeta;
 
 fn oracle() -> Value {
     let path =

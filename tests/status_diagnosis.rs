@@ -4,7 +4,7 @@
 mod support;
 
 use std::process::Command;
-use sunjitter::error::ExitCode;
+use sunjitter_core::error::ExitCode;
 use support::monitor::*;
 
 const CONFIG: &str = r#"

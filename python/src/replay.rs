@@ -29,25 +29,41 @@ fn progress_dict<'py>(py: Python<'py>, total: u64, p: &Progress) -> PyResult<Bou
     Ok(d)
 }
 
-/// Run the pipeline over `paths` into the log directory `out`; `on_progress(dict)` is called
-/// as frames finish (and first with nothing finished, when the total is known). Returns the
-/// run's summary (the dict `replay --json` prints, as JSON).
-#[pyfunction]
-#[pyo3(signature = (paths, out, reference=None, config_path=None, config_table=None,
-                    recursive=false, aligned=None, wcs_only=false, on_progress=None))]
-#[allow(clippy::too_many_arguments)]
-pub fn replay(
-    py: Python<'_>,
-    paths: Vec<String>,
-    out: PathBuf,
+/// `replay`'s settings: the keyword arguments of `sunjitter.replay`, as its wrapper passes them
+/// (a dict; the configuration's keys only when one is given).
+#[derive(FromPyObject)]
+#[pyo3(from_item_all)]
+pub struct ReplayOptions {
     reference: Option<String>,
+    #[pyo3(default)]
     config_path: Option<PathBuf>,
+    #[pyo3(default)]
     config_table: Option<String>,
     recursive: bool,
     aligned: Option<PathBuf>,
     wcs_only: bool,
+}
+
+/// Run the pipeline over `paths` into the log directory `out` with `options`;
+/// `on_progress(dict)` is called as frames finish (and first with nothing finished, when the
+/// total is known). Returns the run's summary (the dict `replay --json` prints, as JSON).
+#[pyfunction]
+#[pyo3(signature = (paths, out, options, on_progress=None))]
+pub fn replay(
+    py: Python<'_>,
+    paths: Vec<String>,
+    out: PathBuf,
+    options: ReplayOptions,
     on_progress: Option<Bound<'_, PyAny>>,
 ) -> PyResult<String> {
+    let ReplayOptions {
+        reference,
+        config_path,
+        config_table,
+        recursive,
+        aligned,
+        wcs_only,
+    } = options;
     let config = crate::config::Source::new(config_path, config_table);
     let (progress_tx, progress_rx) = watch::channel(Progress::default());
     let (total_tx, total_rx) = std::sync::mpsc::channel::<u64>();

@@ -65,12 +65,14 @@ def replay(
         summary = _replay(
             paths,
             os.fspath(out),
-            reference=reference,
-            recursive=recursive,
-            aligned=None if aligned is None else os.fspath(aligned),
-            wcs_only=wcs_only,
+            {
+                "reference": reference,
+                "recursive": recursive,
+                "aligned": None if aligned is None else os.fspath(aligned),
+                "wcs_only": wcs_only,
+                **_inputs.config_args(config),
+            },
             on_progress=on_progress,
-            **_inputs.config_args(config),
         )
     finally:
         if bar is not None:

@@ -2,7 +2,7 @@
 ``sunjitter`` itself, which wrap these."""
 
 import os
-from typing import Any, Callable
+from typing import Any, Callable, TypedDict
 
 import numpy as np
 import numpy.typing as npt
@@ -12,6 +12,18 @@ __version__: str
 Cards = list[tuple[str, bool | int | float | str]]
 # A path spec ("FILE.fits", "FILE.fits[N]") or (C-contiguous float32 pixels, FITS header cards, name).
 Side = str | tuple[npt.NDArray[np.float32], bytes, str]
+
+class _ReplayConfig(TypedDict, total=False):
+    config_path: str | os.PathLike[str]
+    config_table: str
+
+class ReplayOptions(_ReplayConfig):
+    """``replay``'s settings (the configuration's keys only when one is given)."""
+
+    reference: str | None
+    recursive: bool
+    aligned: str | os.PathLike[str] | None
+    wcs_only: bool
 
 class Alignment:
     """A measurement, with what its products need of the pair."""
@@ -47,11 +59,6 @@ def summary(
 def replay(
     paths: list[str],
     out: str | os.PathLike[str],
-    reference: str | None = None,
-    config_path: str | os.PathLike[str] | None = None,
-    config_table: str | None = None,
-    recursive: bool = False,
-    aligned: str | os.PathLike[str] | None = None,
-    wcs_only: bool = False,
+    options: ReplayOptions,
     on_progress: Callable[[dict[str, int]], None] | None = None,
 ) -> str: ...

@@ -1,11 +1,12 @@
 //! `sunjitter align REFERENCE FRAME [--json] [--aligned OUT.fits] [--quicklook OUT.png]`
 
-use crate::engine;
-use crate::error::ExitCode;
-use crate::fits::{self, FrameSpec};
-use crate::record::Status;
-use crate::{Error, Result};
 use std::path::PathBuf;
+use sunjitter_core::engine;
+use sunjitter_core::error::Error;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_core::record::Status;
+use sunjitter_io::fits::{self, FrameSpec};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -41,14 +42,14 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         .collect();
     let mut inputs = vec![reference_spec.path.as_path(), frame_spec.path.as_path()];
     inputs.extend(args.config.path.as_deref());
-    crate::outputs::check_outputs(&outputs, &inputs)?;
+    sunjitter_io::outputs::check_outputs(&outputs, &inputs)?;
     let config = args.config.load(&Default::default())?;
     let read = fits::ReadOptions {
         plate_scales: config.plate_scales(),
         ..Default::default()
     };
     for path in args.aligned.iter().chain(&args.quicklook) {
-        crate::error::check_writable(path)?;
+        sunjitter_core::error::check_writable(path)?;
     }
     // Read side by side: at 4096² each read faults in tens of MB, one thread each.
     let (reference, frame) = std::thread::scope(|scope| {
@@ -60,7 +61,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         (reference, frame)
     });
     let (reference, frame) = (reference?, frame?);
-    let note = crate::config::plate_scale_note(
+    let note = sunjitter_runtime::config::plate_scale_note(
         &config.channel_plate_scales(),
         &config.channel_names,
         &reference.meta.channel,
@@ -69,7 +70,8 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     let cfg = config.engine;
     // The per-frame products read the images as read; without them their pixels are freed
     // as soon as the engine has its cleaned copies.
-    let workspace = std::sync::Arc::new(crate::self_tests::SelfTestCache::workspace_from_env());
+    let workspace =
+        std::sync::Arc::new(sunjitter_io::self_tests::SelfTestCache::workspace_from_env());
     let (outcome, images) = if outputs.is_empty() {
         (
             engine::align_images_owned_in(reference, frame, &cfg, workspace),
@@ -102,10 +104,10 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     // After the report, so `--json` prints its document even when a file cannot be written.
     if let Some((reference, frame)) = &images {
         if let Some(path) = &args.aligned {
-            crate::aligned::write_aligned(path, reference, frame, &outcome)?;
+            sunjitter_io::aligned::write_aligned(path, reference, frame, &outcome)?;
         }
         if let Some(path) = &args.quicklook {
-            crate::aligned::write_quicklook(path, reference, frame, &outcome)?;
+            sunjitter_io::aligned::write_quicklook(path, reference, frame, &outcome)?;
         }
     }
     Ok(if result.status == Status::Failed {
@@ -115,9 +117,9 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     })
 }
 
-fn print_human(r: &crate::record::AlignResult) {
+fn print_human(r: &sunjitter_core::record::AlignResult) {
     let status = r.status.as_str();
-    use crate::text::{escape, value_pm};
+    use sunjitter_core::text::{escape, value_pm};
     println!("{} → {}: {status}", escape(&r.reference), escape(&r.frame));
     if let (Some(s), Some(rot), Some(dx), Some(dy)) = (r.scale, r.rotation_arcsec, r.dx_px, r.dy_px)
     {

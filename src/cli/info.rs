@@ -6,12 +6,13 @@
 //! is 2 if any file was bad. With `--json` stdout always holds exactly one JSON array
 //! (empty when nothing could be read).
 
-use crate::error::ExitCode;
-use crate::fits::{self, FrameSpec};
-use crate::meta::FrameMeta;
-use crate::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
+use sunjitter_core::error::Error;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_core::meta::FrameMeta;
+use sunjitter_io::fits::{self, FrameSpec};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -52,7 +53,7 @@ pub struct InfoRecord {
 impl From<&FrameMeta> for InfoRecord {
     fn from(m: &FrameMeta) -> Self {
         InfoRecord {
-            file: crate::text::path(&m.file).into_owned(),
+            file: sunjitter_core::text::path(&m.file).into_owned(),
             hdu: m.hdu,
             frame: m.frame,
             width: m.width,
@@ -78,7 +79,10 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         match describe(file) {
             Ok(metas) => records.extend(metas.iter().map(InfoRecord::from)),
             Err(e) => {
-                eprintln!("sunjitter: {}", crate::text::escape(&e.to_string()));
+                eprintln!(
+                    "sunjitter: {}",
+                    sunjitter_core::text::escape(&e.to_string())
+                );
                 failed += 1;
             }
         }
@@ -173,7 +177,7 @@ fn row(r: &InfoRecord) -> [String; 10] {
         file,
         format!("{}×{}", r.width, r.height),
         r.bitpix.to_string(),
-        crate::text::escape(&r.channel).into_owned(),
+        sunjitter_core::text::escape(&r.channel).into_owned(),
         r.obs_time.clone().unwrap_or_else(|| "-".into()),
         opt(r.exptime_s, 3),
         scale,

@@ -34,16 +34,17 @@
 //! TREND = { "per_hour", "sigma_per_hour", "samples" } | null  (straight-line slope, units/h)
 //! ```
 //!
-//! Numbers are `null` where there is nothing to compute. Definitions: [`crate::inspect`]
-//! (series choice, trend, detrending, which periods are listed), [`crate::inspect::lombscargle`] (periodogram and its grid:
+//! Numbers are `null` where there is nothing to compute. Definitions: [`sunjitter_runtime::inspect`]
+//! (series choice, trend, detrending, which periods are listed), [`sunjitter_runtime::inspect::lombscargle`] (periodogram and its grid:
 //! "within one frequency bin" means within `frequency_resolution_hz`),
-//! [`crate::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
-//! every record field ([`crate::inspect::csv`]); `--plot` draws [`crate::inspect::plot`].
+//! [`sunjitter_runtime::inspect::stats::outliers`] (the 5σ test). `--csv` writes one row per frame with
+//! every record field ([`sunjitter_runtime::inspect::csv`]); `--plot` draws [`sunjitter_runtime::inspect::plot`].
 
-use crate::error::ExitCode;
-use crate::inspect::{self, log_files, read_frames_and_references, InspectOptions};
-use crate::{Error, Result};
 use std::path::PathBuf;
+use sunjitter_core::error::Error;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_runtime::inspect::{self, log_files, read_frames_and_references, InspectOptions};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -80,7 +81,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         }
     }
     for path in args.csv.iter().chain(&args.plot) {
-        crate::error::check_writable(path)?;
+        sunjitter_core::error::check_writable(path)?;
     }
     let files = log_files(&args.logs)?;
     let outputs: Vec<&std::path::Path> = [&args.csv, &args.plot]
@@ -88,7 +89,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         .filter_map(|p| p.as_deref())
         .collect();
     let inputs: Vec<&std::path::Path> = files.iter().map(PathBuf::as_path).collect();
-    crate::outputs::check_outputs(&outputs, &inputs)?;
+    sunjitter_io::outputs::check_outputs(&outputs, &inputs)?;
     let (frames, references, log) = read_frames_and_references(&files)?;
     let analyses = inspect::analyse(&frames, &InspectOptions::default());
     let names: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
@@ -96,12 +97,14 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     report.consistency = inspect::consistency::consistency(&frames, &references);
 
     if let Some(path) = &args.csv {
-        crate::outputs::write_file_atomically(path, |mut w| {
+        sunjitter_io::outputs::write_file_atomically(path, |mut w| {
             inspect::csv::write_csv(&mut w, &analyses)
         })?;
     }
     if let Some(path) = &args.plot {
-        crate::outputs::write_atomically(path, |tmp| inspect::plot::write_plot(&analyses, tmp))?;
+        sunjitter_io::outputs::write_atomically(path, |tmp| {
+            inspect::plot::write_plot(&analyses, tmp)
+        })?;
     }
     if args.output.json {
         let doc = serde_json::to_string_pretty(&report)

@@ -1,7 +1,7 @@
 //! `sunjitter merge SHARD_OUT… --out OUT`: join the logs of `replay --shard K/N`.
 
-use crate::Result;
 use std::path::PathBuf;
+use sunjitter_core::error::Result;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -23,21 +23,21 @@ shard missing, given twice, unfinished or made from other inputs or configuratio
 and nothing is written; a merge run again replaces its own earlier output, which stays
 whole until the new one takes its place.";
 
-pub fn run(args: &Args) -> Result<crate::error::ExitCode> {
+pub fn run(args: &Args) -> Result<sunjitter_core::error::ExitCode> {
     let mut shards = args
         .shards
         .iter()
-        .map(|p| crate::merge::read_shard(p))
+        .map(|p| sunjitter_runtime::merge::read_shard(p))
         .collect::<Result<Vec<_>>>()?;
-    crate::merge::check_set(&mut shards)?;
-    crate::merge::check_output(&args.out.dir, &shards)?;
-    let merged = crate::merge::merge(&shards);
-    let segments = crate::merge::write(&args.out.dir, &shards, &merged)?;
+    sunjitter_runtime::merge::check_set(&mut shards)?;
+    sunjitter_runtime::merge::check_output(&args.out.dir, &shards)?;
+    let merged = sunjitter_runtime::merge::merge(&shards);
+    let segments = sunjitter_runtime::merge::write(&args.out.dir, &shards, &merged)?;
     let frames: u64 = merged.frames.values().sum();
     eprintln!(
         "sunjitter: {} shards merged into {}: {frames} frames, {} with chained values carried across shards{}",
         shards.len(),
-        crate::text::path(&args.out.dir),
+        sunjitter_core::text::path(&args.out.dir),
         merged.stitched,
         if merged.unlinked > 0 {
             format!(", {} left without (see /log)", merged.unlinked)
@@ -47,15 +47,15 @@ pub fn run(args: &Args) -> Result<crate::error::ExitCode> {
     );
     if args.output.json {
         let doc = serde_json::json!({
-            "out": crate::text::path(&args.out.dir),
+            "out": sunjitter_core::text::path(&args.out.dir),
             "shards": shards.len(),
             "frames": frames,
             "per_channel": merged.frames,
             "stitched": merged.stitched,
             "unlinked": merged.unlinked,
-            "segments": segments.iter().map(|p| crate::text::path(p).into_owned()).collect::<Vec<_>>(),
+            "segments": segments.iter().map(|p| sunjitter_core::text::path(p).into_owned()).collect::<Vec<_>>(),
         });
         println!("{doc}");
     }
-    Ok(crate::error::ExitCode::Ok)
+    Ok(sunjitter_core::error::ExitCode::Ok)
 }

@@ -1,6 +1,6 @@
 //! One module per subcommand: its arguments (clap), its `EXAMPLES` and its `run`.
-//! `run` returns the [`ExitCode`](crate::error::ExitCode) of work that ran (`Ok` or `Failed`);
-//! errors carry their own through [`crate::Error::exit_code`], and `main` maps both to the
+//! `run` returns the [`ExitCode`](sunjitter_core::error::ExitCode) of work that ran (`Ok` or `Failed`);
+//! errors carry their own through [`sunjitter_core::error::Error::exit_code`], and `main` maps both to the
 //! process's status.
 //!
 //! Flags that several commands take are defined here once, so that each means and reads the
@@ -40,9 +40,9 @@ impl ConfigArg {
     /// loader of every command; `align` and `simulate` use its `[engine]`.
     pub fn load(
         &self,
-        overrides: &crate::config::Overrides,
-    ) -> crate::Result<crate::config::Config> {
-        crate::config::Config::load(self.path.as_deref(), overrides)
+        overrides: &sunjitter_runtime::config::Overrides,
+    ) -> sunjitter_core::error::Result<sunjitter_runtime::config::Config> {
+        sunjitter_runtime::config::Config::load(self.path.as_deref(), overrides)
     }
 }
 
@@ -89,8 +89,8 @@ pub struct PipelineArgs {
 
 impl PipelineArgs {
     /// What `--aligned`/`--wcs-only` ask for.
-    pub fn products(&self) -> crate::products::Request<'_> {
-        crate::products::Request {
+    pub fn products(&self) -> sunjitter_runtime::products::Request<'_> {
+        sunjitter_runtime::products::Request {
             dir: self.aligned.as_deref(),
             wcs_only: self.wcs_only,
             out: &self.out.dir,
@@ -107,7 +107,7 @@ pub const MIN_OPEN_FILES: u64 = 64;
 /// Make sure the process may open `need` files: the soft limit is raised toward the hard one
 /// when it is lower; if even the hard limit is lower, refuse before any work (exit 2) rather
 /// than fail half-way through a run.
-pub fn ensure_open_files(need: u64) -> crate::Result<()> {
+pub fn ensure_open_files(need: u64) -> sunjitter_core::error::Result<()> {
     #[cfg(unix)]
     {
         let mut limit = libc::rlimit {
@@ -129,7 +129,7 @@ pub fn ensure_open_files(need: u64) -> crate::Result<()> {
                 return Ok(());
             }
         }
-        Err(crate::Error::Usage(format!(
+        Err(sunjitter_core::error::Error::Usage(format!(
             "the open-file limit is {soft} (ulimit -n): this run needs at least {need}; raise it (e.g. ulimit -n 1024) and run again"
         )))
     }
@@ -193,7 +193,7 @@ impl Drop for Bar {
 
 /// A `tracing_subscriber` writer for stderr that hides the active [`Bar`] while a log line
 /// is written, so bars and logs never tear. Use it in the binary:
-/// `tracing_subscriber::fmt().with_writer(sunjitter::commands::BarAwareStderr)`.
+/// `tracing_subscriber::fmt().with_writer(sunjitter::cli::BarAwareStderr)`.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct BarAwareStderr;
 

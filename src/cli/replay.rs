@@ -1,10 +1,10 @@
 //! `sunjitter replay PATH… --out OUT`: the daemon's pipeline over archived frames.
 
 use super::watch::{effective_config, runtime, termination};
-use crate::error::ExitCode;
-use crate::pipeline::Progress;
-use crate::replay::{ReplayRequest, ReplayRun};
-use crate::Result;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_runtime::pipeline::Progress;
+use sunjitter_runtime::replay::{ReplayRequest, ReplayRun};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -17,7 +17,7 @@ pub struct Args {
     pub output: super::JsonArg,
     /// Measure only shard K (0-based) of N of the inputs, for `sunjitter merge` to join.
     #[arg(long, value_name = "K/N")]
-    pub shard: Option<crate::shard::ShardSpec>,
+    pub shard: Option<sunjitter_runtime::shard::ShardSpec>,
     /// With --shard: frames of each channel measured before the shard's own, not logged
     /// [default: a keyframe interval; 4 for previous; 1 for channel:NAME; 0 for fixed:FILE].
     #[arg(long, value_name = "FRAMES", requires = "shard")]
@@ -83,12 +83,12 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     match &shard {
         None if progress.frames == 0 && progress.skipped == 0 && earlier > 0 => eprintln!(
             "sunjitter: all {earlier} frames already logged in {} (nothing left to measure)",
-            crate::text::path(&args.run.out.dir),
+            sunjitter_core::text::path(&args.run.out.dir),
         ),
         None => eprintln!(
             "sunjitter: {} frames logged to {} ({} ok, {} degraded, {} failed), {} inputs skipped{}",
             progress.frames,
-            crate::text::path(&args.run.out.dir),
+            sunjitter_core::text::path(&args.run.out.dir),
             progress.ok,
             progress.degraded,
             progress.failed,
@@ -106,7 +106,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
             plan.start,
             plan.end,
             plan.total,
-            crate::text::path(&args.run.out.dir),
+            sunjitter_core::text::path(&args.run.out.dir),
             plan.owned.len(),
             progress.frames,
             progress.ok,

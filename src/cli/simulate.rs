@@ -2,19 +2,20 @@
 //! accuracy test of Wang et al. (§4.1 of their paper, docs/method.md) on one real image, with
 //! the cross-correlation baseline.
 
-use crate::engine::{self, Image};
-use crate::error::ExitCode;
-use crate::fits::{self, FrameSpec};
-use crate::geometry::Similarity;
-use crate::resample::{HighOrder, HighOrderSpline};
-use crate::simulate::{
-    contract_units, draw_truths, summarise, MonteCarloSummary, TrialOutcome, TrialRanges,
-};
-use crate::stats::SplitMix64;
-use crate::{Error, Result};
 use ndarray::Array2;
 use serde::Serialize;
 use std::path::PathBuf;
+use sunjitter_core::engine::{self, Image};
+use sunjitter_core::error::Error;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_core::geometry::Similarity;
+use sunjitter_core::resample::{HighOrder, HighOrderSpline};
+use sunjitter_core::simulate::{
+    contract_units, draw_truths, summarise, MonteCarloSummary, TrialOutcome, TrialRanges,
+};
+use sunjitter_core::stats::SplitMix64;
+use sunjitter_io::fits::{self, FrameSpec};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -78,29 +79,32 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         config.engine.window_px = args.window_px;
         config.validate()?;
     }
-    crate::limits::flag_int("--trials", args.trials as u64, 1, 1_000_000)?;
-    crate::limits::flag_int("--cc-trials", args.cc_trials as u64, 0, 1_000_000)?;
+    sunjitter_runtime::limits::flag_int("--trials", args.trials as u64, 1, 1_000_000)?;
+    sunjitter_runtime::limits::flag_int("--cc-trials", args.cc_trials as u64, 0, 1_000_000)?;
     if let Some(k) = args.noise {
-        crate::limits::flag_float("--noise", k, 0.0, 1e6, false)?;
+        sunjitter_runtime::limits::flag_float("--noise", k, 0.0, 1e6, false)?;
     }
     let mut cfg = config.engine;
     // The trials' transforms are random similarities, not a telescope's: scale and roll are
     // what is measured, whatever the instrument would hold them to.
-    if cfg.model == crate::engine::ModelChoice::Auto {
-        cfg.model = crate::engine::ModelChoice::Similarity;
+    if cfg.model == sunjitter_core::engine::ModelChoice::Auto {
+        cfg.model = sunjitter_core::engine::ModelChoice::Similarity;
     }
     let spec = FrameSpec::parse(&args.image);
     if let Some(out) = &args.trials_out {
         let mut inputs = vec![spec.path.as_path()];
         inputs.extend(args.config.path.as_deref());
-        crate::outputs::check_outputs(&[out], &inputs)?;
+        sunjitter_io::outputs::check_outputs(&[out], &inputs)?;
     }
     let mut reference = fits::read_frame(&spec)?;
     // Clean cosmic-ray hits and hot pixels before making frames: a spike smeared by the warp
     // is no longer recognisable as one, and would be a difference no real pair has. Every
     // suspect goes, also those the engine keeps as possibly real.
     if cfg.hot_pixel_fraction > 0.0 {
-        crate::preprocess::remove_spikes_from_scene(&mut reference.data, cfg.hot_pixel_fraction);
+        sunjitter_core::preprocess::remove_spikes_from_scene(
+            &mut reference.data,
+            cfg.hot_pixel_fraction,
+        );
     }
     let (h, w) = reference.data.dim();
     let center = Similarity::array_center(w, h);
@@ -109,7 +113,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     // interpolator on both sides its errors cancel, and the Monte Carlo would not see what a
     // real frame (a new sampling of the sky) shows the engine.
     let spline = HighOrderSpline::new(reference.data.view(), HighOrder::Nonic);
-    let background_sigma = crate::simulate::background_noise(reference.data.view());
+    let background_sigma = sunjitter_core::simulate::background_noise(reference.data.view());
     let noise_sigma = match (args.noise, background_sigma) {
         (None, _) => None,
         (Some(k), Some(background)) => Some(k * background),
@@ -119,7 +123,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
                 reason: format!(
                     "no {0}×{0} block of finite, varying pixels to measure the background \
                      noise in, so --noise has no unit",
-                    crate::simulate::NOISE_BLOCK_PX
+                    sunjitter_core::simulate::NOISE_BLOCK_PX
                 ),
             })
         }
@@ -162,7 +166,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         elapsed += out.result.elapsed_ms;
         let cc = with_cc
             .then(|| {
-                crate::crosscorr::cc_translation(
+                sunjitter_core::crosscorr::cc_translation(
                     r.data.view(),
                     f.data.view(),
                     out.mask.as_ref().map(|m| m.view()),
@@ -197,7 +201,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         };
         if out.transform.is_none() {
             tracing::warn!("trial failed: {}", res.message);
-        } else if res.status == crate::record::Status::Degraded {
+        } else if res.status == sunjitter_core::record::Status::Degraded {
             tracing::debug!("trial degraded: {}", res.message);
         }
         progress.inc(1);
@@ -226,7 +230,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     }
     if let Some(path) = &args.trials_out {
         let text = lines.join("\n") + "\n";
-        crate::outputs::write_file_atomically(path, |w| {
+        sunjitter_io::outputs::write_file_atomically(path, |w| {
             std::io::Write::write_all(w, text.as_bytes())
         })?;
     }
@@ -295,7 +299,7 @@ fn print_table(r: &Report) {
         "{:<26}{:>14}{:>14}{:>14}{:>14}",
         "", "scale", "rotation ″", "dx px", "dy px"
     );
-    type Column = fn(&crate::simulate::ParameterSummary) -> f64;
+    type Column = fn(&sunjitter_core::simulate::ParameterSummary) -> f64;
     // The last field says whether the row is a fraction of trials (printed as one in every
     // column) or a value in each column's unit.
     let rows: [(&str, Column, bool); 8] = [

@@ -1,9 +1,9 @@
 //! `sunjitter status [PATH|OUTDIR] [--json]`: print a daemon's health status file.
 
-use crate::error::ExitCode;
-use crate::monitor::status;
-use crate::Result;
 use std::path::PathBuf;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_runtime::monitor::status;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -23,11 +23,11 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     let path = status::resolve_path(&args.path);
     let s = status::read(&path)?;
     if args.output.json {
-        let text =
-            serde_json::to_string(&s).map_err(|e| crate::Error::output(&path, e.to_string()))?;
+        let text = serde_json::to_string(&s)
+            .map_err(|e| sunjitter_core::error::Error::output(&path, e.to_string()))?;
         println!("{text}");
     } else {
-        let now = crate::records::now_ns();
+        let now = sunjitter_io::records::now_ns();
         let diagnosis = if status::is_stale(&s, now) {
             let dir = match path.parent() {
                 Some(p) if !p.as_os_str().is_empty() => p,

@@ -11,17 +11,18 @@
 //! "cadence_s": S, "seed": S, "jitter": SPEC, "truth_csv": PATH, "files": [PATH…],
 //! "seconds_per_frame": T}`, where `seconds_per_frame` is the generation plus write time.
 
-use crate::geometry::Similarity;
-use crate::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
-use crate::time::{parse_fits_time, TimeScale};
+use sunjitter_core::geometry::Similarity;
+use sunjitter_core::synth::{self, CardValue, JitterSpec, SunModel, SynthConfig};
+use sunjitter_core::time::{parse_fits_time, TimeScale};
 
-/// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
-use crate::error::ExitCode;
-use crate::{Error, Result};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use sunjitter_core::error::Error;
+/// 2024-05-01T12:00:00Z, the default DATE-OBS of frame 0 (`date -u -d 2024-05-01T12:00:00Z +%s`).
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -48,7 +49,7 @@ pub struct Args {
     /// The Sun's differential rotation between frames: howard, snodgrass, allen, or none for
     /// a Sun that does not turn. The truth stays the telescope's motion.
     #[arg(long, default_value = "howard")]
-    pub solar_rotation: crate::solar_rotation::Profile,
+    pub solar_rotation: sunjitter_core::solar_rotation::Profile,
     /// Write one frame per cadence in wall-clock time (to feed `watch`).
     #[arg(long)]
     pub realtime: bool,
@@ -70,8 +71,8 @@ Examples:
 const MAX_SPAN_S: f64 = 100.0 * 365.25 * 86_400.0;
 
 pub fn run(args: &Args) -> Result<ExitCode> {
-    crate::limits::flag_int("--frames", args.frames as u64, 1, 1_000_000)?;
-    crate::limits::flag_float("--cadence", args.cadence, 0.0, 365.25 * 86_400.0, true)?;
+    sunjitter_runtime::limits::flag_int("--frames", args.frames as u64, 1, 1_000_000)?;
+    sunjitter_runtime::limits::flag_float("--cadence", args.cadence, 0.0, 365.25 * 86_400.0, true)?;
     let spec: JitterSpec = args.jitter.parse()?;
     let start_ns = start_time(args)?;
     let span_s = (args.frames - 1) as f64 * args.cadence;
@@ -97,7 +98,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     let mut outputs = vec![truth_path.clone()];
     outputs.extend((0..args.frames).map(|k| args.out.join(frame_name(k))));
     let outputs: Vec<&Path> = outputs.iter().map(PathBuf::as_path).collect();
-    crate::outputs::check_outputs(&outputs, &[])?;
+    sunjitter_io::outputs::check_outputs(&outputs, &[])?;
     std::fs::create_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
 
     // Written whole once the frames are (under a temporary name, renamed).
@@ -118,7 +119,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         write_frame(&path, &synth::header_cards(&cfg, k, obs_ns), &image)?;
         truth_csv.push_str(&format!(
             "{k},{name},{},{:.6},{:.6},{:.6},{:.9}\n",
-            crate::time::format_iso_utc(obs_ns),
+            sunjitter_core::time::format_iso_utc(obs_ns),
             motion.dx,
             motion.dy,
             motion.rotation_arcsec(),
@@ -127,7 +128,9 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         tracing::debug!(frame = k, file = %path.display(), "wrote frame");
         files.push(path);
     }
-    crate::outputs::write_file_atomically(&truth_path, |w| w.write_all(truth_csv.as_bytes()))?;
+    sunjitter_io::outputs::write_file_atomically(&truth_path, |w| {
+        w.write_all(truth_csv.as_bytes())
+    })?;
     let per_frame = if args.realtime {
         None
     } else {
@@ -156,8 +159,8 @@ pub fn run(args: &Args) -> Result<ExitCode> {
             args.size,
             args.size,
             synth::CHANNEL,
-            crate::text::path(&args.out),
-            crate::text::path(&truth_path),
+            sunjitter_core::text::path(&args.out),
+            sunjitter_core::text::path(&truth_path),
             per_frame.map_or(String::new(), |s| format!("; {s:.2} s per frame"))
         );
     }
@@ -220,7 +223,7 @@ fn write_frame(path: &Path, cards: &[synth::Card], image: &ndarray::Array2<f32>)
         data_type: ImageType::Short,
         dimensions: &[h, w],
     };
-    crate::outputs::write_atomically(path, |tmp| {
+    sunjitter_io::outputs::write_atomically(path, |tmp| {
         let mut f = FitsFile::create(tmp)
             .with_custom_primary(&desc)
             .open()

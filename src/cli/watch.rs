@@ -1,14 +1,15 @@
 //! `sunjitter watch DIR --out OUT`: the daemon.
 
-use crate::config::{Config, Overrides};
-use crate::error::ExitCode;
-use crate::monitor::{Monitor, MonitorSetup};
-use crate::outputs::check_outputs_outside;
-use crate::pipeline::{EngineAligner, FitsReader, Progress, RunParts};
-use crate::runs::open_run;
-use crate::{Error, Result};
 use std::path::PathBuf;
 use std::sync::Arc;
+use sunjitter_core::error::Error;
+use sunjitter_core::error::ExitCode;
+use sunjitter_core::error::Result;
+use sunjitter_io::outputs::check_outputs_outside;
+use sunjitter_runtime::config::{Config, Overrides};
+use sunjitter_runtime::monitor::{Monitor, MonitorSetup};
+use sunjitter_runtime::pipeline::{EngineAligner, FitsReader, Progress, RunParts};
+use sunjitter_runtime::runs::open_run;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -69,14 +70,14 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     // the watched directory and the products).
     let mut protected = config.reference_files();
     protected.extend(args.run.config.path.clone());
-    let products = crate::products::open(
+    let products = sunjitter_runtime::products::open(
         args.run.products(),
         std::slice::from_ref(&root),
         &protected,
         &root,
     )?;
     let watched: (&std::path::Path, &str) = (&root, "the watched directory");
-    crate::runs::check_out_dir(&args.run.out.dir, &[watched], true, &[])?;
+    sunjitter_runtime::runs::check_out_dir(&args.run.out.dir, &[watched], true, &[])?;
     let status_file = config.health.status_path(&args.run.out.dir);
     let mut trees = vec![watched];
     if let Some(dir) = args.run.aligned.as_deref() {
@@ -85,16 +86,16 @@ pub fn run(args: &Args) -> Result<ExitCode> {
     let protected_refs: Vec<&std::path::Path> = protected.iter().map(|p| p.as_path()).collect();
     check_outputs_outside(&[&status_file], &protected_refs, &trees)?;
     // Before reading (and recovering) the log: another daemon may be writing it.
-    let identity = crate::runs::RunIdentity::watch(&root);
+    let identity = sunjitter_runtime::runs::RunIdentity::watch(&root);
     let opened = open_run(&args.run.out.dir, &config, &identity)?;
     if let Some(dir) = status_file.parent().filter(|d| !d.as_os_str().is_empty()) {
-        crate::error::check_writable_dir(dir)?;
+        sunjitter_core::error::check_writable_dir(dir)?;
     }
     if opened.earlier_frames > 0 {
         tracing::info!(
             frames = opened.earlier_frames,
             "resuming the log in {}: frames already logged are not measured again",
-            crate::text::path(&args.run.out.dir)
+            sunjitter_core::text::path(&args.run.out.dir)
         );
     }
     let (history, mcap) = (opened.history, opened.sink);
@@ -114,7 +115,7 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         reader: Arc::new(FitsReader::from_config(&config)),
         aligner: Arc::new(
             EngineAligner::from_config(&config)
-                .sharing(crate::self_tests::SelfTestCache::workspace_from_env()),
+                .sharing(sunjitter_io::self_tests::SelfTestCache::workspace_from_env()),
         ),
         sink: Box::new(sink),
         history,
@@ -122,8 +123,9 @@ pub fn run(args: &Args) -> Result<ExitCode> {
         live: true,
         products,
     };
-    let result = runtime
-        .block_on(async { crate::daemon::run_daemon(&args.dir, parts, termination()?).await });
+    let result = runtime.block_on(async {
+        sunjitter_runtime::daemon::run_daemon(&args.dir, parts, termination()?).await
+    });
     let stopped = {
         let _inside = runtime.enter();
         monitor.stop()

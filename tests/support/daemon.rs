@@ -6,11 +6,11 @@
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
-use sunjitter::config::Config;
-use sunjitter::pipeline::{Progress, RunParts};
-use sunjitter::ports::{Aligner, FrameReader};
-use sunjitter::records::RecordSink;
-use sunjitter::reference::History;
+use sunjitter_io::records::RecordSink;
+use sunjitter_runtime::config::Config;
+use sunjitter_runtime::pipeline::{Progress, RunParts};
+use sunjitter_runtime::ports::{Aligner, FrameReader};
+use sunjitter_runtime::reference::History;
 use tokio::sync::{oneshot, watch};
 
 /// How long a wait may take before the daemon counts as hung.
@@ -20,11 +20,11 @@ const HUNG: Duration = Duration::from_secs(600);
 pub struct Daemon {
     pub progress: watch::Receiver<Progress>,
     stop: oneshot::Sender<()>,
-    handle: tokio::task::JoinHandle<sunjitter::Result<Progress>>,
+    handle: tokio::task::JoinHandle<sunjitter_core::error::Result<Progress>>,
 }
 
 /// Run a daemon on `dir` with `config`, `reader`, `aligner` and `sink`, continuing `history`
-/// (what earlier runs logged, as [`sunjitter::pipeline::read_history`] gives it).
+/// (what earlier runs logged, as [`sunjitter_runtime::pipeline::read_history`] gives it).
 pub fn spawn(
     dir: &Path,
     config: Config,
@@ -47,7 +47,7 @@ pub fn spawn(
     let (stop, stopped) = oneshot::channel::<()>();
     let dir = dir.to_path_buf();
     let handle = tokio::spawn(async move {
-        sunjitter::daemon::run_daemon(&dir, parts, async {
+        sunjitter_runtime::daemon::run_daemon(&dir, parts, async {
             let _ = stopped.await;
         })
         .await

@@ -12,14 +12,16 @@ use ndarray::Array2;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use sunjitter::config::Config;
-use sunjitter::engine::{AlignOutcome, Image};
-use sunjitter::ports::Aligner;
-use sunjitter::records::{Record, RecordSink};
-use sunjitter::reference::History;
-use sunjitter::sink::LogLevel;
-use sunjitter::{FrameAlignment, Similarity, Status};
+use sunjitter_core::engine::{AlignOutcome, Image};
+use sunjitter_core::geometry::Similarity;
+use sunjitter_core::record::FrameAlignment;
+use sunjitter_core::record::Status;
+use sunjitter_io::records::{Record, RecordSink};
+use sunjitter_io::sink::LogLevel;
+use sunjitter_runtime::config::Config;
 use sunjitter_runtime::fake::outcome;
+use sunjitter_runtime::ports::Aligner;
+use sunjitter_runtime::reference::History;
 
 pub const AIA: &str = "data/real/aia_171_20110215T000000_128.fits";
 pub const S: i64 = 1_000_000_000;
@@ -42,7 +44,7 @@ pub fn source() -> Source {
         }
         cards.push(text);
     }
-    let pixels = sunjitter::fits::read_frame(&sunjitter::fits::FrameSpec::file(AIA))
+    let pixels = sunjitter_io::fits::read_frame(&sunjitter_io::fits::FrameSpec::file(AIA))
         .unwrap()
         .data;
     Source { cards, pixels }
@@ -73,12 +75,12 @@ pub fn crop(
     obs_time_ns: i64,
 ) -> Frame {
     let (ox, oy) = offset;
-    let iso = sunjitter::pipeline::iso8601_utc(obs_time_ns);
+    let iso = sunjitter_runtime::pipeline::iso8601_utc(obs_time_ns);
     let mut cards = Vec::new();
     for c in &src.cards {
         let key = c[..8.min(c.len())].trim_end();
         let value = |k: &str| {
-            sunjitter::header::parse_card(c.as_bytes())
+            sunjitter_core::header::parse_card(c.as_bytes())
                 .value
                 .and_then(|v| v.as_f64())
                 .unwrap_or_else(|| panic!("{k} is numeric"))
@@ -207,7 +209,7 @@ pub use super::daemon::Daemon;
 pub fn start(
     dir: &Path,
     config: Config,
-    reader: Arc<dyn sunjitter::ports::FrameReader>,
+    reader: Arc<dyn sunjitter_runtime::ports::FrameReader>,
     aligner: Arc<dyn Aligner>,
     sink: Box<dyn RecordSink>,
 ) -> Daemon {
@@ -224,7 +226,7 @@ pub fn publish(dir: &Path, f: &Frame) {
 /// The `/jitter` and `/log` messages of an MCAP output directory, read back from disk by the
 /// sink's reader, as records.
 pub fn read_back(out: &Path) -> Vec<Record> {
-    let logs = sunjitter::sink::read_logs(&[out.to_path_buf()]).unwrap();
+    let logs = sunjitter_io::sink::read_logs(&[out.to_path_buf()]).unwrap();
     assert!(
         logs.segments.iter().all(|s| s.complete),
         "{:?}",

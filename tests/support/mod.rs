@@ -230,7 +230,7 @@ pub fn publish(watched: &Path, f: &sunjitter_runtime::fake::SplitFrame) {
 /// reads segments still being written).
 pub fn logged(out: &Path) -> std::collections::BTreeMap<String, usize> {
     let mut counts = std::collections::BTreeMap::new();
-    if let Ok(logs) = sunjitter::sink::read_logs(&[out.to_path_buf()]) {
+    if let Ok(logs) = sunjitter_io::sink::read_logs(&[out.to_path_buf()]) {
         for m in &logs.jitter {
             *counts.entry(m.record.align.frame.clone()).or_insert(0) += 1;
         }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::mpsc::{channel, Receiver};
 use std::time::{Duration, Instant};
-use sunjitter::fits::{self, FrameSpec};
+use sunjitter_io::fits::{self, FrameSpec};
 
 /// The IRIS SJI 1400 Å cube (54 frames, 110 × 109 px, 0.16635″/px).
 pub const CUBE_1400: &str = "data/real/iris_l2_20140329_140938_3860258481_SJI_1400_t000.fits";

@@ -4,7 +4,7 @@
 //! documents them all. Command-line flags override the file ([`Overrides`]). The effective
 //! configuration serialises to JSON for the MCAP `sunjitter` metadata record.
 
-use crate::reference::{ChannelPolicy, PolicySpec};
+use crate::reference::{ChannelPolicy, PolicySpec, ReferencePolicies};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -133,6 +133,28 @@ pub struct ChannelConfig {
     pub plate_scale_arcsec: Option<f64>,
 }
 
+impl ChannelConfig {
+    /// The reference settings this channel sets, over the defaults `r`.
+    fn policy_over(&self, r: &ChannelPolicy) -> ChannelPolicy {
+        ChannelPolicy {
+            policy: self.policy.clone().unwrap_or_else(|| r.policy.clone()),
+            keyframe_every_frames: self
+                .keyframe_every_frames
+                .unwrap_or(r.keyframe_every_frames),
+            keyframe_every_s: self.keyframe_every_s.unwrap_or(r.keyframe_every_s),
+            keyframe_min_frames: self.keyframe_min_frames.unwrap_or(r.keyframe_min_frames),
+            refresh_below_similarity: self
+                .refresh_below_similarity
+                .unwrap_or(r.refresh_below_similarity),
+            restart_after_failures: self
+                .restart_after_failures
+                .unwrap_or(r.restart_after_failures),
+            tolerance_s: self.tolerance_s.unwrap_or(r.tolerance_s),
+            hold_s: self.hold_s.unwrap_or(r.hold_s),
+        }
+    }
+}
+
 /// Command-line settings that override the file.
 #[derive(Debug, Clone, Default)]
 pub struct Overrides {
@@ -183,8 +205,9 @@ impl Config {
     /// origins that are not origins.
     pub fn validate(&self) -> Result<()> {
         limits::check(self)?;
+        let policies = self.reference_policies();
         for name in self.channels.keys() {
-            self.partner_chain(name)?;
+            policies.partner_chain(name)?;
         }
         self.live.validate()?;
         Ok(())
@@ -198,27 +221,15 @@ impl Config {
             .unwrap_or_else(|| header_channel.to_string())
     }
 
-    /// The resolved reference settings of a channel. A channel told to follow itself
-    /// (`--reference channel:X` applies to X too) uses `keyframe`.
-    pub fn channel_policy(&self, channel: &str) -> ChannelPolicy {
-        let r = &self.reference;
-        let c = self.channels.get(channel).cloned().unwrap_or_default();
-        let mut policy = c.policy.unwrap_or_else(|| r.policy.clone());
-        if matches!(&policy, PolicySpec::Channel(p) if p == channel) {
-            policy = PolicySpec::Keyframe;
-        }
-        ChannelPolicy {
-            policy,
-            keyframe_every_frames: c.keyframe_every_frames.unwrap_or(r.keyframe_every_frames),
-            keyframe_every_s: c.keyframe_every_s.unwrap_or(r.keyframe_every_s),
-            keyframe_min_frames: c.keyframe_min_frames.unwrap_or(r.keyframe_min_frames),
-            refresh_below_similarity: c
-                .refresh_below_similarity
-                .unwrap_or(r.refresh_below_similarity),
-            restart_after_failures: c.restart_after_failures.unwrap_or(r.restart_after_failures),
-            tolerance_s: c.tolerance_s.unwrap_or(r.tolerance_s),
-            hold_s: c.hold_s.unwrap_or(r.hold_s),
-        }
+    /// Every channel's reference settings: `[channels.NAME]` over `[reference]`, resolved
+    /// once (a run holds the result).
+    pub fn reference_policies(&self) -> ReferencePolicies {
+        let channels = self
+            .channels
+            .iter()
+            .map(|(name, c)| (name.clone(), c.policy_over(&self.reference)))
+            .collect();
+        ReferencePolicies::new(self.reference.clone(), channels)
     }
 
     /// The engine settings of each channel that sets any of its own, by topic name.
@@ -270,24 +281,6 @@ impl Config {
             }
         }
         sunjitter_io::fits::PlateScales(by_header)
-    }
-
-    /// Follow `channel:NAME` links from `channel`; a cycle would make frames wait forever.
-    pub fn partner_chain(&self, channel: &str) -> Result<Vec<String>> {
-        let mut seen = vec![channel.to_string()];
-        let mut current = channel.to_string();
-        while let PolicySpec::Channel(next) = self.channel_policy(&current).policy {
-            if seen.contains(&next) {
-                seen.push(next);
-                return Err(Error::Usage(format!(
-                    "configuration: channel references form a cycle: {}",
-                    seen.join(" → ")
-                )));
-            }
-            seen.push(next.clone());
-            current = next;
-        }
-        Ok(seen)
     }
 
     /// The effective configuration as JSON (for the MCAP metadata record).
@@ -572,10 +565,13 @@ mod tests {
             "#,
         )
         .unwrap();
-        let b = config.channel_policy("B");
+        let b = config.reference_policies().get("B").clone();
         assert_eq!(b.policy, PolicySpec::Channel("A".into()));
         assert_eq!((b.tolerance_s, b.hold_s), (2.5, 10.0));
-        assert_eq!(config.channel_policy("A").policy, PolicySpec::Previous);
+        assert_eq!(
+            config.reference_policies().get("A").policy,
+            PolicySpec::Previous
+        );
     }
 
     #[test]
@@ -586,11 +582,14 @@ mod tests {
             recursive: true,
         });
         assert_eq!(
-            config.channel_policy("B").policy,
+            config.reference_policies().get("B").policy,
             PolicySpec::Channel("A".into())
         );
         // A cannot follow itself: it keeps a keyframe series the others follow.
-        assert_eq!(config.channel_policy("A").policy, PolicySpec::Keyframe);
+        assert_eq!(
+            config.reference_policies().get("A").policy,
+            PolicySpec::Keyframe
+        );
         assert!(config.daemon.recursive);
         config.validate().unwrap();
     }

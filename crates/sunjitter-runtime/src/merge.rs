@@ -15,7 +15,7 @@
 //! do the I/O; [`merge`] is pure.
 
 use crate::config::Config;
-use crate::reference::PolicySpec;
+use crate::reference::{PolicySpec, ReferencePolicies};
 use crate::shard::{ChainStart, ShardDone, ShardSpec, SHARD_DONE_METADATA, SHARD_METADATA};
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -317,8 +317,8 @@ enum LinkState {
 }
 
 /// The channel at the root of `channel`'s `channel:` partners.
-fn root_channel(config: &Config, channel: &str) -> String {
-    config
+fn root_channel(policies: &ReferencePolicies, channel: &str) -> String {
+    policies
         .partner_chain(channel)
         .ok()
         .and_then(|c| c.last().cloned())
@@ -382,13 +382,15 @@ fn chain_value(v: &crate::shard::ChainValue, center: [f64; 2]) -> Chain {
 /// The link state of every chain of a root channel, per (shard, channel): identity for a
 /// chain its shard owns (or a fixed reference), else a link through frames the run's
 /// resolved chains reach.
-fn link_states(shards: &[ShardLog]) -> BTreeMap<(usize, String), Vec<LinkState>> {
-    let config = &shards[0].config;
+fn link_states(
+    shards: &[ShardLog],
+    policies: &ReferencePolicies,
+) -> BTreeMap<(usize, String), Vec<LinkState>> {
     // Chains of root channels per (shard, channel): their link states.
     let mut links: BTreeMap<(usize, String), Vec<LinkState>> = BTreeMap::new();
     for (i, s) in shards.iter().enumerate() {
         for (channel, starts) in &s.done.chains {
-            let fixed = matches!(config.channel_policy(channel).policy, PolicySpec::Fixed(_));
+            let fixed = matches!(policies.get(channel).policy, PolicySpec::Fixed(_));
             let states = starts
                 .iter()
                 .map(|st| {
@@ -504,8 +506,8 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
     let Some(first) = shards.first() else {
         return Merged::default();
     };
-    let config = &first.config;
-    let links = link_states(shards);
+    let policies = first.config.reference_policies();
+    let links = link_states(shards, &policies);
 
     // Frame times of the whole run, for followers' partner frames.
     let times: HashMap<&str, i64> = shards
@@ -521,7 +523,7 @@ pub fn merge(shards: &[ShardLog]) -> Merged {
     for (i, s) in shards.iter().enumerate() {
         for jm in &s.contents.jitter {
             let mut m = jm.record.clone();
-            let root = root_channel(config, &m.channel);
+            let root = root_channel(&policies, &m.channel);
             let at = if root == m.channel {
                 jm.log_time_ns as i64
             } else {

@@ -216,13 +216,14 @@ pub fn plan(
             .unwrap_or_default()
     };
     // Measured range per channel, as indices within the channel: [lo, hi).
+    let policies = config.reference_policies();
     let mut need: BTreeMap<String, (usize, usize)> = BTreeMap::new();
     for (c, ix) in &by_channel {
         let a = ix.partition_point(|&i| i < start);
         let b = ix.partition_point(|&i| i < end);
         if a < b {
-            let p = config.channel_policy(c);
-            need.insert(c.to_string(), (overlap_start(a, &p, &times(c), overlap), b));
+            let p = policies.get(c);
+            need.insert(c.to_string(), (overlap_start(a, p, &times(c), overlap), b));
         }
     }
     // Partner frames of `channel:` followers, within the tolerance of the frames they
@@ -231,7 +232,7 @@ pub fn plan(
         let mut changed = false;
         let snapshot = need.clone();
         for (c, &(lo, hi)) in &snapshot {
-            let p = config.channel_policy(c);
+            let p = policies.get(c);
             let PolicySpec::Channel(partner) = &p.policy else {
                 continue;
             };
@@ -247,8 +248,7 @@ pub fn plan(
             if i0 >= i1 {
                 continue;
             }
-            let pp = config.channel_policy(partner);
-            let s = overlap_start(i0, &pp, &partner_times, overlap);
+            let s = overlap_start(i0, policies.get(partner), &partner_times, overlap);
             let entry = need.entry(partner.clone()).or_insert((s, i1));
             let merged = (entry.0.min(s), entry.1.max(i1));
             if merged != *entry {
@@ -751,7 +751,7 @@ mod tests {
         // Refresh every 50 frames (the age rule off): keyframes at 0, 50, 100, …
         let mut config = Config::default();
         config.reference.keyframe_every_s = 0.0;
-        let p = config.channel_policy("A");
+        let p = config.reference_policies().get("A").clone();
         let times: Vec<i64> = (0..200).map(|i| i * 12_000_000_000).collect();
         assert_eq!(predicted_keyframes(&times, &p), vec![0, 50, 100, 150]);
         // Own frames from 120: at least 50 frames before (70), back to the keyframe at 50,
@@ -769,7 +769,7 @@ mod tests {
         config.reference.keyframe_every_frames = 0;
         config.reference.keyframe_every_s = 60.0;
         config.reference.keyframe_min_frames = 2;
-        let p = config.channel_policy("A");
+        let p = config.reference_policies().get("A").clone();
         // 20 s cadence: age 60 s at frame 3 (on-reference 2 ≥ 2).
         let times: Vec<i64> = (0..10).map(|i| i * 20_000_000_000).collect();
         assert_eq!(predicted_keyframes(&times, &p), vec![0, 3, 6, 9]);

@@ -93,6 +93,7 @@ pub fn check(config: &Config) -> Result<()> {
     sink(&config.sink)?;
     daemon(&config.daemon)?;
     policy("reference", &config.reference)?;
+    let policies = config.reference_policies();
     for (name, c) in &config.channels {
         check_channel_name("[channels.NAME]", name)?;
         if let Some(PolicySpec::Channel(partner)) = &c.policy {
@@ -102,7 +103,7 @@ pub fn check(config: &Config) -> Result<()> {
                 )));
             }
         }
-        policy(&format!("channels.{name}"), &config.channel_policy(name))?;
+        policy(&format!("channels.{name}"), policies.get(name))?;
         stability(
             &format!("channels.{name}"),
             c.scale_stability,

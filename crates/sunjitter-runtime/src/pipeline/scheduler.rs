@@ -4,7 +4,9 @@ use super::frames::FrameItem;
 use super::job::{Job, JobDone};
 use crate::config::Config;
 use crate::reference::History;
-use crate::reference::{ChannelState, PartnerFrame, PolicySpec, RestoredChannel};
+use crate::reference::{
+    ChannelState, PartnerFrame, PolicySpec, ReferencePolicies, RestoredChannel,
+};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -67,6 +69,8 @@ impl SchedulerSettings {
 /// Decides which frame of which channel runs next. Pure state, no I/O, no clock of its own.
 pub struct Scheduler {
     config: Arc<Config>,
+    /// Every channel's reference settings, resolved once for the run.
+    policies: ReferencePolicies,
     settings: SchedulerSettings,
     restored: BTreeMap<String, RestoredChannel>,
     lanes: BTreeMap<String, Lane>,
@@ -82,6 +86,7 @@ const PARTNER_HISTORY_MIN: usize = 4;
 impl Scheduler {
     pub fn new(config: Arc<Config>, settings: SchedulerSettings, history: &History) -> Scheduler {
         Scheduler {
+            policies: config.reference_policies(),
             config,
             settings,
             restored: history.channels.clone(),
@@ -197,7 +202,7 @@ impl Scheduler {
             return None;
         }
         let (_, head) = lane.buffer.first_key_value()?;
-        let policy = self.config.channel_policy(name);
+        let policy = self.policies.get(name);
         let partner = match &policy.policy {
             PolicySpec::Channel(partner_name) => {
                 match self.choose_partner(
@@ -231,8 +236,8 @@ impl Scheduler {
             .is_some_and(|t| item.obs_time_ns < t);
         lane.last_dispatched_ns = lane.last_dispatched_ns.max(Some(item.obs_time_ns));
         let state = lane.state.take().unwrap_or_else(|| match restored {
-            Some(r) => ChannelState::restore(name, policy, &r),
-            None => ChannelState::new(name, policy),
+            Some(r) => ChannelState::restore(name, policy.clone(), &r),
+            None => ChannelState::new(name, policy.clone()),
         });
         lane.in_flight = true;
         self.running += 1;
@@ -326,10 +331,10 @@ impl Scheduler {
         let mut oldest_needed: Option<i64> = None;
         let mut has_followers = false;
         for (name, lane) in &self.lanes {
-            let p = self.config.channel_policy(name);
-            if p.policy != PolicySpec::Channel(channel.to_string()) {
+            if !self.policies.follows(name, channel) {
                 continue;
             }
+            let p = self.policies.get(name);
             has_followers = true;
             let tol = (p.tolerance_s * 1e9) as i64;
             let pending = lane
@@ -377,7 +382,7 @@ impl Scheduler {
                 consider(first + self.settings.reorder_window);
                 consider(first + self.settings.reorder_cap);
             }
-            let policy = self.config.channel_policy(name);
+            let policy = self.policies.get(name);
             if let PolicySpec::Channel(partner) = &policy.policy {
                 if let Some((_, head)) = lane.buffer.first_key_value() {
                     let start = self.hold_start(partner, head);

@@ -28,7 +28,7 @@ mod history;
 mod policy;
 
 pub use history::History;
-pub use policy::{ChannelPolicy, KeyframeDue, PolicySpec};
+pub use policy::{ChannelPolicy, KeyframeDue, PolicySpec, ReferencePolicies};
 
 // ---------------------------------------------------------------------------------------------
 // What the state machine is given and gives back

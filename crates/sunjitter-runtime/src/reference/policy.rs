@@ -1,9 +1,11 @@
-//! Reference policies as written in the configuration or on the command line, and a channel's
-//! policy with its settings.
+//! Reference policies as written in the configuration or on the command line, a channel's
+//! policy with its settings, and every channel's settings resolved once for a run.
 
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::fmt;
 use std::str::FromStr;
+use sunjitter_core::error::Error;
 use sunjitter_core::record::ReferenceKind;
 
 /// A reference policy as written in the configuration or on the command line.
@@ -77,7 +79,7 @@ impl<'de> Deserialize<'de> for PolicySpec {
 
 /// A channel's reference settings: the `[reference]` table of the configuration (every
 /// channel's defaults), and the settings one channel resolves to with its own overrides
-/// (`Config::channel_policy`).
+/// ([`ReferencePolicies`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ChannelPolicy {
@@ -141,5 +143,60 @@ impl Default for ChannelPolicy {
             tolerance_s: 30.0,
             hold_s: 120.0,
         }
+    }
+}
+
+/// Every channel's reference settings, resolved once from the configuration
+/// (`Config::reference_policies`): the channels `[channels.NAME]` sets, and `[reference]` for
+/// any other channel a run meets.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReferencePolicies {
+    default: ChannelPolicy,
+    channels: BTreeMap<String, ChannelPolicy>,
+}
+
+impl ReferencePolicies {
+    /// `default` for channels not in `channels`. A channel told to follow itself (`--reference
+    /// channel:X` reaches X too) takes `keyframe`.
+    pub fn new(default: ChannelPolicy, mut channels: BTreeMap<String, ChannelPolicy>) -> Self {
+        if let PolicySpec::Channel(partner) = &default.policy {
+            if !channels.contains_key(partner) {
+                channels.insert(partner.clone(), default.clone());
+            }
+        }
+        for (name, p) in channels.iter_mut() {
+            if matches!(&p.policy, PolicySpec::Channel(partner) if partner == name) {
+                p.policy = PolicySpec::Keyframe;
+            }
+        }
+        ReferencePolicies { default, channels }
+    }
+
+    /// The settings of `channel`.
+    pub fn get(&self, channel: &str) -> &ChannelPolicy {
+        self.channels.get(channel).unwrap_or(&self.default)
+    }
+
+    /// Follow `channel:NAME` links from `channel`; a cycle would make frames wait forever.
+    pub fn partner_chain(&self, channel: &str) -> sunjitter_core::Result<Vec<String>> {
+        let mut seen = vec![channel.to_string()];
+        let mut current = channel.to_string();
+        while let PolicySpec::Channel(next) = self.get(&current).policy.clone() {
+            if seen.contains(&next) {
+                seen.push(next);
+                return Err(Error::Usage(format!(
+                    "configuration: channel references form a cycle: {}",
+                    seen.join(" → ")
+                )));
+            }
+            seen.push(next.clone());
+            current = next;
+        }
+        Ok(seen)
+    }
+
+    /// Whether `channel`'s policy follows `partner` (`channel:PARTNER`).
+    pub fn follows(&self, channel: &str, partner: &str) -> bool {
+        matches!(&self.get(channel).policy, PolicySpec::Channel(p) if p == partner)
     }
 }
