@@ -83,6 +83,10 @@ def test_summary_is_inspects_statistics(runs, cli):
     assert channel == next(c for c in expected["channels"] if c["channel"] == "SJI_2796")
 
 
+# What `sunjitter.replay` passes with its defaults.
+OPTIONS = {"reference": None, "recursive": False, "aligned": None, "wcs_only": False}
+
+
 def test_progress_reaches_the_total_and_an_interrupted_run_resumes(tmp_path, cli, caplog):
     from sunjitter import _sunjitter
 
@@ -98,12 +102,12 @@ def test_progress_reaches_the_total_and_an_interrupted_run_resumes(tmp_path, cli
             raise Stop  # as Ctrl-C: the frames in hand are finished, the log closed
 
     with pytest.raises(Stop):
-        _sunjitter.replay([str(IRIS_1400)], str(out), on_progress=on_progress)
+        _sunjitter.replay([str(IRIS_1400)], str(out), OPTIONS, on_progress=on_progress)
     partial = sunjitter.read_log(out)
     assert 5 <= len(partial) < 54
     seen.clear()
     with caplog.at_level(logging.WARNING, logger="sunjitter"):
-        _sunjitter.replay([str(IRIS_1400)], str(out), on_progress=seen.append)
+        _sunjitter.replay([str(IRIS_1400)], str(out), OPTIONS, on_progress=seen.append)
     assert seen[-1]["finished"] == seen[-1]["total"]
     # The pipeline's warnings reach Python's logging: this cube's table is longer than it.
     assert any(

@@ -21,7 +21,9 @@ pub const RSUN_REF_M: f64 = 695_700_000.0;
 const AU_M: f64 = 149_597_870_700.0;
 
 /// A differential-rotation law: sidereal angular rate `A + B sin²φ + C sin⁴φ` at latitude φ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Profile {
     /// Howard, Harvey & Forgach (1990), magnetic features; sunpy's default.

@@ -1,12 +1,15 @@
 //! The MCAP channels' message types and their JSON Schemas (contract.md, "MCAP layout").
 //!
 //! Schema names are the contract: `sunjitter.FrameAlignment`, `sunjitter.ReferenceChange` and
-//! Foxglove's well-known `foxglove.Log` (so the Foxglove Log panel shows `/log`).
+//! Foxglove's well-known `foxglove.Log` (so the Foxglove Log panel shows `/log`). Each schema
+//! is generated from its message type (fields, types, doc comments as descriptions), in the
+//! dialect Foxglove's JSON Schema parser reads ([`schema_of`]).
 
+use schemars::JsonSchema;
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::{json, Value};
 use sunjitter_core::chain::Chain;
-use sunjitter_core::record::{ReferenceKind, Status, TransformFields};
+use sunjitter_core::record::{FrameAlignment, ReferenceKind, TransformFields};
 
 /// Schema encoding of every channel.
 pub const SCHEMA_ENCODING: &str = "jsonschema";
@@ -37,9 +40,9 @@ pub const ALERT_TOPIC: &str = "/alert";
 /// Name of the metadata record written at the start of every segment.
 pub const METADATA_NAME: &str = "sunjitter";
 
-/// One `/reference/<channel>` message: a reference was chosen or replaced, with its chain
-/// where the policy knows it (a restart goes on from it).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// One `/reference/<channel>` message: a reference was chosen or replaced for a channel, with
+/// its chain where the policy knows it (a restart goes on from it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ReferenceChange {
     /// The channel whose reference changed.
     pub channel: String,
@@ -53,6 +56,7 @@ pub struct ReferenceChange {
     pub obs_time: String,
     /// Why: e.g. `first frame`, `refresh after 100 frames`, `match degraded`.
     pub reason: String,
+    /// The kind of reference the channel's frames are now aligned to.
     pub reference_kind: ReferenceKind,
     /// `sequence` of the first frame aligned to this reference.
     pub sequence: u64,
@@ -67,12 +71,14 @@ pub struct ReferenceChange {
     /// restart needs to go on exactly as the run would have.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_covariance: Option<Vec<f64>>,
-    /// The new reference's chain (origin grid → its grid), where the policy knows it.
+    /// The new reference's chain (origin grid → its grid), where the policy knows it; for
+    /// restarts.
     #[serde(
         default,
         with = "chain_fields",
         skip_serializing_if = "Option::is_none"
     )]
+    #[schemars(with = "Option<chain_fields::Fields>")]
     pub chain: Option<Chain>,
 }
 
@@ -80,19 +86,24 @@ pub struct ReferenceChange {
 /// scale and its covariance as 16 numbers row by row (JSON Schema as Foxglove reads it has no
 /// arrays of arrays).
 mod chain_fields {
+    use schemars::JsonSchema;
     use serde::{Deserialize, Deserializer, Serialize, Serializer};
     use sunjitter_core::chain::Chain;
     use sunjitter_core::geometry::Similarity;
 
-    #[derive(Serialize, Deserialize)]
-    struct Fields {
+    /// A chain: origin grid → the reference's grid.
+    #[derive(Serialize, Deserialize, JsonSchema)]
+    pub struct Fields {
         scale: f64,
         rotation_rad: f64,
         dx_px: f64,
         dy_px: f64,
+        /// The centre the rotation and scale turn about, px.
         center_px: [f64; 2],
+        /// 4 × 4, row by row: scale, rotation rad, dx px, dy px.
         #[serde(default)]
         covariance: Option<Vec<f64>>,
+        /// The plate scale of the chain's origin, arcsec/px (x, y).
         #[serde(default)]
         plate_scale_arcsec: Option<[f64; 2]>,
     }
@@ -130,8 +141,9 @@ mod chain_fields {
     }
 }
 
-/// The closure of a keyframe's two chains (`/reference` messages' `closure`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// A keyframe reached through the keyframe it replaces and through the one before: second
+/// chain minus first, and the σ of that difference (absent for other references).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ReferenceClosure {
     /// The keyframe before the one replaced, through which the second chain runs.
     pub through: String,
@@ -165,18 +177,24 @@ impl ReferenceChange {
 /// One `/alert` message: a monitored condition of a channel started (`raised`) or ended
 /// (`resolved`). A `resolved` message repeats the `channel`, `kind` and `threshold` of the
 /// `raised` one it ends; `value` is the value that ended it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Alert {
+    /// The channel the condition is about.
     pub channel: String,
     /// The configuration key of the threshold, e.g. `jump_px`, `silence_s`.
     pub kind: String,
     /// `raised` or `resolved`.
+    #[schemars(extend("enum" = ["raised", "resolved"]))]
     pub state: String,
     /// `warning` or `error`.
+    #[schemars(extend("enum" = ["warning", "error"]))]
     pub severity: String,
+    /// The value that changed the state.
     pub value: f64,
+    /// The configured threshold.
     pub threshold: f64,
-    /// Unit of `value` and `threshold`: `px`, `arcsec`, `s` or `frames`.
+    /// Unit of `value` and `threshold`: `px`, `arcsec`, `σ`, `s` or `frames`.
+    #[schemars(extend("enum" = ["px", "arcsec", "σ", "s", "frames"]))]
     pub unit: String,
     /// The frame (`FILE` or `FILE[N]`) that changed the state; `null` for time-based changes.
     pub frame: Option<String>,
@@ -259,263 +277,118 @@ pub struct LogEntry {
     pub line: u32,
 }
 
-/// A number that is `null` when there is no value (e.g. a failed frame). Foxglove's JSON
-/// Schema parser takes one `type` per field and rejects `["number", "null"]`, so nullability
-/// is marked with OpenAPI's `nullable` keyword, which JSON Schema validators ignore.
-fn number_or_null(description: &str) -> Value {
-    json!({ "type": "number", "nullable": true, "description": description })
+/// The JSON Schema of message type `T`, titled `title`, in the dialect Foxglove's parser reads:
+/// every subschema inline, one `type` per field (a value that may be `null` is marked with
+/// OpenAPI's `nullable`, which JSON Schema validators ignore, since Foxglove rejects
+/// `["number", "null"]`), string choices as `enum`. Fields a message always carries are
+/// `required`.
+pub fn schema_of<T: JsonSchema>(title: &str) -> Value {
+    let generator = schemars::generate::SchemaSettings::draft07()
+        .with(|s| {
+            s.inline_subschemas = true;
+            s.meta_schema = None;
+        })
+        .for_serialize()
+        .into_generator();
+    let mut schema = generator.into_root_schema_for::<T>().to_value();
+    foxglove_dialect(&mut schema);
+    if let Some(root) = schema.as_object_mut() {
+        root.insert("title".into(), json!(title));
+    }
+    schema
 }
 
-/// JSON Schema of a transform's fields (`TransformFields`).
-fn transform_fields_schema(description: &str) -> Value {
-    json!({
-        "type": "object",
-        "description": description,
-        "properties": {
-            "scale": { "type": "number" },
-            "rotation_arcsec": { "type": "number" },
-            "dx_px": { "type": "number" },
-            "dy_px": { "type": "number" }
-        },
-        "required": ["scale", "rotation_arcsec", "dx_px", "dy_px"]
-    })
-}
-
-/// JSON Schema of `sunjitter.FrameAlignment` (fields of `sunjitter_core::record::FrameAlignment`).
-pub fn frame_alignment_schema() -> Value {
-    let mut transform =
-        transform_fields_schema("The part of the transform the FITS headers did not predict");
-    transform["nullable"] = json!(true);
-    let mut properties = serde_json::Map::new();
-    let mut put = |name: &str, v: Value| {
-        properties.insert(name.to_string(), v);
+/// Rewrite a generated schema (and its subschemas) into the dialect of [`schema_of`].
+fn foxglove_dialect(schema: &mut Value) {
+    let Some(map) = schema.as_object_mut() else {
+        return;
     };
-    put(
-        "reference",
-        json!({ "type": "string", "description": "Reference image (FILE or FILE[N])" }),
-    );
-    put(
-        "frame",
-        json!({ "type": "string", "description": "Aligned frame (FILE or FILE[N])" }),
-    );
-    put("scale", number_or_null("Scale s (unitless)"));
-    put(
-        "rotation_arcsec",
-        number_or_null("Rotation θ, counter-clockwise, arcsec"),
-    );
-    put(
-        "dx_px",
-        number_or_null("Shift along x (columns), reference pixels"),
-    );
-    put(
-        "dy_px",
-        number_or_null("Shift along y (rows), reference pixels"),
-    );
-    put(
-        "dx_arcsec",
-        number_or_null("dx_px times the plate scale used (the header's, or the disk-checked one)"),
-    );
-    put(
-        "dy_arcsec",
-        number_or_null("dy_px times the plate scale used (the header's, or the disk-checked one)"),
-    );
-    for p in [
-        "scale",
-        "rotation_arcsec",
-        "dx_px",
-        "dy_px",
-        "dx_arcsec",
-        "dy_arcsec",
-    ] {
-        put(
-            &format!("sigma_{p}"),
-            number_or_null("Calibrated 1-σ standard error"),
-        );
+    // `Option<T>` of a struct or enum: one alternative and `null`.
+    for key in ["anyOf", "oneOf"] {
+        let Some(Value::Array(alternatives)) = map.get(key) else {
+            continue;
+        };
+        let is_null = |a: &Value| a["type"] == "null" || a.get("const") == Some(&Value::Null);
+        let others: Vec<&Value> = alternatives.iter().filter(|a| !is_null(a)).collect();
+        if others.len() == 1 && others.len() < alternatives.len() {
+            let inner = others[0].clone();
+            map.remove(key);
+            if let Value::Object(inner) = inner {
+                for (k, v) in inner {
+                    map.entry(k).or_insert(v);
+                }
+            }
+            map.insert("nullable".into(), json!(true));
+        }
     }
-    for p in ["scale", "rotation_arcsec", "dx_px", "dy_px"] {
-        put(
-            &format!("uabjm_sigma_{p}"),
-            number_or_null("Plain UABJM 1-σ, (JᵀJ)⁻¹σ²"),
-        );
+    // A unit enum some of whose variants carry doc comments: `oneOf` of string constants.
+    if let Some(Value::Array(alternatives)) = map.get("oneOf") {
+        let names: Option<Vec<Vec<Value>>> = alternatives
+            .iter()
+            .map(|a| match (&a["const"], &a["enum"]) {
+                (Value::String(s), _) => Some(vec![json!(s)]),
+                (_, Value::Array(e)) if e.iter().all(Value::is_string) => Some(e.clone()),
+                _ => None,
+            })
+            .collect();
+        if let Some(names) = names.map(|n| n.concat()) {
+            map.remove("oneOf");
+            map.insert("type".into(), json!("string"));
+            map.insert("enum".into(), Value::Array(names));
+        }
     }
-    put("header_residual", transform);
-    put(
-        "solar_rotation",
-        json!({
-            "type": "object",
-            "nullable": true,
-            "description": "The Sun's differential rotation taken out between the two times",
-            "properties": {
-                "profile": { "type": "string", "enum": ["howard", "snodgrass", "allen", "none"] },
-                "dt_s": { "type": "number", "description": "Frame time minus reference time, s" },
-                "dx_px": { "type": "number", "description": "Motion removed at the disk (or tracked field's) centre, x, px" },
-                "dy_px": { "type": "number", "description": "Motion removed at the disk (or tracked field's) centre, y, px" },
-                "tracked": { "type": "boolean", "description": "Partial field taken to follow the Sun at its centre" }
-            },
-            "required": ["profile", "dt_s", "dx_px", "dy_px", "tracked"]
-        }),
-    );
-    put(
-        "points",
-        json!({ "type": "integer", "minimum": 0, "description": "Flow sample points" }),
-    );
-    put(
-        "inliers",
-        json!({ "type": "integer", "minimum": 0, "description": "RANSAC inliers" }),
-    );
-    put(
-        "residual_rms_px",
-        number_or_null("RMS residual of the inliers, px"),
-    );
-    put(
-        "similarity",
-        number_or_null("Bhattacharyya coefficient of the histograms"),
-    );
-    put(
-        "model",
-        json!({
-            "type": "string",
-            "nullable": true,
-            "description": "The transform fitted: similarity, rigid or translation; scale and rotation not fitted are the headers' values, with the instrument's stability as σ (null: nothing fitted)"
-        }),
-    );
-    put("status", json!({ "type": "string", "enum": Status::NAMES }));
-    put(
-        "message",
-        json!({ "type": "string", "description": "Why degraded or failed" }),
-    );
-    put(
-        "elapsed_ms",
-        json!({ "type": "number", "description": "Processing time, ms" }),
-    );
-    put("channel", json!({ "type": "string" }));
-    put(
-        "obs_time",
-        json!({ "type": "string", "description": "Observation time, ISO 8601 UTC" }),
-    );
-    put("sequence", json!({ "type": "integer", "minimum": 0 }));
-    put(
-        "reference_kind",
-        json!({ "type": "string", "enum": ["self", "previous", "keyframe", "fixed", "channel"] }),
-    );
-    for p in ["dx_px", "dy_px", "rotation_arcsec", "scale"] {
-        put(
-            &format!("chained_{p}"),
-            number_or_null("Relative to the chain's origin (the channel's first reference)"),
-        );
+    if let Some(Value::Array(types)) = map.get("type") {
+        if types.iter().any(|t| t == "null") {
+            let rest: Vec<Value> = types.iter().filter(|t| *t != "null").cloned().collect();
+            if rest.len() == 1 {
+                map.insert("type".into(), rest[0].clone());
+                map.insert("nullable".into(), json!(true));
+            }
+        }
     }
-    for p in ["dx", "dy"] {
-        put(
-            &format!("chained_{p}_arcsec"),
-            number_or_null(&format!(
-                "chained_{p}_px times the plate scale the alignments to the chain's origin used"
-            )),
-        );
+    // A nullable choice lists null among its values (OpenAPI's rule for `nullable` enums), so
+    // validators that read `enum` take a null.
+    if map.get("nullable") == Some(&json!(true)) {
+        if let Some(Value::Array(values)) = map.get_mut("enum") {
+            if !values.contains(&Value::Null) {
+                values.push(Value::Null);
+            }
+        }
     }
-    for p in [
-        "dx_px",
-        "dy_px",
-        "dx_arcsec",
-        "dy_arcsec",
-        "rotation_arcsec",
-        "scale",
-    ] {
-        put(
-            &format!("sigma_chained_{p}"),
-            number_or_null("1-σ of the chained value"),
-        );
+    // Integer widths are Rust's business, and defaults the reader's, not the contract's.
+    map.remove("format");
+    map.remove("default");
+    // Doc comments wrap at the source's width; a description is one paragraph per line.
+    if let Some(Value::String(text)) = map.get_mut("description") {
+        *text = text
+            .split("\n\n")
+            .map(|paragraph| paragraph.split_whitespace().collect::<Vec<_>>().join(" "))
+            .collect::<Vec<_>>()
+            .join("\n");
     }
-    let required: Vec<&String> = properties.keys().collect();
-    let required = json!(required);
-    // Beyond the contract, optional (additive): absent from logs written before it existed.
-    properties.insert(
-        "pixel_checksum".to_string(),
-        json!({ "type": "string",
-                "description": "xxh3_64:HEX of the aligned pixels as read (width, height, f32 bits)" }),
-    );
-    json!({
-        "title": FRAME_ALIGNMENT_SCHEMA,
-        "description": "Alignment of one frame to its reference (sunjitter contract.md)",
-        "type": "object",
-        "properties": properties,
-        "required": required
-    })
+    if let Some(Value::Object(properties)) = map.get_mut("properties") {
+        for field in properties.values_mut() {
+            foxglove_dialect(field);
+        }
+    }
+    if let Some(items) = map.get_mut("items") {
+        foxglove_dialect(items);
+    }
 }
 
-/// JSON Schema of `sunjitter.ReferenceChange`.
+/// JSON Schema of `sunjitter.FrameAlignment` (`sunjitter_core::record::FrameAlignment`).
+pub fn frame_alignment_schema() -> Value {
+    schema_of::<FrameAlignment>(FRAME_ALIGNMENT_SCHEMA)
+}
+
+/// JSON Schema of `sunjitter.ReferenceChange` ([`ReferenceChange`]).
 pub fn reference_change_schema() -> Value {
-    json!({
-        "title": REFERENCE_CHANGE_SCHEMA,
-        "description": "A reference was chosen or replaced for a channel",
-        "type": "object",
-        "properties": {
-            "channel": { "type": "string" },
-            "file": { "type": "string", "description": "The new reference's file" },
-            "cube_frame": { "type": "integer", "nullable": true, "minimum": 0,
-                            "description": "Frame index in a 3-D cube (null for a 2-D image)" },
-            "obs_time": { "type": "string", "description": "ISO 8601 UTC" },
-            "reason": { "type": "string" },
-            "reference_kind": { "type": "string",
-                                "enum": ["self", "previous", "keyframe", "fixed", "channel"] },
-            "sequence": { "type": "integer", "minimum": 0,
-                          "description": "sequence of the first frame aligned to it" },
-            "replaces": { "type": "string", "nullable": true,
-                          "description": "The previous reference" },
-            "closure": {
-                "type": "object",
-                "description": "A keyframe reached through the keyframe it replaces and through the one before: second chain minus first, and the σ of that difference (absent for other references)",
-                "properties": {
-                    "through": { "type": "string", "description": "The keyframe before the one replaced" },
-                    "difference": transform_fields_schema("Second chain minus first"),
-                    "sigma": transform_fields_schema("1-σ of the difference")
-                },
-                "required": ["through", "difference", "sigma"]
-            },
-            "chain": {
-                "type": "object",
-                "description": "The reference's chain (origin grid → its grid), for restarts",
-                "properties": {
-                    "scale": { "type": "number" },
-                    "rotation_rad": { "type": "number" },
-                    "dx_px": { "type": "number" },
-                    "dy_px": { "type": "number" },
-                    "center_px": { "type": "array", "items": { "type": "number" } },
-                    "covariance": { "type": "array", "items": { "type": "number" },
-                                    "description": "4 × 4, row by row: scale, rotation rad, dx px, dy px" },
-                    "plate_scale_arcsec": { "type": "array", "items": { "type": "number" } }
-                },
-                "required": ["scale", "rotation_rad", "dx_px", "dy_px", "center_px"]
-            },
-            "cross_covariance": { "type": "array", "items": { "type": "number" },
-                "description": "The chain's covariance with that of the keyframe it replaces, 4 × 4 row by row; for restarts" }
-        },
-        "required": ["channel", "file", "cube_frame", "obs_time", "reason", "reference_kind",
-                     "sequence", "replaces"]
-    })
+    schema_of::<ReferenceChange>(REFERENCE_CHANGE_SCHEMA)
 }
 
-/// JSON Schema of `sunjitter.Alert`.
+/// JSON Schema of `sunjitter.Alert` ([`Alert`]).
 pub fn alert_schema() -> Value {
-    json!({
-        "title": ALERT_SCHEMA,
-        "description": "A monitored condition of a channel was raised or resolved",
-        "type": "object",
-        "properties": {
-            "channel": { "type": "string" },
-            "kind": { "type": "string", "description": "Threshold key, e.g. jump_px" },
-            "state": { "type": "string", "enum": ["raised", "resolved"] },
-            "severity": { "type": "string", "enum": ["warning", "error"] },
-            "value": { "type": "number" },
-            "threshold": { "type": "number" },
-            "unit": { "type": "string", "enum": ["px", "arcsec", "s", "frames"] },
-            "frame": { "type": "string", "nullable": true,
-                       "description": "The frame that changed the state" },
-            "time": { "type": "string", "description": "ISO 8601 UTC" },
-            "message": { "type": "string" }
-        },
-        "required": ["channel", "kind", "state", "severity", "value", "threshold", "unit",
-                     "frame", "time", "message"]
-    })
+    schema_of::<Alert>(ALERT_SCHEMA)
 }
 
 /// JSON Schema of Foxglove's `foxglove.Log`, as the Foxglove SDK publishes it.
@@ -608,6 +481,49 @@ mod tests {
         let nullable_union =
             json!({"type": "object", "properties": {"x": {"type": ["number", "null"]}}});
         assert!(foxglove_parsable(&nullable_union, "t").is_err());
+    }
+
+    #[test]
+    fn frame_alignment_schema_is_the_record_with_a_description_per_field() {
+        let record = serde_json::to_value(FrameAlignment::with_every_field()).unwrap();
+        let schema = frame_alignment_schema();
+        let keys = |v: &Value| {
+            let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+            k.sort();
+            k
+        };
+        assert_eq!(keys(&schema["properties"]), keys(&record));
+        for nested in ["header_residual", "solar_rotation"] {
+            assert_eq!(
+                keys(&schema["properties"][nested]["properties"]),
+                keys(&record[nested]),
+                "{nested}"
+            );
+            assert_eq!(schema["properties"][nested]["nullable"], true, "{nested}");
+        }
+        for (name, field) in schema["properties"].as_object().unwrap() {
+            let d = field["description"].as_str().unwrap_or_default();
+            assert!(!d.is_empty() && !d.contains('\n'), "{name}: {d:?}");
+        }
+        // Present in every message, null or not; the checksum only where it was taken.
+        let required: Vec<&str> = schema["required"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert!(required.contains(&"dx_px") && required.contains(&"header_residual"));
+        assert!(!required.contains(&"pixel_checksum"));
+        assert_eq!(schema["properties"]["dx_px"]["type"], "number");
+        assert_eq!(schema["properties"]["dx_px"]["nullable"], true);
+        assert_eq!(
+            schema["properties"]["status"]["enum"],
+            json!(["ok", "degraded", "failed"])
+        );
+        // A choice that may be null lists null (OpenAPI 3.0's rule for `nullable` enums).
+        let model = &schema["properties"]["model"];
+        assert_eq!(model["nullable"], true);
+        assert!(model["enum"].as_array().unwrap().contains(&Value::Null));
     }
 
     #[test]

@@ -13,6 +13,39 @@ use sunjitter_core::{Error, Result};
 /// Longest name of a channel (topics are `/jitter/<channel>`).
 pub const MAX_CHANNEL_NAME: usize = 64;
 
+/// The configuration key of a field of a `Config` table: `AT.FIELD`, the field's Rust name,
+/// which is its serde name (no field is renamed), so a key is named only by its field.
+macro_rules! key {
+    ($at:expr, $owner:ident . $field:ident) => {{
+        let _ = &$owner.$field;
+        format!("{}.{}", $at, stringify!($field))
+    }};
+}
+
+/// The key of `Config`'s table `$table` (`engine`, `daemon`, …), checked to be its field.
+macro_rules! table_key {
+    ($table:ident) => {{
+        let _ = |c: &Config| {
+            let _ = &c.$table;
+        };
+        stringify!($table)
+    }};
+}
+
+/// [`float`] on a field, by its key.
+macro_rules! check_float {
+    ($at:expr, $owner:ident . $field:ident $(as $t:ty)?, $($range:expr),+ $(,)?) => {
+        float(&key!($at, $owner.$field), $owner.$field $(as $t)?, $($range),+)
+    };
+}
+
+/// [`int`] on a field, by its key.
+macro_rules! check_int {
+    ($at:expr, $owner:ident . $field:ident $(as $t:ty)?, $($range:expr),+ $(,)?) => {
+        int(&key!($at, $owner.$field), $owner.$field $(as $t)?, $($range),+)
+    };
+}
+
 fn refuse(key: &str, value: impl std::fmt::Display, range: &str) -> Error {
     Error::Usage(format!(
         "configuration: {key} = {value} is out of range: {range}"
@@ -89,258 +122,131 @@ pub fn check_channel_name(what: &str, name: &str) -> Result<()> {
 
 /// Check every value of `config`; the first one out of range is the error.
 pub fn check(config: &Config) -> Result<()> {
-    engine(&config.engine)?;
-    sink(&config.sink)?;
-    daemon(&config.daemon)?;
-    policy("reference", &config.reference)?;
+    engine(table_key!(engine), &config.engine)?;
+    sink(table_key!(sink), &config.sink)?;
+    daemon(table_key!(daemon), &config.daemon)?;
+    policy(table_key!(reference), &config.reference)?;
     let policies = config.reference_policies();
     for (name, c) in &config.channels {
-        check_channel_name("[channels.NAME]", name)?;
+        let at = format!("{}.{name}", table_key!(channels));
+        check_channel_name(&format!("[{}.NAME]", table_key!(channels)), name)?;
         if let Some(PolicySpec::Channel(partner)) = &c.policy {
             if partner == name {
                 return Err(Error::Usage(format!(
-                    "configuration: channels.{name}.policy = \"channel:{name}\": a channel cannot follow itself; give it keyframe, previous or fixed:FILE, or another channel"
+                    "configuration: {} = \"channel:{name}\": a channel cannot follow itself; give it keyframe, previous or fixed:FILE, or another channel",
+                    key!(at, c.policy)
                 )));
             }
         }
-        policy(&format!("channels.{name}"), policies.get(name))?;
-        stability(
-            &format!("channels.{name}"),
-            c.scale_stability,
-            c.roll_stability_arcsec,
-        )?;
-        if let Some(v) = c.plate_scale_arcsec {
+        policy(&at, policies.get(name))?;
+        if let Some(v) = c.scale_stability {
             float(
-                &format!("channels.{name}.plate_scale_arcsec"),
+                &key!(at, c.scale_stability),
                 v,
-                1e-4,
-                1e4,
-                false,
+                0.0,
+                MAX_SCALE_STABILITY,
+                true,
             )?;
         }
+        if let Some(v) = c.roll_stability_arcsec {
+            float(
+                &key!(at, c.roll_stability_arcsec),
+                v,
+                0.0,
+                MAX_ROLL_ARCSEC,
+                true,
+            )?;
+        }
+        if let Some(v) = c.plate_scale_arcsec {
+            float(&key!(at, c.plate_scale_arcsec), v, 1e-4, 1e4, false)?;
+        }
     }
+    let at = table_key!(channel_names);
     for (from, to) in &config.channel_names {
-        check_channel_name("[channel_names] key", from)?;
-        check_channel_name(&format!("channel_names.{from} ="), to)?;
+        check_channel_name(&format!("[{at}] key"), from)?;
+        check_channel_name(&format!("{at}.{from} ="), to)?;
     }
     alerts(&config.alerts)?;
-    float(
-        "health.interval_s",
-        config.health.interval_s,
-        0.0,
-        3600.0,
-        true,
-    )?;
-    if config.health.status_file.contains('\0') {
-        return Err(Error::Usage(
-            "configuration: health.status_file contains a NUL byte".into(),
-        ));
+    let (at, health) = (table_key!(health), &config.health);
+    check_float!(at, health.interval_s, 0.0, 3600.0, true)?;
+    if health.status_file.contains('\0') {
+        return Err(Error::Usage(format!(
+            "configuration: {} contains a NUL byte",
+            key!(at, health.status_file)
+        )));
     }
-    int("live.queue", config.live.queue as u64, 1, 1_000_000)?;
-    int("live.max_clients", config.live.max_clients as u64, 1, 4096)?;
+    let (at, live) = (table_key!(live), &config.live);
+    check_int!(at, live.queue as u64, 1, 1_000_000)?;
+    check_int!(at, live.max_clients as u64, 1, 4096)?;
     Ok(())
 }
 
-fn engine(e: &sunjitter_core::engine::EngineConfig) -> Result<()> {
+fn engine(at: &str, e: &sunjitter_core::engine::EngineConfig) -> Result<()> {
     if let Some(v) = e.window_arcsec {
-        float("engine.window_arcsec", v, 0.0, 36_000.0, true)?;
+        float(&key!(at, e.window_arcsec), v, 0.0, 36_000.0, true)?;
     }
     if let Some(v) = e.window_px {
-        int("engine.window_px", v as u64, 3, 4095)?;
+        int(&key!(at, e.window_px), v as u64, 3, 4095)?;
     }
-    int("engine.min_window_px", e.min_window_px as u64, 3, 4095)?;
-    float(
-        "engine.window_structure_lengths",
-        e.window_structure_lengths,
-        0.0,
-        1000.0,
-        true,
-    )?;
-    float(
-        "engine.mask_radius_fraction",
-        e.mask_radius_fraction,
-        0.0,
-        1.0,
-        true,
-    )?;
-    int("engine.sample", e.sample as u64, 2, 256)?;
-    float(
-        "engine.ransac_threshold_px",
-        e.ransac_threshold_px,
-        0.0,
-        1000.0,
-        true,
-    )?;
-    int(
-        "engine.ransac_max_trials",
-        e.ransac_max_trials as u64,
-        1,
-        1_000_000,
-    )?;
+    check_int!(at, e.min_window_px as u64, 3, 4095)?;
+    check_float!(at, e.window_structure_lengths, 0.0, 1000.0, true,)?;
+    check_float!(at, e.mask_radius_fraction, 0.0, 1.0, true,)?;
+    check_int!(at, e.sample as u64, 2, 256)?;
+    check_float!(at, e.ransac_threshold_px, 0.0, 1000.0, true,)?;
+    check_int!(at, e.ransac_max_trials as u64, 1, 1_000_000,)?;
     if let Some(v) = e.pyramid_levels {
-        int("engine.pyramid_levels", v as u64, 1, 8)?;
+        int(&key!(at, e.pyramid_levels), v as u64, 1, 8)?;
     }
-    int("engine.iterations", e.iterations as u64, 1, 100)?;
-    int("engine.poly_n", e.poly_n as u64, 3, 15)?;
-    float("engine.poly_sigma", e.poly_sigma, 0.0, 10.0, true)?;
-    int("engine.max_passes", e.max_passes as u64, 1, 32)?;
-    float("engine.convergence_px", e.convergence_px, 0.0, 1.0, true)?;
-    float(
-        "engine.hot_pixel_fraction",
-        f64::from(e.hot_pixel_fraction),
-        0.0,
-        1e6,
-        false,
-    )?;
-    float(
-        "engine.systematic_floor_px",
-        e.systematic_floor_px,
-        0.0,
-        1.0,
-        false,
-    )?;
-    for (key, v) in [
-        ("engine.min_similarity", e.min_similarity),
-        ("engine.min_correlation", e.min_correlation),
-        ("engine.min_inlier_fraction", e.min_inlier_fraction),
-    ] {
-        float(key, v, 0.0, 1.0, false)?;
-    }
-    float(
-        "engine.refine_smoothing_px",
-        e.refine_smoothing_px,
-        0.0,
-        16.0,
-        false,
-    )?;
-    float(
-        "engine.refine_gradient_smoothing_px",
-        e.refine_gradient_smoothing_px,
-        0.0,
-        16.0,
-        false,
-    )?;
-    stability(
-        "engine",
-        Some(e.scale_stability),
-        Some(e.roll_stability_arcsec),
-    )?;
-    int("engine.seed_extent_px", e.seed_extent_px as u64, 1, 65_536)?;
-    int(
-        "engine.final_extent_px",
-        e.final_extent_px as u64,
-        0,
-        65_536,
-    )?;
+    check_int!(at, e.iterations as u64, 1, 100)?;
+    check_int!(at, e.poly_n as u64, 3, 15)?;
+    check_float!(at, e.poly_sigma, 0.0, 10.0, true)?;
+    check_int!(at, e.max_passes as u64, 1, 32)?;
+    check_float!(at, e.convergence_px, 0.0, 1.0, true)?;
+    check_float!(at, e.hot_pixel_fraction as f64, 0.0, 1e6, false,)?;
+    check_float!(at, e.systematic_floor_px, 0.0, 1.0, false,)?;
+    check_float!(at, e.min_similarity, 0.0, 1.0, false)?;
+    check_float!(at, e.min_correlation, 0.0, 1.0, false)?;
+    check_float!(at, e.min_inlier_fraction, 0.0, 1.0, false)?;
+    check_float!(at, e.refine_smoothing_px, 0.0, 16.0, false,)?;
+    check_float!(at, e.refine_gradient_smoothing_px, 0.0, 16.0, false,)?;
+    check_float!(at, e.scale_stability, 0.0, MAX_SCALE_STABILITY, true)?;
+    check_float!(at, e.roll_stability_arcsec, 0.0, MAX_ROLL_ARCSEC, true)?;
+    check_int!(at, e.seed_extent_px as u64, 1, 65_536)?;
+    check_int!(at, e.final_extent_px as u64, 0, 65_536,)?;
     Ok(())
 }
 
 /// An instrument's stability: a relative plate scale above 0 and up to 10 %, a roll above 0
 /// and up to 180°.
-fn stability(at: &str, scale: Option<f64>, roll_arcsec: Option<f64>) -> Result<()> {
-    if let Some(v) = scale {
-        float(&format!("{at}.scale_stability"), v, 0.0, 0.1, true)?;
-    }
-    if let Some(v) = roll_arcsec {
-        float(
-            &format!("{at}.roll_stability_arcsec"),
-            v,
-            0.0,
-            648_000.0,
-            true,
-        )?;
-    }
+const MAX_SCALE_STABILITY: f64 = 0.1;
+const MAX_ROLL_ARCSEC: f64 = 648_000.0;
+
+fn sink(at: &str, s: &sunjitter_io::sink::SinkConfig) -> Result<()> {
+    check_float!(at, s.segment_minutes, 0.0, 525_600.0, false,)?;
+    check_int!(at, s.flush_every_frames as u64, 1, 1_000_000,)?;
+    check_int!(at, s.chunk_size as u64, 1, 256 * 1024 * 1024)?;
     Ok(())
 }
 
-fn sink(s: &sunjitter_io::sink::SinkConfig) -> Result<()> {
-    float(
-        "sink.segment_minutes",
-        s.segment_minutes,
-        0.0,
-        525_600.0,
-        false,
-    )?;
-    int(
-        "sink.flush_every_frames",
-        s.flush_every_frames,
-        1,
-        1_000_000,
-    )?;
-    int("sink.chunk_size", s.chunk_size, 1, 256 * 1024 * 1024)?;
-    Ok(())
-}
-
-fn daemon(d: &super::DaemonConfig) -> Result<()> {
-    int(
-        "daemon.queue_capacity",
-        d.queue_capacity as u64,
-        1,
-        1_000_000,
-    )?;
-    int("daemon.readers", d.readers as u64, 1, 256)?;
-    int("daemon.workers", d.workers as u64, 1, 256)?;
-    int(
-        "daemon.reorder_window_frames",
-        d.reorder_window_frames as u64,
-        0,
-        100_000,
-    )?;
-    float(
-        "daemon.reorder_window_s",
-        d.reorder_window_s,
-        0.0,
-        86_400.0,
-        false,
-    )?;
-    float("daemon.settle_s", d.settle_s, 0.0, 86_400.0, false)?;
-    int(
-        "daemon.retry_attempts",
-        u64::from(d.retry_attempts),
-        0,
-        1000,
-    )?;
-    float(
-        "daemon.retry_initial_s",
-        d.retry_initial_s,
-        0.001,
-        3600.0,
-        false,
-    )?;
-    float(
-        "daemon.retry_max_s",
-        d.retry_max_s,
-        d.retry_initial_s,
-        86_400.0,
-        false,
-    )?;
-    float(
-        "daemon.incomplete_wait_s",
-        d.incomplete_wait_s,
-        0.0,
-        MAX_WAIT_S,
-        false,
-    )?;
-    float(
-        "daemon.rescan_interval_s",
-        d.rescan_interval_s,
-        0.0,
-        MAX_WAIT_S,
-        false,
-    )?;
-    float(
-        "daemon.flush_interval_s",
-        d.flush_interval_s,
-        0.0,
-        3600.0,
-        true,
-    )?;
-    int("daemon.max_frame_pixels", d.max_frame_pixels, 1, 1 << 32)?;
-    int("daemon.max_channels", d.max_channels as u64, 1, 4096)?;
+fn daemon(at: &str, d: &super::DaemonConfig) -> Result<()> {
+    check_int!(at, d.queue_capacity as u64, 1, 1_000_000,)?;
+    check_int!(at, d.readers as u64, 1, 256)?;
+    check_int!(at, d.workers as u64, 1, 256)?;
+    check_int!(at, d.reorder_window_frames as u64, 0, 100_000,)?;
+    check_float!(at, d.reorder_window_s, 0.0, 86_400.0, false,)?;
+    check_float!(at, d.settle_s, 0.0, 86_400.0, false)?;
+    check_int!(at, d.retry_attempts as u64, 0, 1000,)?;
+    check_float!(at, d.retry_initial_s, 0.001, 3600.0, false,)?;
+    check_float!(at, d.retry_max_s, d.retry_initial_s, 86_400.0, false,)?;
+    check_float!(at, d.incomplete_wait_s, 0.0, MAX_WAIT_S, false,)?;
+    check_float!(at, d.rescan_interval_s, 0.0, MAX_WAIT_S, false,)?;
+    check_float!(at, d.flush_interval_s, 0.0, 3600.0, true,)?;
+    check_int!(at, d.max_frame_pixels as u64, 1, 1 << 32)?;
+    check_int!(at, d.max_channels as u64, 1, 4096)?;
     for ext in &d.extensions {
         if ext.trim_start_matches('.').is_empty() || ext.contains(['/', '\0']) {
             return Err(refuse(
-                "daemon.extensions",
+                &key!(at, d.extensions),
                 format!("{:?}", sunjitter_core::text::escape(ext)),
                 "file name endings such as \"fits\"",
             ));
@@ -349,7 +255,7 @@ fn daemon(d: &super::DaemonConfig) -> Result<()> {
     for pattern in &d.ignore {
         if pattern.is_empty() || pattern.contains(['/', '\0']) {
             return Err(refuse(
-                "daemon.ignore",
+                &key!(at, d.ignore),
                 format!("{:?}", sunjitter_core::text::escape(pattern)),
                 "file name patterns such as \"*.tmp\"",
             ));
@@ -359,79 +265,85 @@ fn daemon(d: &super::DaemonConfig) -> Result<()> {
 }
 
 fn policy(at: &str, p: &ChannelPolicy) -> Result<()> {
-    let key = |k: &str| format!("{at}.{k}");
-    float(
-        &key("keyframe_every_s"),
-        p.keyframe_every_s,
-        0.0,
-        1e9,
-        false,
-    )?;
-    float(
-        &key("refresh_below_similarity"),
-        p.refresh_below_similarity,
-        0.0,
-        1.0,
-        false,
-    )?;
-    float(&key("tolerance_s"), p.tolerance_s, 0.0, 1e9, false)?;
-    float(&key("hold_s"), p.hold_s, 0.0, MAX_WAIT_S, false)?;
+    check_float!(at, p.keyframe_every_s, 0.0, 1e9, false)?;
+    check_float!(at, p.refresh_below_similarity, 0.0, 1.0, false)?;
+    check_float!(at, p.tolerance_s, 0.0, 1e9, false)?;
+    check_float!(at, p.hold_s, 0.0, MAX_WAIT_S, false)?;
     if let PolicySpec::Channel(partner) = &p.policy {
-        check_channel_name(&format!("{at}.policy channel:"), partner)?;
+        check_channel_name(&format!("{} channel:", key!(at, p.policy)), partner)?;
     }
     Ok(())
 }
 
 pub(crate) fn alerts(a: &super::AlertsConfig) -> Result<()> {
-    float(
-        "alerts.command_timeout_s",
-        a.command_timeout_s,
-        0.0,
-        86_400.0,
-        true,
-    )?;
+    let at = table_key!(alerts);
+    check_float!(at, a.command_timeout_s, 0.0, 86_400.0, true)?;
     if a.command.first().is_some_and(|c| c.is_empty()) {
-        return Err(Error::Usage(
-            "configuration: alerts.command: the program (its first element) is empty".into(),
-        ));
+        return Err(Error::Usage(format!(
+            "configuration: {}: the program (its first element) is empty",
+            key!(at, a.command)
+        )));
     }
-    thresholds("alerts.defaults", &a.defaults)?;
+    thresholds(&key!(at, a.defaults), &a.defaults)?;
+    let channels = key!(at, a.channels);
     for (name, t) in &a.channels {
-        check_channel_name("[alerts.channels.NAME]", name)?;
-        thresholds(&format!("alerts.channels.{name}"), t)?;
+        check_channel_name(&format!("[{channels}.NAME]"), name)?;
+        thresholds(&format!("{channels}.{name}"), t)?;
     }
     Ok(())
 }
 
+/// An optional threshold above 0, by its key.
+macro_rules! check_threshold {
+    ($at:expr, $t:ident . $field:ident, $lo:expr, $hi:expr) => {
+        if let Some(v) = $t.$field {
+            check_value(&key!($at, $t.$field), v, $lo, $hi)?;
+        }
+    };
+}
+
+/// A threshold's value: a number within `(lo, hi]`, or an integer within `[lo, hi]`.
+trait ThresholdValue: Copy {
+    fn check(self, key: &str, lo: f64, hi: f64) -> Result<()>;
+}
+
+impl ThresholdValue for f64 {
+    fn check(self, key: &str, lo: f64, hi: f64) -> Result<()> {
+        float(key, self, lo, hi, true)
+    }
+}
+
+impl ThresholdValue for u32 {
+    fn check(self, key: &str, lo: f64, hi: f64) -> Result<()> {
+        int(key, u64::from(self), lo as u64, hi as u64)
+    }
+}
+
+impl ThresholdValue for usize {
+    fn check(self, key: &str, lo: f64, hi: f64) -> Result<()> {
+        int(key, self as u64, lo as u64, hi as u64)
+    }
+}
+
+fn check_value(key: &str, v: impl ThresholdValue, lo: f64, hi: f64) -> Result<()> {
+    v.check(key, lo, hi)
+}
+
 fn thresholds(at: &str, t: &super::Thresholds) -> Result<()> {
-    for (name, v) in [
-        ("amplitude_px", t.amplitude_px),
-        ("amplitude_arcsec", t.amplitude_arcsec),
-        ("rms_px", t.rms_px),
-        ("rms_arcsec", t.rms_arcsec),
-        ("jump_px", t.jump_px),
-        ("jump_arcsec", t.jump_arcsec),
-        ("sigma_px", t.sigma_px),
-        ("header_sigmas", t.header_sigmas),
-        ("closure_sigmas", t.closure_sigmas),
-        ("lag_s", t.lag_s),
-        ("silence_s", t.silence_s),
-    ] {
-        if let Some(v) = v {
-            float(&format!("{at}.{name}"), v, 0.0, 1e9, true)?;
-        }
-    }
-    if let Some(w) = t.rms_window_frames {
-        int(&format!("{at}.rms_window_frames"), w as u64, 2, 100_000)?;
-    }
-    for (name, v) in [
-        ("consecutive_bad", t.consecutive_bad),
-        ("consecutive_failed", t.consecutive_failed),
-    ] {
-        if let Some(v) = v {
-            int(&format!("{at}.{name}"), u64::from(v), 1, 1_000_000)?;
-        }
-    }
+    check_threshold!(at, t.amplitude_px, 0.0, 1e9);
+    check_threshold!(at, t.amplitude_arcsec, 0.0, 1e9);
+    check_threshold!(at, t.rms_px, 0.0, 1e9);
+    check_threshold!(at, t.rms_arcsec, 0.0, 1e9);
+    check_threshold!(at, t.rms_window_frames, 2.0, 100_000.0);
+    check_threshold!(at, t.jump_px, 0.0, 1e9);
+    check_threshold!(at, t.jump_arcsec, 0.0, 1e9);
+    check_threshold!(at, t.sigma_px, 0.0, 1e9);
+    check_threshold!(at, t.header_sigmas, 0.0, 1e9);
+    check_threshold!(at, t.closure_sigmas, 0.0, 1e9);
+    check_threshold!(at, t.consecutive_bad, 1.0, 1_000_000.0);
+    check_threshold!(at, t.consecutive_failed, 1.0, 1_000_000.0);
+    check_threshold!(at, t.lag_s, 0.0, 1e9);
+    check_threshold!(at, t.silence_s, 0.0, 1e9);
     Ok(())
 }
 

@@ -1,70 +1,117 @@
 //! `inspect --csv`: one row per frame with every field of the `/jitter` record (RFC 4180).
 //!
-//! Columns: `log_time_ns`, then the record's fields in [`COLUMNS`] order (`header_residual`
-//! flattened to `header_residual_<field>`), then any field a newer record adds, by name.
-//! Empty cells are `null`. Rows are grouped by channel (sorted) and ordered by time.
+//! Columns: `log_time_ns`, then the record's fields in the order its type declares them
+//! (`FrameAlignment`, the flattened `AlignResult` first; nested objects such as
+//! `header_residual` flattened to `header_residual_<field>`), then any field a newer record
+//! adds, by name. Empty cells are `null`. Rows are grouped by channel (sorted) and ordered by
+//! time.
 
 use super::{ChannelAnalysis, LoggedFrame};
+use serde::de::{DeserializeSeed, IgnoredAny, MapAccess, SeqAccess, Visitor};
 use serde_json::Value;
 use std::io::Write;
+use std::sync::LazyLock;
+use sunjitter_core::record::FrameAlignment;
 
-/// Known fields, in the order the columns appear.
-pub const COLUMNS: &[&str] = &[
-    "channel",
-    "sequence",
-    "obs_time",
-    "status",
-    "reference_kind",
-    "reference",
-    "frame",
-    "dx_px",
-    "dy_px",
-    "rotation_arcsec",
-    "scale",
-    "dx_arcsec",
-    "dy_arcsec",
-    "sigma_dx_px",
-    "sigma_dy_px",
-    "sigma_rotation_arcsec",
-    "sigma_scale",
-    "sigma_dx_arcsec",
-    "sigma_dy_arcsec",
-    "uabjm_sigma_dx_px",
-    "uabjm_sigma_dy_px",
-    "uabjm_sigma_rotation_arcsec",
-    "uabjm_sigma_scale",
-    "chained_dx_px",
-    "chained_dy_px",
-    "chained_rotation_arcsec",
-    "chained_scale",
-    "chained_dx_arcsec",
-    "chained_dy_arcsec",
-    "sigma_chained_dx_px",
-    "sigma_chained_dy_px",
-    "sigma_chained_rotation_arcsec",
-    "sigma_chained_scale",
-    "sigma_chained_dx_arcsec",
-    "sigma_chained_dy_arcsec",
-    "header_residual_dx_px",
-    "header_residual_dy_px",
-    "header_residual_rotation_arcsec",
-    "header_residual_scale",
-    "solar_rotation_profile",
-    "solar_rotation_dt_s",
-    "solar_rotation_dx_px",
-    "solar_rotation_dy_px",
-    "solar_rotation_tracked",
-    "points",
-    "inliers",
-    "residual_rms_px",
-    "similarity",
-    "model",
-    "message",
-    "elapsed_ms",
-];
+/// The record's fields as columns, read from its type.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecordFields {
+    /// Every field, in the order the type declares them; a nested object's fields as
+    /// `<object>_<field>` in its place.
+    pub columns: Vec<String>,
+    /// The nested objects so flattened (`header_residual`, `solar_rotation`).
+    pub nested: Vec<String>,
+}
 
-/// The record's objects whose fields become columns `<object>_<field>`.
-pub const NESTED: &[&str] = &["header_residual", "solar_rotation"];
+/// The `/jitter` record's fields, from the order a record with every field serialises them in.
+pub static RECORD_FIELDS: LazyLock<RecordFields> = LazyLock::new(|| {
+    let text = serde_json::to_string(&FrameAlignment::with_every_field())
+        .expect("a record serialises to JSON");
+    let mut fields = RecordFields {
+        columns: Vec::new(),
+        nested: Vec::new(),
+    };
+    let mut de = serde_json::Deserializer::from_str(&text);
+    FieldOrder {
+        prefix: String::new(),
+        fields: &mut fields,
+    }
+    .deserialize(&mut de)
+    .expect("a record's JSON reads back");
+    fields
+});
+
+/// Walks a JSON text's objects in order, naming their fields (nested ones `parent_child`).
+struct FieldOrder<'a> {
+    prefix: String,
+    fields: &'a mut RecordFields,
+}
+
+impl<'de> DeserializeSeed<'de> for FieldOrder<'_> {
+    /// Whether the value was an object.
+    type Value = bool;
+
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<bool, D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> Visitor<'de> for FieldOrder<'_> {
+    type Value = bool;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("a JSON value")
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<bool, A::Error> {
+        while let Some(key) = map.next_key::<String>()? {
+            let name = if self.prefix.is_empty() {
+                key
+            } else {
+                format!("{}_{key}", self.prefix)
+            };
+            let object = map.next_value_seed(FieldOrder {
+                prefix: name.clone(),
+                fields: &mut *self.fields,
+            })?;
+            if object {
+                self.fields.nested.push(name);
+            } else {
+                self.fields.columns.push(name);
+            }
+        }
+        Ok(true)
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<bool, A::Error> {
+        while seq.next_element::<IgnoredAny>()?.is_some() {}
+        Ok(false)
+    }
+
+    fn visit_bool<E>(self, _: bool) -> Result<bool, E> {
+        Ok(false)
+    }
+
+    fn visit_i64<E>(self, _: i64) -> Result<bool, E> {
+        Ok(false)
+    }
+
+    fn visit_u64<E>(self, _: u64) -> Result<bool, E> {
+        Ok(false)
+    }
+
+    fn visit_f64<E>(self, _: f64) -> Result<bool, E> {
+        Ok(false)
+    }
+
+    fn visit_str<E>(self, _: &str) -> Result<bool, E> {
+        Ok(false)
+    }
+
+    fn visit_unit<E>(self) -> Result<bool, E> {
+        Ok(false)
+    }
+}
 
 /// A record as flat `name → value` (nested objects become `parent_child`).
 fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
@@ -78,7 +125,7 @@ fn flatten(prefix: &str, v: &Value, out: &mut Vec<(String, Value)>) {
                 };
                 match child {
                     Value::Object(_) => flatten(&name, child, out),
-                    // `header_residual: null` still yields its (empty) columns via COLUMNS.
+                    // `header_residual: null` still yields its (empty) columns: they are known.
                     _ => out.push((name, child.clone())),
                 }
             }
@@ -109,7 +156,8 @@ fn quote(s: &str) -> String {
 /// ends (the Python package) show, so the columns are the same everywhere.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Table {
-    /// `log_time_ns`, then [`COLUMNS`], then the fields a newer record adds, by name.
+    /// `log_time_ns`, then the record's fields ([`RECORD_FIELDS`]), then the fields a newer
+    /// record adds, by name.
     pub columns: Vec<String>,
     /// One row per frame, one value per column (`null` where the record has none).
     pub rows: Vec<Vec<Value>>,
@@ -117,6 +165,7 @@ pub struct Table {
 
 /// The table of every channel's frames.
 pub fn table(analyses: &[ChannelAnalysis]) -> Result<Table, serde_json::Error> {
+    let known = &*RECORD_FIELDS;
     let mut rows = Vec::new();
     let mut extra: Vec<String> = Vec::new();
     for a in analyses {
@@ -125,10 +174,7 @@ pub fn table(analyses: &[ChannelAnalysis]) -> Result<Table, serde_json::Error> {
             let mut flat = Vec::new();
             flatten("", &v, &mut flat);
             for (k, _) in &flat {
-                if !COLUMNS.contains(&k.as_str())
-                    && !NESTED.contains(&k.as_str())
-                    && !extra.contains(k)
-                {
+                if !known.columns.contains(k) && !known.nested.contains(k) && !extra.contains(k) {
                     extra.push(k.clone());
                 }
             }
@@ -137,7 +183,7 @@ pub fn table(analyses: &[ChannelAnalysis]) -> Result<Table, serde_json::Error> {
     }
     extra.sort();
     let columns: Vec<String> = std::iter::once("log_time_ns")
-        .chain(COLUMNS.iter().copied())
+        .chain(known.columns.iter().map(String::as_str))
         .chain(extra.iter().map(|s| s.as_str()))
         .map(str::to_string)
         .collect();
@@ -170,10 +216,10 @@ pub fn frame_from_row(
             log_time_ns = value.as_i64();
             continue;
         }
-        let nested = NESTED.iter().find_map(|n| {
-            name.strip_prefix(n)
+        let nested = RECORD_FIELDS.nested.iter().find_map(|n| {
+            name.strip_prefix(n.as_str())
                 .and_then(|r| r.strip_prefix('_'))
-                .map(|field| (*n, field))
+                .map(|field| (n.as_str(), field))
         });
         match nested {
             Some((object, field)) => {
@@ -189,8 +235,8 @@ pub fn frame_from_row(
             }
         }
     }
-    for object in NESTED {
-        if let Some(Value::Object(fields)) = record.get(*object) {
+    for object in &RECORD_FIELDS.nested {
+        if let Some(Value::Object(fields)) = record.get(object) {
             if fields.values().all(Value::is_null) {
                 record.insert(object.to_string(), Value::Null);
             }
@@ -242,7 +288,7 @@ mod tests {
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines.len(), 3);
         let header: Vec<&str> = lines[0].split(',').collect();
-        assert_eq!(header.len(), 1 + COLUMNS.len());
+        assert_eq!(header.len(), 1 + RECORD_FIELDS.columns.len());
         // Every serialised field of the record has a column.
         let v = serde_json::to_value(&frames[0].record).unwrap();
         for k in v.as_object().unwrap().keys() {

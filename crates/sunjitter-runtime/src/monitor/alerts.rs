@@ -70,6 +70,21 @@ pub struct AlertEngine {
     channels: BTreeMap<String, ChannelWatch>,
 }
 
+/// `ChannelWatch::judge` of the threshold `$field` of `$thresholds`: the alert's kind is the
+/// threshold's configuration key, its field's name.
+macro_rules! judge {
+    ($w:ident, $events:expr, $at:expr, $thresholds:expr => $field:ident, $value:expr, $raised:expr) => {
+        $w.judge(
+            $events,
+            $at,
+            stringify!($field),
+            $thresholds.$field.map(f64::from),
+            $value,
+            $raised,
+        )
+    };
+}
+
 impl AlertEngine {
     pub fn new(config: AlertsConfig) -> AlertEngine {
         AlertEngine {
@@ -123,14 +138,7 @@ impl AlertEngine {
         // Silence ends with any frame.
         if let Some(last) = w.last_frame_wall_ns {
             let gap = (wall_ns - last) as f64 / 1e9;
-            w.judge(
-                &mut events,
-                &at,
-                "silence_s",
-                t.silence_s,
-                Some(gap),
-                |_, _| false,
-            );
+            judge!(w, &mut events, &at, t => silence_s, Some(gap), |_, _| false);
         }
         w.last_frame_wall_ns = Some(wall_ns);
 
@@ -151,27 +159,10 @@ impl AlertEngine {
         };
         let (bad_run, failed_run) = (w.bad_run as f64, w.failed_run as f64);
         let reached = |v: f64, thr: f64| v >= thr;
-        let bad_limit = t.consecutive_bad.map(f64::from);
-        w.judge(
-            &mut events,
-            &at,
-            "consecutive_bad",
-            bad_limit,
-            Some(bad_run),
-            reached,
-        );
-        let failed_limit = t.consecutive_failed.map(f64::from);
-        let kind = "consecutive_failed";
-        w.judge(
-            &mut events,
-            &at,
-            kind,
-            failed_limit,
-            Some(failed_run),
-            reached,
-        );
+        judge!(w, &mut events, &at, t => consecutive_bad, Some(bad_run), reached);
+        judge!(w, &mut events, &at, t => consecutive_failed, Some(failed_run), reached);
 
-        w.judge(&mut events, &at, "lag_s", t.lag_s, lag_s, above);
+        judge!(w, &mut events, &at, t => lag_s, lag_s, above);
 
         let raw = match (a.status, a.dx_px, a.dy_px) {
             (Status::Failed, _, _) => None,
@@ -194,58 +185,23 @@ impl AlertEngine {
             (Some(x), Some(y)) => Some(x.hypot(y)),
             _ => None,
         };
-        w.judge(
-            &mut events,
-            &at,
-            "amplitude_px",
-            t.amplitude_px,
-            Some(raw.0.hypot(raw.1)),
-            above,
-        );
-        w.judge(
-            &mut events,
-            &at,
-            "amplitude_arcsec",
-            t.amplitude_arcsec,
-            amplitude_arcsec,
-            above,
-        );
+        judge!(w, &mut events, &at, t => amplitude_px, Some(raw.0.hypot(raw.1)), above);
+        judge!(w, &mut events, &at, t => amplitude_arcsec, amplitude_arcsec, above);
 
         let sigma = match (a.sigma_dx_px, a.sigma_dy_px) {
             (Some(x), Some(y)) => Some(x.max(y)),
             _ => None,
         };
-        w.judge(&mut events, &at, "sigma_px", t.sigma_px, sigma, above);
+        judge!(w, &mut events, &at, t => sigma_px, sigma, above);
 
         let header = header_sigmas(a);
-        w.judge(
-            &mut events,
-            &at,
-            "header_sigmas",
-            t.header_sigmas,
-            header,
-            above,
-        );
+        judge!(w, &mut events, &at, t => header_sigmas, header, above);
 
         if let Some(last) = w.last_position {
             let d = (position.0 - last.0, position.1 - last.1);
             let jump_arcsec = to_arcsec(d, scale).map(|(x, y)| x.hypot(y));
-            w.judge(
-                &mut events,
-                &at,
-                "jump_px",
-                t.jump_px,
-                Some(d.0.hypot(d.1)),
-                above,
-            );
-            w.judge(
-                &mut events,
-                &at,
-                "jump_arcsec",
-                t.jump_arcsec,
-                jump_arcsec,
-                above,
-            );
+            judge!(w, &mut events, &at, t => jump_px, Some(d.0.hypot(d.1)), above);
+            judge!(w, &mut events, &at, t => jump_arcsec, jump_arcsec, above);
         }
         w.last_position = Some(position);
 
@@ -262,15 +218,8 @@ impl AlertEngine {
                 .map(|p| to_arcsec(*p, scale))
                 .collect::<Option<Vec<_>>>()
                 .map(|ps| rms_about_mean(ps.into_iter()));
-            w.judge(&mut events, &at, "rms_px", t.rms_px, Some(rms_px), above);
-            w.judge(
-                &mut events,
-                &at,
-                "rms_arcsec",
-                t.rms_arcsec,
-                rms_arcsec,
-                above,
-            );
+            judge!(w, &mut events, &at, t => rms_px, Some(rms_px), above);
+            judge!(w, &mut events, &at, t => rms_arcsec, rms_arcsec, above);
         }
         events
     }
@@ -286,21 +235,13 @@ impl AlertEngine {
             None => change.file.clone(),
         };
         let w = self.watch(&change.channel);
-        let threshold = w.thresholds.closure_sigmas;
         let z = closure.z().iter().fold(0.0f64, |m, z| m.max(z.abs()));
         let at = At {
             channel: &change.channel,
             frame: Some(&key),
             time_ns: log_time_ns,
         };
-        w.judge(
-            &mut events,
-            &at,
-            "closure_sigmas",
-            threshold,
-            Some(z),
-            above,
-        );
+        judge!(w, &mut events, &at, w.thresholds => closure_sigmas, Some(z), above);
         events
     }
 
@@ -317,8 +258,7 @@ impl AlertEngine {
                 frame: None,
                 time_ns: wall_ns,
             };
-            let threshold = w.thresholds.silence_s;
-            w.judge(&mut events, &at, "silence_s", threshold, Some(gap), above);
+            judge!(w, &mut events, &at, w.thresholds => silence_s, Some(gap), above);
         }
         events
     }
@@ -463,6 +403,27 @@ impl ChannelWatch {
 mod tests {
     use super::*;
     use sunjitter_core::record::AlignResult;
+
+    #[test]
+    fn every_threshold_key_is_a_described_kind() {
+        // The keys `[alerts.defaults]` reads, from the configuration's own parser.
+        let t: Thresholds = toml::from_str(
+            "amplitude_px = 1\namplitude_arcsec = 1\nrms_px = 1\nrms_arcsec = 1\n\
+             rms_window_frames = 5\njump_px = 1\njump_arcsec = 1\nsigma_px = 1\n\
+             header_sigmas = 1\nclosure_sigmas = 1\nconsecutive_bad = 1\n\
+             consecutive_failed = 1\nlag_s = 1\nsilence_s = 1",
+        )
+        .unwrap();
+        let keys = serde_json::to_value(&t).unwrap();
+        let keys: Vec<&String> = keys.as_object().unwrap().keys().collect();
+        assert_eq!(keys.len(), 14, "{keys:?}");
+        for key in keys {
+            if key == "rms_window_frames" {
+                continue; // the window of rms_*, not a threshold of its own
+            }
+            assert_ne!(describe(key), "value", "{key}");
+        }
+    }
 
     const S: i64 = 1_000_000_000;
     /// Plate scale of the records below (IRIS SJI: CDELT1 = CDELT2 = 0.16635″).
