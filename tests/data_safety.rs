@@ -260,7 +260,19 @@ fn a_merge_killed_while_replacing_its_earlier_output_leaves_it_whole() {
         String::from_utf8_lossy(&last.stderr)
     );
     assert_eq!(jitter_count(&merged), 6);
-    assert!(leftovers(&base).is_empty(), "{:?}", leftovers(&base));
+    let left: Vec<(String, Vec<String>)> = leftovers(&base)
+        .into_iter()
+        .map(|n| {
+            let inside = std::fs::read_dir(base.join(&n))
+                .map(|d| {
+                    d.map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                        .collect()
+                })
+                .unwrap_or_default();
+            (n, inside)
+        })
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
     let names: Vec<String> = std::fs::read_dir(&merged)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())

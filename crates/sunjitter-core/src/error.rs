@@ -174,9 +174,13 @@ pub fn check_writable(path: &std::path::Path) -> Result<()> {
     opened.map_err(|e| Error::unwritable(path, e))
 }
 
+/// The name of [`check_writable_dir`]'s probe file, before its process id: a process killed
+/// between creating and removing it leaves one, which whoever cleans the directory removes.
+pub const WRITE_PROBE_PREFIX: &str = ".sunjitter-write-check-";
+
 /// Check, before any work, that files can be created in the directory `dir`.
 pub fn check_writable_dir(dir: &std::path::Path) -> Result<()> {
-    let probe = dir.join(format!(".sunjitter-write-check-{}", std::process::id()));
+    let probe = dir.join(format!("{WRITE_PROBE_PREFIX}{}", std::process::id()));
     std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)

@@ -723,8 +723,9 @@ fn staging_dir(parent: &Path, name: &std::ffi::OsStr, pid: u32) -> PathBuf {
     parent.join(format!(".{}.merge-{pid}", name.to_string_lossy()))
 }
 
-/// Remove what a merge put in `dir` (segments, their recovery copies, the lock file), then
-/// the directory if that leaves it empty. Anything else is left; a link is never followed.
+/// Remove what a merge put in `dir` (segments, their recovery copies, the lock file, a
+/// write check's probe), then the directory if that leaves it empty. Anything else is left; a
+/// link is never followed.
 fn remove_merge_dir(dir: &Path) {
     let is_dir = std::fs::symlink_metadata(dir).is_ok_and(|m| m.is_dir());
     if !is_dir {
@@ -735,7 +736,8 @@ fn remove_merge_dir(dir: &Path) {
             let name = entry.file_name().to_string_lossy().into_owned();
             let ours = name == sunjitter_io::outputs::LOCK_FILE
                 || name.ends_with(".mcap")
-                || name.ends_with(".mcap.recovering");
+                || name.ends_with(".mcap.recovering")
+                || name.starts_with(sunjitter_core::error::WRITE_PROBE_PREFIX);
             if ours && entry.file_type().is_ok_and(|t| t.is_file()) {
                 let _ = std::fs::remove_file(entry.path());
             }
