@@ -218,6 +218,48 @@ pub struct AlignResult {
     pub elapsed_ms: f64,
 }
 
+impl AlignResult {
+    /// The identity, with zero σ, of `frame` measured against `reference` (a frame aligned to
+    /// itself); `status` ok, no model fitted, no rotation taken out.
+    pub fn identity(reference: String, frame: String, message: &str) -> AlignResult {
+        AlignResult {
+            reference,
+            frame,
+            scale: Some(1.0),
+            rotation_arcsec: Some(0.0),
+            dx_px: Some(0.0),
+            dy_px: Some(0.0),
+            dx_arcsec: Some(0.0),
+            dy_arcsec: Some(0.0),
+            sigma_scale: Some(0.0),
+            sigma_rotation_arcsec: Some(0.0),
+            sigma_dx_px: Some(0.0),
+            sigma_dy_px: Some(0.0),
+            sigma_dx_arcsec: Some(0.0),
+            sigma_dy_arcsec: Some(0.0),
+            uabjm_sigma_scale: Some(0.0),
+            uabjm_sigma_rotation_arcsec: Some(0.0),
+            uabjm_sigma_dx_px: Some(0.0),
+            uabjm_sigma_dy_px: Some(0.0),
+            header_residual: Some(TransformFields {
+                scale: 1.0,
+                rotation_arcsec: 0.0,
+                dx_px: 0.0,
+                dy_px: 0.0,
+            }),
+            solar_rotation: None,
+            points: 0,
+            inliers: 0,
+            residual_rms_px: Some(0.0),
+            similarity: Some(1.0),
+            model: None,
+            status: Status::Ok,
+            message: message.into(),
+            elapsed_ms: 0.0,
+        }
+    }
+}
+
 /// One `/jitter/<channel>` MCAP message: the align fields plus the stream context.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct FrameAlignment {
@@ -269,32 +311,7 @@ impl FrameAlignment {
     /// A message with every field present (no `null`, every nested object), from which lists
     /// of the fields in the order the type declares them are read (the CSV's columns).
     pub fn with_every_field() -> FrameAlignment {
-        let t = TransformFields {
-            scale: 1.0,
-            rotation_arcsec: 0.0,
-            dx_px: 0.0,
-            dy_px: 0.0,
-        };
         let align = AlignResult {
-            reference: String::new(),
-            frame: String::new(),
-            scale: Some(1.0),
-            rotation_arcsec: Some(0.0),
-            dx_px: Some(0.0),
-            dy_px: Some(0.0),
-            dx_arcsec: Some(0.0),
-            dy_arcsec: Some(0.0),
-            sigma_scale: Some(0.0),
-            sigma_rotation_arcsec: Some(0.0),
-            sigma_dx_px: Some(0.0),
-            sigma_dy_px: Some(0.0),
-            sigma_dx_arcsec: Some(0.0),
-            sigma_dy_arcsec: Some(0.0),
-            uabjm_sigma_scale: Some(0.0),
-            uabjm_sigma_rotation_arcsec: Some(0.0),
-            uabjm_sigma_dx_px: Some(0.0),
-            uabjm_sigma_dy_px: Some(0.0),
-            header_residual: Some(t),
             solar_rotation: Some(SolarRotationFields {
                 profile: crate::solar_rotation::Profile::Howard,
                 dt_s: 0.0,
@@ -302,14 +319,8 @@ impl FrameAlignment {
                 dy_px: 0.0,
                 tracked: false,
             }),
-            points: 0,
-            inliers: 0,
-            residual_rms_px: Some(0.0),
-            similarity: Some(1.0),
             model: Some(Model::Similarity),
-            status: Status::Ok,
-            message: String::new(),
-            elapsed_ms: 0.0,
+            ..AlignResult::identity(String::new(), String::new(), "")
         };
         FrameAlignment {
             align,

@@ -34,7 +34,7 @@ mod workspace;
 use crate::geometry::{Covariance4, Similarity};
 use crate::meta::FrameMeta;
 use crate::preprocess;
-use crate::record::{AlignResult, Status, TransformFields};
+use crate::record::{AlignResult, Status};
 use ndarray::{Array2, ArrayView2};
 use std::time::Instant;
 
@@ -333,43 +333,8 @@ pub fn self_alignment(image: &Image) -> AlignOutcome {
     let t = Similarity::identity(Similarity::array_center(w, h));
     let zero = [[0.0; 4]; 4];
     let name = image.meta.file.display().to_string();
-    let fields = TransformFields {
-        scale: 1.0,
-        rotation_arcsec: 0.0,
-        dx_px: 0.0,
-        dy_px: 0.0,
-    };
     AlignOutcome {
-        result: AlignResult {
-            reference: name.clone(),
-            frame: name,
-            scale: Some(1.0),
-            rotation_arcsec: Some(0.0),
-            dx_px: Some(0.0),
-            dy_px: Some(0.0),
-            dx_arcsec: Some(0.0),
-            dy_arcsec: Some(0.0),
-            sigma_scale: Some(0.0),
-            sigma_rotation_arcsec: Some(0.0),
-            sigma_dx_px: Some(0.0),
-            sigma_dy_px: Some(0.0),
-            sigma_dx_arcsec: Some(0.0),
-            sigma_dy_arcsec: Some(0.0),
-            uabjm_sigma_scale: Some(0.0),
-            uabjm_sigma_rotation_arcsec: Some(0.0),
-            uabjm_sigma_dx_px: Some(0.0),
-            uabjm_sigma_dy_px: Some(0.0),
-            header_residual: Some(fields),
-            solar_rotation: None,
-            points: 0,
-            inliers: 0,
-            residual_rms_px: Some(0.0),
-            model: None,
-            similarity: Some(1.0),
-            status: Status::Ok,
-            message: "reference frame (aligned to itself)".into(),
-            elapsed_ms: 0.0,
-        },
+        result: AlignResult::identity(name.clone(), name, "reference frame (aligned to itself)"),
         transform: Some(t),
         coarse: Some(t),
         covariance: Some(zero),

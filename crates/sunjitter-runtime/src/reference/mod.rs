@@ -894,42 +894,11 @@ impl ChannelState {
         chain: Option<Chain>,
         records: &mut Vec<Record>,
     ) -> Emitted {
-        let zero = Some(0.0);
-        let align = AlignResult {
-            reference: frame.key.clone(),
-            frame: frame.key.clone(),
-            scale: Some(1.0),
-            rotation_arcsec: zero,
-            dx_px: zero,
-            dy_px: zero,
-            dx_arcsec: zero,
-            dy_arcsec: zero,
-            sigma_scale: zero,
-            sigma_rotation_arcsec: zero,
-            sigma_dx_px: zero,
-            sigma_dy_px: zero,
-            sigma_dx_arcsec: zero,
-            sigma_dy_arcsec: zero,
-            uabjm_sigma_scale: zero,
-            uabjm_sigma_rotation_arcsec: zero,
-            uabjm_sigma_dx_px: zero,
-            uabjm_sigma_dy_px: zero,
-            header_residual: Some(TransformFields {
-                scale: 1.0,
-                rotation_arcsec: 0.0,
-                dx_px: 0.0,
-                dy_px: 0.0,
-            }),
-            solar_rotation: None,
-            points: 0,
-            inliers: 0,
-            residual_rms_px: zero,
-            model: None,
-            similarity: Some(1.0),
-            status: Status::Ok,
-            message: "starts a reference: aligned to itself".into(),
-            elapsed_ms: 0.0,
-        };
+        let align = AlignResult::identity(
+            frame.key.clone(),
+            frame.key.clone(),
+            "starts a reference: aligned to itself",
+        );
         self.push_message(
             frame,
             sequence,
