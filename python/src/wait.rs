@@ -49,6 +49,9 @@ pub fn run<T: Send + 'static>(
                 if let Some(err) = interrupted {
                     return Err(err);
                 }
+                // A Ctrl-C that came while the work ran, after the last look, ends the call
+                // as an earlier one would: from within it, not at the caller's next line.
+                py.check_signals()?;
                 tick(py)?;
                 return outcome.map_err(|panic| crate::errors::internal(what, panic));
             }

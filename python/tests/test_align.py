@@ -181,7 +181,9 @@ def interrupt_once_the_engine_runs():
 
 threading.Thread(target=interrupt_once_the_engine_runs, daemon=True).start()
 try:
-    align()
+    # The interrupter may miss a short alignment between two of its looks: it gets more.
+    for _ in range(100):
+        align()
     print("finished")
 except KeyboardInterrupt as e:
     innermost = traceback.extract_tb(e.__traceback__)[-1]
@@ -191,7 +193,7 @@ except KeyboardInterrupt as e:
 
 def test_ctrl_c_interrupts_a_running_alignment(cli, tmp_path):
     """Ctrl-C while the engine runs raises KeyboardInterrupt from within the call (the
-    engine's own thread finishes unseen)."""
+    engine's own thread finishes unseen), also when it comes just before the call ends."""
     import subprocess
     import sys
 
